@@ -1,0 +1,60 @@
+"""ament_python package snn_rendezvous; installable by colcon and by pip alike."""
+
+import os
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'snn_rendezvous'
+EXECUTABLES = {
+    'cw_plant': 'scenario_nodes.plant_node:main',
+    'position_sensor': 'scenario_nodes.sensor_node:main',
+    'lqr_controller': 'scenario_nodes.controller_node:main',
+    'estimator': 'scenario_nodes.estimator_node:main',
+    'recorder': 'scenario_nodes.recorder_node:main',
+    'report': 'scenario_nodes.report:main',
+    'snn_demo': 'scenario_nodes.demo:main',
+    'snn_experiments': 'snn_estimator.experiments:main',
+    'snn_bench': 'snn_estimator.bench:main',
+}
+
+data_files = [
+    ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),
+    (f'share/{PACKAGE}', ['package.xml']),
+    (f'share/{PACKAGE}/launch', glob('launch/*.launch.py')),
+    (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+    (f'share/{PACKAGE}/rosdep', glob('rosdep/*.yaml')),
+]
+# `ros2 run` looks for executables in <prefix>/lib/<package>. colcon puts the console scripts
+# there (setup.cfg install_scripts); pip puts them in <prefix>/bin, so a pip install also gets
+# small wrappers in lib/<package> that exec the console script in ../../bin.
+if not os.environ.get('COLCON'):
+    data_files.append((f'lib/{PACKAGE}', sorted(glob('wrappers/*'))))
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    description='Spiking-network EKF/EMSIF state estimators in a closed-loop CW rendezvous '
+                'GNC pipeline for ROS 2 Jazzy',
+    long_description=open('README.md', encoding='utf-8').read() if os.path.exists('README.md') else '',
+    long_description_content_type='text/markdown',
+    license='Apache-2.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=data_files,
+    python_requires='>=3.10',
+    install_requires=[
+        'setuptools',
+        'numpy>=1.24',
+        'scipy>=1.10',
+        'control>=0.10',
+        'numba>=0.58',
+        'matplotlib>=3.6',
+        'rosbags>=0.10',
+        'PyYAML>=6',
+    ],
+    extras_require={'test': ['pytest>=7', 'hypothesis>=6']},
+    zip_safe=True,
+    maintainer='snn_rendezvous maintainers',
+    maintainer_email='maintainers@users.noreply.h-seed-73572919.example',
+    entry_points={'console_scripts': [f'{name} = {target}' for name, target in EXECUTABLES.items()]},
+)

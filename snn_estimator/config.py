@@ -1,0 +1,129 @@
+"""Estimator configuration: one validated record shared by the ROS node and the offline tools."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .models import DISCRETIZATIONS, StateSpaceModel
+from .validation import as_matrix, as_vector, check_choice, check_covariance, check_positive
+
+SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Everything a filter needs besides the model. Defaults: the rendezvous scenario (Table 6)
+    with this package's numerical choices (see README, "Decisions").
+
+    Matrices may be given as a matrix, a flat row-major list, a diagonal vector or a scalar.
+    """
+
+    #: N, number of LIF neurons (Table 6: 200).
+    neuron_count: int = 200
+    #: lambda, leak of membrane potentials and filtered spike trains, 1/s (Eq. 10-11; Table 6).
+    leak_rate: float = 0.001
+    #: delta, sliding boundary layer of the (M)SIF gain, one per measurement or a scalar (Eq. 7-8).
+    boundary_layer: Any = 0.1
+    #: Variance of the decoder entries, D ~ N(0, var) (Sec. 3.2: 1/15).
+    decoder_variance: float = 1.0 / 15.0
+    #: Seed of the decoder (and membrane noise); run b of a batch uses seed + b.
+    seed: int = 0
+    #: Q, true process-noise spectral density (Table 6: 1e-12 I6); the filter uses scale * Q.
+    process_noise: Any = 1e-12
+    #: R, true measurement-noise covariance per sample (Table 6: 1e-2 I3); the filter uses scale * R.
+    measurement_noise: Any = 1e-2
+    #: Q_hat = process_noise_scale * Q (Sec. 3.2: 0.9).
+    process_noise_scale: float = 0.9
+    #: R_hat = measurement_noise_scale * R (Sec. 3.2: 5).
+    measurement_noise_scale: float = 5.0
+    #: P0, initial estimation-error covariance (not stated in the paper; see README).
+    initial_covariance: Any = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
+    #: x_hat0, initial estimate (Table 6: equal to x0).
+    initial_state: Any = (70.0, 30.0, -5.0, -1.7, -0.9, 0.25)
+    #: How neurons above threshold fire within one step: greedy | one_per_step | all_above.
+    spike_rule: str = 'greedy'
+    #: Diagonal of S: the network encodes x~ = S^-1 x (None: S = I, the paper's literal network).
+    state_scale: Any = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
+    #: How the continuous equations are stepped: exact (ZOH of the linearised drift) | euler.
+    discretization: str = 'exact'
+    #: Standard deviation of the membrane noise eta, per sqrt(s) (Eq. 10; 0 = off).
+    membrane_noise: float = 0.0
+    #: Safety cap on spikes per step and run for the greedy rule (0: 1000 N).
+    max_spikes_per_step: int = 0
+    #: Indices of silenced (dead) neurons.
+    silenced_neurons: tuple = field(default_factory=tuple)
+
+    def replace(self, **changes) -> 'EstimatorConfig':
+        """A copy with some fields changed (unknown names raise TypeError)."""
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class ResolvedConfig:
+    """An :class:`EstimatorConfig` checked against a model, with arrays of the right shapes."""
+
+    neuron_count: int
+    leak_rate: float
+    boundary_layer: np.ndarray
+    decoder_variance: float
+    seed: int
+    q_hat: np.ndarray
+    r_hat: np.ndarray
+    initial_covariance: np.ndarray
+    initial_state: np.ndarray
+    spike_rule: str
+    state_scale: np.ndarray
+    discretization: str
+    membrane_noise: float
+    max_spikes_per_step: int
+    silenced_neurons: tuple
+
+
+def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
+    """Validate ``config`` for ``model``; raise ValueError naming the field and the fix."""
+    n, m = model.n_state, model.n_meas
+    if isinstance(config.neuron_count, bool) or int(config.neuron_count) != config.neuron_count \
+            or config.neuron_count <= 0:
+        raise ValueError(f'neuron_count (N) must be a positive integer, got {config.neuron_count!r}')
+    neurons = int(config.neuron_count)
+    leak = check_positive(config.leak_rate, 'leak_rate (lambda, 1/s)', strict=False)
+    delta = as_vector(config.boundary_layer, m, 'boundary_layer (delta)')
+    if np.any(delta <= 0.0):
+        raise ValueError(f'boundary_layer (delta) must be > 0, got {delta.tolist()}')
+    variance = check_positive(config.decoder_variance, 'decoder_variance')
+    q = check_covariance(as_matrix(config.process_noise, (n, n), 'process_noise (Q)'),
+                         'process_noise (Q)', allow_singular=True)
+    r = check_covariance(as_matrix(config.measurement_noise, (m, m), 'measurement_noise (R)'),
+                         'measurement_noise (R)')
+    q_scale = check_positive(config.process_noise_scale, 'process_noise_scale', strict=False)
+    r_scale = check_positive(config.measurement_noise_scale, 'measurement_noise_scale')
+    p0 = check_covariance(as_matrix(config.initial_covariance, (n, n), 'initial_covariance (P0)'),
+                          'initial_covariance (P0)')
+    x0 = as_vector(config.initial_state, n, 'initial_state (x_hat0)')
+    rule = check_choice(config.spike_rule, SPIKE_RULES, 'spike_rule')
+    if config.state_scale is None:
+        scale = np.ones(n)
+    else:
+        scale = as_vector(config.state_scale, n, 'state_scale')
+        if np.any(scale <= 0.0):
+            raise ValueError(f'state_scale entries must be > 0, got {scale.tolist()}')
+    method = check_choice(config.discretization, DISCRETIZATIONS, 'discretization')
+    noise = check_positive(config.membrane_noise, 'membrane_noise', strict=False)
+    cap = int(config.max_spikes_per_step)
+    if cap < 0:
+        raise ValueError(f'max_spikes_per_step must be >= 0 (0 = 1000 N), got {cap}')
+    silenced = tuple(sorted({int(i) for i in config.silenced_neurons}))
+    if silenced and (silenced[0] < 0 or silenced[-1] >= neurons):
+        raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {silenced}')
+    seed = int(config.seed)
+    if seed < 0:
+        raise ValueError(f'seed must be >= 0, got {seed}')
+    return ResolvedConfig(
+        neuron_count=neurons, leak_rate=leak, boundary_layer=delta, decoder_variance=variance,
+        seed=seed, q_hat=q_scale * q, r_hat=r_scale * r, initial_covariance=p0,
+        initial_state=x0, spike_rule=rule, state_scale=scale, discretization=method,
+        membrane_noise=noise, max_spikes_per_step=cap or 1000 * neurons, silenced_neurons=silenced)

@@ -1,0 +1,373 @@
+"""The filters of the paper behind one interface, and the registry that builds them.
+
+=================  ==========================================  ==============================
+kind               gain                                        state integration
+=================  ==========================================  ==============================
+``ekf``            Kalman, K = P C^T R^-1 (Eq. 5), P by Eq. 6   direct (Eq. 3)
+``emsif``          MSIF, C^+ sat(diag(Pzz)/delta) (Eq. 8-9)     direct
+``esif``           SIF, C^+ sat(|z - z_hat|/delta) (Eq. 7)      direct (twin of snn_emsif_star)
+``snn_ekf``        Kalman (Eq. 19-20)                           spiking network (Eq. 14-15)
+``snn_emsif``      MSIF (Eq. 21-22)                             spiking network
+``snn_emsif_star`` SIF, no covariance (Eq. 23-24)               spiking network
+=================  ==========================================  ==============================
+
+Every estimator steps a batch of independent runs (leading axis ``runs``); with ``runs == 1``
+the public arrays drop that axis. One step maps the estimate at t_k, the measurement z_k taken
+at t_k and the control u_k held over [t_k, t_k + dt) to the estimate at t_k + dt.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import nnls
+
+from . import kernels
+from .config import EstimatorConfig, ResolvedConfig, resolve
+from .models import StateSpaceModel
+
+NETWORK_STREAM = 3  # rng stream id of the decoder and membrane noise (see seeding in README)
+
+_GAINS = {'kalman': kernels.GAIN_KALMAN, 'msif': kernels.GAIN_MSIF, 'sif': kernels.GAIN_SIF}
+_RULES = {'greedy': kernels.RULE_GREEDY, 'one_per_step': kernels.RULE_ONE_PER_STEP,
+          'all_above': kernels.RULE_ALL_ABOVE}
+
+#: kind -> (gain law, spiking?)
+FILTER_KINDS = {
+    'ekf': ('kalman', False),
+    'emsif': ('msif', False),
+    'esif': ('sif', False),
+    'snn_ekf': ('kalman', True),
+    'snn_emsif': ('msif', True),
+    'snn_emsif_star': ('sif', True),
+}
+#: The non-spiking filter each spiking filter implements.
+TWIN_OF = {'snn_ekf': 'ekf', 'snn_emsif': 'emsif', 'snn_emsif_star': 'esif'}
+
+
+def network_rng(seed: int) -> np.random.Generator:
+    """The generator of a network's decoder and membrane noise for one run."""
+    return np.random.default_rng([int(seed), NETWORK_STREAM])
+
+
+class Estimator:
+    """A filter from :data:`FILTER_KINDS` over ``runs`` independent runs.
+
+    Build with :func:`make_estimator`. ``step(z, u, dt)`` returns the new estimate.
+    """
+
+    def __init__(self, kind: str, model: StateSpaceModel, config: EstimatorConfig,
+                 runs: int = 1, seeds: Sequence[int] | None = None):
+        if kind not in FILTER_KINDS:
+            raise ValueError(f'unknown filter kind {kind!r}; choose one of {", ".join(FILTER_KINDS)}')
+        if int(runs) < 1:
+            raise ValueError(f'runs must be >= 1, got {runs}')
+        self.kind = kind
+        self.model = model
+        self.config = config
+        self.settings: ResolvedConfig = resolve(config, model)
+        gain_law, self.spiking = FILTER_KINDS[kind]
+        self._gain_code = _GAINS[gain_law]
+        self.has_covariance = gain_law != 'sif'
+        self.runs = int(runs)
+        self.seeds = ([self.settings.seed + b for b in range(self.runs)] if seeds is None
+                      else [int(s) for s in seeds])
+        if len(self.seeds) != self.runs:
+            raise ValueError(f'seeds must have {self.runs} entries, got {len(self.seeds)}')
+        n, m = model.n_state, model.n_meas
+        c = np.ascontiguousarray(model.measurement_matrix, dtype=float)
+        self._c = c
+        self._c_pinv = np.linalg.pinv(c)
+        self._gain = np.zeros((self.runs, n, m))
+        self._no_drift = np.zeros((1, n))
+        self._linear_cache: dict[float, np.ndarray] = {}
+        self._rule_code = _RULES[self.settings.spike_rule]
+        self._scale = np.ascontiguousarray(self.settings.state_scale)
+        self._consts = kernels.pack_constants(
+            c, self._c_pinv, self.settings.q_hat, np.linalg.inv(self.settings.r_hat),
+            np.diag(self.settings.r_hat), self.settings.boundary_layer, self._scale)
+        self.steps = 0
+        self.capped_steps = 0
+        self._build_network(neurons=self.settings.neuron_count if self.spiking else 0)
+        self.reset()
+
+    # ------------------------------------------------------------------ public state
+    def _single(self, array: np.ndarray) -> np.ndarray:
+        return array[0] if self.runs == 1 else array
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        """Current estimate, shape (n,) or (runs, n)."""
+        return self._single(self._x_hat)
+
+    @property
+    def P(self) -> np.ndarray | None:
+        """Covariance of Eq. 6, shape (n, n) or (runs, n, n); None for the SIF-gain filters."""
+        return self._single(self._p) if self.has_covariance else None
+
+    @property
+    def gain(self) -> np.ndarray:
+        """The gain K used in the last step, shape (n, m) or (runs, n, m)."""
+        return self._single(self._gain)
+
+    @property
+    def spikes(self) -> np.ndarray | None:
+        """Spikes per neuron in the last step, shape (N,) or (runs, N); None if not spiking."""
+        return self._single(self._spikes) if self.spiking else None
+
+    @property
+    def spike_count(self) -> int | np.ndarray:
+        """Spikes emitted in the last step (per run)."""
+        if not self.spiking:
+            return 0
+        counts = self._spikes.sum(axis=1)
+        return int(counts[0]) if self.runs == 1 else counts
+
+    @property
+    def total_spikes(self) -> int | np.ndarray:
+        """Spikes emitted since the last reset (per run)."""
+        if not self.spiking:
+            return 0
+        return int(self._total_spikes[0]) if self.runs == 1 else self._total_spikes.copy()
+
+    @property
+    def neuron_count(self) -> int:
+        return self.settings.neuron_count if self.spiking else 0
+
+    @property
+    def decoder(self) -> np.ndarray:
+        """D, shape (n, N) or (runs, n, N) (in scaled units; x_hat = S D r)."""
+        self._require_network()
+        return self._single(self._decoder)
+
+    @property
+    def rates(self) -> np.ndarray:
+        """Filtered spike trains r, shape (N,) or (runs, N)."""
+        self._require_network()
+        return self._single(self._r)
+
+    @property
+    def potentials(self) -> np.ndarray:
+        """Membrane potentials v, shape (N,) or (runs, N)."""
+        self._require_network()
+        return self._single(self._v)
+
+    @property
+    def thresholds(self) -> np.ndarray:
+        """T_i = ||D_i||^2 / 2, shape (N,) or (runs, N)."""
+        self._require_network()
+        return self._single(self._thresholds)
+
+    @property
+    def silenced(self) -> tuple:
+        """Indices of the silenced neurons."""
+        return tuple(int(i) for i in np.flatnonzero(~self._alive[0])) if self.spiking else ()
+
+    # ------------------------------------------------------------------ set-up
+    def _require_network(self):
+        if not self.spiking:
+            raise AttributeError(f'{self.kind} is not a spiking filter')
+
+    def _build_network(self, neurons: int):
+        """Decoder D ~ N(0, var) per run, Gram matrix D^T D, thresholds T_i = ||D_i||^2/2.
+        A non-spiking filter gets empty arrays (the kernel ignores them)."""
+        s = self.settings
+        n = self.model.n_state
+        self._decoder = np.empty((self.runs, n, neurons))
+        for b, seed in enumerate(self.seeds):
+            self._decoder[b] = network_rng(seed).normal(0.0, math.sqrt(s.decoder_variance), (n, neurons))
+        self._noise_rngs = [np.random.default_rng([seed, NETWORK_STREAM, 1]) for seed in self.seeds]
+        self._gram = np.ascontiguousarray(np.einsum('bki,bkj->bij', self._decoder, self._decoder))
+        self._thresholds = 0.5 * np.einsum('bki,bki->bi', self._decoder, self._decoder)
+        self._r = np.zeros((self.runs, neurons))
+        self._v = np.zeros((self.runs, neurons))
+        self._alive = np.ones((self.runs, neurons), dtype=np.bool_)
+        self._spikes = np.zeros((self.runs, neurons), dtype=np.int64)
+        self._total_spikes = np.zeros(self.runs, dtype=np.int64)
+        self._zero_noise = np.zeros((self.runs, neurons))
+
+    def reset(self, x_hat0=None, P0=None) -> None:
+        """Restart from ``x_hat0`` (default: configured) and ``P0``; silenced neurons stay silent.
+
+        Spiking filters set rates r >= 0 that decode to x_hat0 (non-negative least squares)
+        and potentials v = D^T (x~0 - D r), i.e. zero coding error.
+        """
+        n = self.model.n_state
+        x0 = self.settings.initial_state if x_hat0 is None else np.asarray(x_hat0, dtype=float)
+        x0 = np.broadcast_to(x0, (self.runs, n)).astype(float)
+        if not np.all(np.isfinite(x0)):
+            raise ValueError('x_hat0 must be finite')
+        p0 = self.settings.initial_covariance if P0 is None else np.asarray(P0, dtype=float)
+        self._p = np.ascontiguousarray(np.broadcast_to(p0, (self.runs, n, n)), dtype=float).copy()
+        self._x_hat = x0.copy()
+        self.steps = 0
+        self.capped_steps = 0
+        self.recovery_spikes = 0
+        if self.spiking:
+            self._r[:] = 0.0
+            self._v[:] = 0.0
+            self._spikes[:] = 0
+            self._total_spikes[:] = 0
+            self._alive[:] = True
+            self._alive[:, list(self.settings.silenced_neurons)] = False
+            for b in range(self.runs):
+                self.encode(x0[b], run=b)
+
+    def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
+        """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons)."""
+        self._require_network()
+        target = np.asarray(x_hat, dtype=float) / self._scale
+        alive = self._alive[run]
+        decoder = self._decoder[run]
+        rates = np.zeros(decoder.shape[1])
+        rates[alive], _ = nnls(decoder[:, alive], target, maxiter=50 * decoder.shape[1])
+        self._r[run] = rates
+        self._v[run] = decoder.T @ (target - decoder @ rates)
+        self._x_hat[run] = self._scale * (decoder @ rates)
+
+    def set_state(self, x_hat, P=None) -> None:
+        """Replace the estimate (and covariance) of every run, keeping the network's decoder."""
+        n = self.model.n_state
+        x = np.broadcast_to(np.asarray(x_hat, dtype=float), (self.runs, n))
+        if not np.all(np.isfinite(x)):
+            raise ValueError('x_hat must be finite')
+        if P is not None:
+            self._p[:] = np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n))
+        if self.spiking:
+            for b in range(self.runs):
+                self.encode(x[b], run=b)
+        else:
+            self._x_hat[:] = x
+
+    def silence(self, neurons: Sequence[int]) -> None:
+        """Silence exactly ``neurons`` (others revive). A silenced neuron stops firing and its
+        filtered train r_i and the synaptic input it sent (r_i times its Omega_f column) vanish,
+        so the remaining neurons see the coding error and compensate at once by spiking
+        (counted in ``total_spikes`` and ``recovery_spikes``).
+        """
+        self._require_network()
+        total = self.settings.neuron_count
+        wanted = np.zeros(total, dtype=bool)
+        indices = [int(i) for i in neurons]
+        if any(i < 0 or i >= total for i in indices):
+            raise ValueError(f'neuron indices must be in [0, {total - 1}], got {indices}')
+        wanted[indices] = True
+        for b in range(self.runs):
+            newly_dead = wanted & self._alive[b]
+            if np.any(newly_dead):
+                lost = self._r[b, newly_dead]
+                self._v[b] += self._gram[b][:, newly_dead] @ lost
+                self._r[b, newly_dead] = 0.0
+            self._alive[b] = ~wanted
+        # The survivors react on the fast time scale (instantaneous in continuous time), before
+        # the slow dynamics of the next step see the decoded estimate.
+        self.recovery_spikes += kernels.fire_only(
+            self._rule_code, self.settings.max_spikes_per_step, self._decoder, self._gram,
+            self._thresholds, self._alive, self._r, self._v, self._scale, self._spikes,
+            self._total_spikes, self._x_hat)
+
+    # ------------------------------------------------------------------ stepping
+    def _dynamics(self, dt: float, u: np.ndarray):
+        """Packed [A_d | B_d | J] for this step, plus the nonlinear drift of a direct filter."""
+        model = self.model
+        method = self.settings.discretization
+        if model.is_linear:
+            cached = self._linear_cache.get(dt)
+            if cached is None:
+                a_d, b_d = model.linearized_increment(None, dt, method)
+                jac = model.jacobian(np.zeros(model.n_state), np.zeros(model.n_input))
+                cached = np.ascontiguousarray(np.concatenate([a_d, b_d, jac], axis=1)[None])
+                if len(self._linear_cache) > 64:
+                    self._linear_cache.clear()
+                self._linear_cache[dt] = cached
+            return cached, self._no_drift, False
+        runs = self.runs
+        jac = model.jacobian(self._x_hat, u)
+        b_d = np.broadcast_to(model.input_matrix, (runs,) + model.input_matrix.shape)
+        if self.spiking:  # the network implements the linearised drift A(x_hat) x_hat (Eq. 17)
+            a_d, b_d = model.linearized_increment(self._x_hat, dt, method)
+            b_d = np.broadcast_to(b_d, (runs,) + b_d.shape[-2:])
+            return np.ascontiguousarray(np.concatenate([a_d, b_d, jac], axis=2)), self._no_drift, False
+        # the non-spiking twin integrates the nonlinear f itself
+        drift = (model.transition(self._x_hat, u, dt, method) - self._x_hat) / dt
+        return (np.ascontiguousarray(np.concatenate([jac, b_d, jac], axis=2)),
+                np.ascontiguousarray(drift), True)
+
+    def step(self, z, u, dt: float) -> np.ndarray:
+        """Advance every run by ``dt`` seconds with measurement ``z`` (at the current time) and
+        control ``u`` (held over the step). Shapes (m,), (m_u,) or with a leading runs axis.
+
+        Raises ValueError for non-finite input or a bad dt (the state is then unchanged) and
+        FloatingPointError if the state became non-finite (reset() before going on).
+        """
+        runs = self.runs
+        z = np.asarray(z, dtype=float).reshape(runs, -1)
+        u = np.asarray(u, dtype=float).reshape(runs, -1)
+        if z.shape[1] != self.model.n_meas or u.shape[1] != self.model.n_input:
+            raise ValueError(f'z must have {self.model.n_meas} and u {self.model.n_input} entries '
+                             f'per run, got shapes {z.shape} and {u.shape}')
+        if not 0.0 < dt < math.inf:
+            raise ValueError(f'dt must be a finite positive number of seconds, got {dt!r}')
+        leak = self.settings.leak_rate
+        if self.spiking and leak * dt >= 1.0:
+            raise ValueError(f'leak_rate * dt must be < 1 (got {leak} * {dt}); use a smaller step')
+        dynamics, drift, use_drift = self._dynamics(dt, u)
+        noise = self._zero_noise
+        if self.spiking and self.settings.membrane_noise > 0.0:
+            sigma = self.settings.membrane_noise * math.sqrt(dt)
+            noise = np.stack([g.normal(0.0, sigma, self.settings.neuron_count)
+                              for g in self._noise_rngs])
+        status, capped = kernels.estimator_step(
+            self._gain_code, self.spiking, self._rule_code, self.has_covariance, use_drift,
+            float(dt), leak, self.settings.max_spikes_per_step, self._consts, dynamics, drift, z, u,
+            self._x_hat, self._p, self._gain, self._decoder, self._gram, self._thresholds,
+            self._alive, self._r, self._v, noise, self._spikes, self._total_spikes)
+        if status == kernels.STATUS_BAD_INPUT:
+            raise ValueError('z and u must be finite')
+        self.steps += 1
+        self.capped_steps += capped
+        if status == kernels.STATUS_NON_FINITE:
+            raise FloatingPointError(f'the {self.kind} state became non-finite; call reset()')
+        return self.x_hat
+
+    # ------------------------------------------------------------------ inspection
+    def weights(self, u=None, dt: float = 0.1, run: int = 0) -> dict:
+        """The network's matrices at the current state (Eq. 16-22), in scaled units.
+
+        ``F = D^T S^-1 B_d``, ``Omega_s = D^T (S^-1 A_d S + lambda I) D``,
+        ``Omega_f = -D^T D``, ``Omega_k = -D^T S^-1 K C S D``, ``F_k = D^T S^-1 K``, thresholds;
+        K is the gain used in the last step. With discretization='euler' and S = I these are
+        exactly the paper's formulas.
+        """
+        self._require_network()
+        d = self._decoder[run]
+        scale = self._scale
+        x = self._x_hat[run]
+        a_d, b_d = self.model.linearized_increment(x, dt, self.settings.discretization)
+        a_scaled = a_d / scale[:, None] * scale[None, :]
+        k_scaled = self._gain[run] / scale[:, None]
+        c_scaled = self._c * scale[None, :]
+        neurons = d.shape[1]
+        return {
+            'F': d.T @ (b_d / scale[:, None]),
+            'Omega_s': d.T @ (a_scaled + self.settings.leak_rate * np.eye(len(scale))) @ d,
+            'Omega_f': -d.T @ d,
+            'Omega_k': -d.T @ k_scaled @ c_scaled @ d,
+            'F_k': d.T @ k_scaled,
+            'thresholds': self._thresholds[run].copy(),
+            'decoder': d.copy(),
+            'neurons': neurons,
+        }
+
+
+def make_estimator(kind: str, config: EstimatorConfig | None = None,
+                   model: StateSpaceModel | None = None, runs: int = 1,
+                   seeds: Sequence[int] | None = None) -> Estimator:
+    """Build the filter ``kind`` (see :data:`FILTER_KINDS`) for ``model`` (default: the
+    standard CW rendezvous model) with ``config`` (default: :class:`EstimatorConfig`)."""
+    if model is None:
+        from .models import ClohessyWiltshire
+        model = ClohessyWiltshire()
+    return Estimator(kind, model, config or EstimatorConfig(), runs=runs, seeds=seeds)

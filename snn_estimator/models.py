@@ -1,0 +1,257 @@
+"""Dynamical models: Clohessy-Wiltshire relative motion (paper Sec. 3.2) and Van der Pol (Sec. 3.1).
+
+Every model implements :class:`StateSpaceModel`: ``x_dot = f(x, u)`` with Jacobians ``A(x)``
+and ``B``, and a *linear* measurement ``z = C x`` (both of the paper's problems measure a subset
+of the state). All functions accept a leading batch axis: ``x`` of shape ``(..., n)``.
+Time in seconds, SI units.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Sequence
+
+import numpy as np
+import scipy.linalg
+
+from .validation import check_choice, check_positive
+
+#: Earth's gravitational parameter, m^3/s^2 (Table 6 gives 398600 km^3/s^2).
+EARTH_MU = 3.986e14
+#: Default target orbit radius, m: a 400 km circular LEO (the paper does not state R_o).
+DEFAULT_ORBIT_RADIUS = 6_778_137.0
+DISCRETIZATIONS = ('exact', 'euler')
+
+
+class StateSpaceModel(ABC):
+    """A continuous-time model ``x_dot = f(x, u) + w``, ``z = C x + v``."""
+
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    measurement_names: tuple[str, ...]
+    #: True when f is linear: ``f(x, u) = A x + B u`` with constant A, B.
+    is_linear: bool = False
+
+    @property
+    def n_state(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def n_input(self) -> int:
+        return len(self.input_names)
+
+    @property
+    def n_meas(self) -> int:
+        return len(self.measurement_names)
+
+    @abstractmethod
+    def f(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """State derivative, shape ``(..., n)``."""
+
+    @abstractmethod
+    def jacobian(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``A = df/dx`` at ``x``, shape ``(..., n, n)``."""
+
+    #: Set by subclasses: ``B = df/du`` (constant here) and ``C`` of ``z = C x``.
+    _b: np.ndarray
+    _c: np.ndarray
+
+    @property
+    def input_matrix(self) -> np.ndarray:
+        """``B = df/du`` (constant for the models here), shape ``(n, m_u)``."""
+        return self._b
+
+    @property
+    def measurement_matrix(self) -> np.ndarray:
+        """``C`` in ``z = C x``, shape ``(m, n)``."""
+        return self._c
+
+    def h(self, x: np.ndarray) -> np.ndarray:
+        """Noise-free measurement ``C x``."""
+        return np.asarray(x) @ self.measurement_matrix.T
+
+    def transition(self, x: np.ndarray, u: np.ndarray, dt: float,
+                   method: str = 'exact') -> np.ndarray:
+        """Propagate ``x_dot = f(x, u)`` over ``dt`` with ``u`` held (zero-order hold).
+
+        'exact' uses the matrix exponential for linear models and RK4 otherwise;
+        'euler' is one forward-Euler step, the literal discretisation of Eq. 3.
+        """
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        if method == 'euler':
+            return x + dt * self.f(x, u)
+        if self.is_linear:
+            phi, gamma = self.discrete_matrices(dt)
+            return x @ phi.T + u @ gamma.T
+        return rk4(self.f, x, u, dt)
+
+    def linearized_increment(self, x: np.ndarray, dt: float,
+                             method: str = 'exact') -> tuple[np.ndarray, np.ndarray]:
+        """Matrices ``(A_d, B_d)`` such that one step is ``x + dt (A_d x + B_d u)``.
+
+        This is the linearised drift the spiking network implements through its slow weights
+        (Eq. 16-17 use ``A_d = A(x_hat)``, ``B_d = B``: 'euler'). With 'exact' the Jacobian is
+        frozen over the step and integrated exactly: ``A_d = (Phi - I)/dt``, ``B_d = Gamma/dt``,
+        which tend to A and B as dt -> 0.
+        """
+        n = self.n_state
+        if x is None:
+            x = np.zeros(n)
+        if method == 'euler':
+            return self.jacobian(x, np.zeros(self.n_input)), self.input_matrix
+        if self.is_linear:
+            phi, gamma = self.discrete_matrices(dt)
+            return (phi - np.eye(n)) / dt, gamma / dt
+        a = self.jacobian(x, np.zeros(self.n_input))
+        phi, gamma = zoh_matrices(a, self.input_matrix, dt)
+        return (phi - np.eye(n)) / dt, gamma / dt
+
+    def discrete_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Exact zero-order-hold ``(Phi, Gamma)`` of a linear model (cached per dt)."""
+        if not self.is_linear:
+            raise TypeError(f'{type(self).__name__} is nonlinear: it has no constant Phi')
+        cache = self.__dict__.setdefault('_zoh_cache', {})
+        if dt not in cache:
+            a = self.jacobian(np.zeros(self.n_state), np.zeros(self.n_input))
+            cache[dt] = zoh_matrices(a, self.input_matrix, dt)
+        return cache[dt]
+
+    def process_noise_discrete(self, q_continuous: np.ndarray, dt: float) -> np.ndarray:
+        """Covariance of the noise a continuous white noise of density Q adds over dt.
+
+        Van Loan's method for linear models; ``Q dt`` (Euler-Maruyama) otherwise.
+        """
+        if not self.is_linear:
+            return q_continuous * dt
+        n = self.n_state
+        a = self.jacobian(np.zeros(n), np.zeros(self.n_input))
+        block = np.zeros((2 * n, 2 * n))
+        block[:n, :n] = -a
+        block[:n, n:] = q_continuous
+        block[n:, n:] = a.T
+        van_loan = scipy.linalg.expm(block * dt)
+        phi_t = van_loan[n:, n:]
+        q_d = phi_t.T @ van_loan[:n, n:]
+        return 0.5 * (q_d + q_d.T)
+
+
+def rk4(f, x: np.ndarray, u: np.ndarray, dt: float, substeps: int = 4) -> np.ndarray:
+    """Classical Runge-Kutta integration of ``x_dot = f(x, u)`` with u held over dt."""
+    h = dt / substeps
+    for _ in range(substeps):
+        k1 = f(x, u)
+        k2 = f(x + 0.5 * h * k1, u)
+        k3 = f(x + 0.5 * h * k2, u)
+        k4 = f(x + h * k3, u)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return x
+
+
+def zoh_matrices(a: np.ndarray, b: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Zero-order-hold discretisation via ``expm([[A, B], [0, 0]] dt)``; A may be batched."""
+    a = np.asarray(a, dtype=float)
+    n, m = a.shape[-1], b.shape[-1]
+    block = np.zeros(a.shape[:-2] + (n + m, n + m))
+    block[..., :n, :n] = a
+    block[..., :n, n:] = b
+    exp_block = scipy.linalg.expm(block * dt)
+    return exp_block[..., :n, :n], exp_block[..., :n, n:]
+
+
+class ClohessyWiltshire(StateSpaceModel):
+    """Linearised relative motion about a circular orbit (Eq. 36-41, corrected).
+
+    State ``[x, y, z, vx, vy, vz]`` (m, m/s) in the target's LVLH frame as the paper draws it
+    (Fehse's convention): x along-track (V-bar), y opposite to the orbit normal (H-bar), z radial
+    toward Earth (R-bar). Input: specific force ``[f_x, f_y, f_z]`` in m/s^2.
+
+    ``form='standard'`` (default) is the textbook CW system::
+
+        x'' =  2 n z'           + f_x
+        y'' = -n^2 y            + f_y
+        z'' = -2 n x' + 3 n^2 z + f_z
+
+    ``form='as_published'`` is the matrix printed as Eq. 41, which puts ``-n^2`` on ``vy``
+    instead of ``y`` and ``2 n^2`` on ``vz`` instead of ``3 n^2`` on ``z`` (misprints: they make
+    the out-of-plane motion damped instead of oscillating, and remove the radial gravity
+    gradient). It is kept so the difference can be measured.
+    """
+
+    state_names = ('x', 'y', 'z', 'vx', 'vy', 'vz')
+    input_names = ('fx', 'fy', 'fz')
+    is_linear = True
+
+    def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
+                 form: str = 'standard', measured_axes: Sequence[int] = (0, 1, 2)):
+        self.orbit_radius = check_positive(orbit_radius, 'orbit_radius (m)')
+        self.mu = check_positive(mu, 'mu (m^3/s^2)')
+        self.form = check_choice(form, ('standard', 'as_published'), 'cw_model')
+        axes = tuple(int(a) for a in measured_axes)
+        if not axes or len(set(axes)) != len(axes) or not all(0 <= a <= 2 for a in axes):
+            raise ValueError(
+                f'measured_axes must be distinct position axes among 0 (x), 1 (y), 2 (z); got {axes}')
+        self.measured_axes = axes
+        self.measurement_names = tuple(self.state_names[a] for a in axes)
+        self.mean_motion = float(np.sqrt(self.mu / self.orbit_radius ** 3))  # Eq. 39, rad/s
+        self._a = self.system_matrix(self.mean_motion, self.form)
+        self._b = np.vstack([np.zeros((3, 3)), np.eye(3)])
+        self._c = np.zeros((len(axes), 6))
+        self._c[np.arange(len(axes)), axes] = 1.0
+
+    @staticmethod
+    def system_matrix(n: float, form: str = 'standard') -> np.ndarray:
+        """The CW ``A`` matrix for mean motion ``n`` (rad/s)."""
+        a = np.zeros((6, 6))
+        a[0:3, 3:6] = np.eye(3)
+        a[3, 5] = 2.0 * n
+        a[5, 3] = -2.0 * n
+        if form == 'standard':
+            a[4, 1] = -n * n
+            a[5, 2] = 3.0 * n * n
+        else:  # Eq. 41 as printed
+            a[4, 4] = -n * n
+            a[5, 5] = 2.0 * n * n
+        return a
+
+    def f(self, x, u):
+        return np.asarray(x) @ self._a.T + np.asarray(u) @ self._b.T
+
+    def jacobian(self, x, u):
+        x = np.asarray(x)
+        return np.broadcast_to(self._a, x.shape[:-1] + (6, 6)).copy() if x.ndim > 1 else self._a.copy()
+
+
+class VanDerPol(StateSpaceModel):
+    """Van der Pol oscillator (Eq. 25-28), measured in x1.
+
+    ``x1' = x2``, ``x2' = mu (1 - x1^2) x2 - x1 + u``. The paper's system has no input; a
+    force on x2 is added so the model fits the common interface (the experiments keep u = 0).
+    """
+
+    state_names = ('x1', 'x2')
+    input_names = ('u',)
+    measurement_names = ('x1',)
+
+    def __init__(self, mu: float = 0.005):
+        self.mu = float(mu)
+        if not np.isfinite(self.mu):
+            raise ValueError(f'mu must be finite, got {mu!r}')
+        self._b = np.array([[0.0], [1.0]])
+        self._c = np.array([[1.0, 0.0]])  # Eq. 28
+
+    def f(self, x, u):
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        x1, x2 = x[..., 0], x[..., 1]
+        return np.stack([x2, self.mu * (1.0 - x1 * x1) * x2 - x1 + u[..., 0]], axis=-1)
+
+    def jacobian(self, x, u):
+        """Eq. 27."""
+        x = np.asarray(x, dtype=float)
+        x1, x2 = x[..., 0], x[..., 1]
+        a = np.zeros(x.shape[:-1] + (2, 2))
+        a[..., 0, 1] = 1.0
+        a[..., 1, 0] = -(2.0 * self.mu * x1 * x2 + 1.0)
+        a[..., 1, 1] = self.mu * (1.0 - x1 * x1)
+        return a

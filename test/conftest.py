@@ -1,0 +1,35 @@
+"""Shared fixtures and small models for the tests."""
+
+import numpy as np
+import pytest
+
+from snn_estimator.models import StateSpaceModel
+
+
+class DoubleIntegrator(StateSpaceModel):
+    """p'' = u with p measured: the smallest model that exercises the common interface."""
+
+    state_names = ('p', 'v')
+    input_names = ('u',)
+    measurement_names = ('p',)
+    is_linear = True
+
+    def f(self, x, u):
+        x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+        return np.stack([x[..., 1], u[..., 0]], axis=-1)
+
+    def jacobian(self, x, u):
+        return np.array([[0.0, 1.0], [0.0, 0.0]])
+
+    @property
+    def input_matrix(self):
+        return np.array([[0.0], [1.0]])
+
+    @property
+    def measurement_matrix(self):
+        return np.array([[1.0, 0.0]])
+
+
+@pytest.fixture
+def double_integrator():
+    return DoubleIntegrator()

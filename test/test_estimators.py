@@ -1,0 +1,347 @@
+"""Filters and the spiking network against the paper's formulas and independent computations."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from snn_estimator import (EstimatorConfig, FILTER_KINDS, TWIN_OF, make_estimator,
+                           rendezvous_scenario, simulate, van_der_pol_scenario)
+from snn_estimator.models import ClohessyWiltshire, VanDerPol
+from snn_estimator.reference import DenseSpikingFilter
+from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+
+SPIKING = [kind for kind, (_, spiking) in FILTER_KINDS.items() if spiking]
+
+
+def rendezvous_inputs(steps=300, seed=0):
+    """Measurements and controls of a closed-loop rendezvous driven by the EMSIF."""
+    scenario = rendezvous_scenario()
+    model = scenario.model
+    plant = Plant(model, scenario.x0, scenario.process_noise, [seed])
+    sensor = PositionSensor(model, scenario.measurement_noise, [seed])
+    gain = lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+    driver = make_estimator('emsif', scenario.estimator, model)
+    zs, us = [], []
+    for _ in range(steps):
+        u = lqr_control(gain, driver.x_hat)
+        z = sensor.measure(plant.x)[0]
+        driver.step(z, u, scenario.dt)
+        plant.step(u, scenario.dt)
+        zs.append(z)
+        us.append(u)
+    return scenario, np.array(zs), np.array(us)
+
+
+# ---------------------------------------------------------------- the weights of Eq. 16-22
+def test_network_weights_equal_the_papers_formulas():
+    scenario = rendezvous_scenario('as_published')  # S = I and forward Euler: the literal network
+    model = scenario.model
+    estimator = make_estimator('snn_ekf', scenario.estimator, model)
+    _, zs, us = rendezvous_inputs(steps=5)
+    for z, u in zip(zs, us):
+        p_before = estimator.P.copy()
+        estimator.step(z, u, 0.1)
+    w = estimator.weights(dt=0.1)
+    d = estimator.decoder
+    a, b, c = model.system_matrix(model.mean_motion), model.input_matrix, model.measurement_matrix
+    lam = scenario.estimator.leak_rate
+    kalman_gain = p_before @ c.T @ np.linalg.inv(estimator.settings.r_hat)
+    np.testing.assert_allclose(w['F'], d.T @ b, atol=1e-15)                                # Eq. 16
+    np.testing.assert_allclose(w['Omega_s'], d.T @ (a + lam * np.eye(6)) @ d, atol=1e-14)  # Eq. 17
+    np.testing.assert_allclose(w['Omega_f'], -d.T @ d, atol=1e-15)                         # Eq. 18
+    np.testing.assert_allclose(w['Omega_k'], -d.T @ kalman_gain @ c @ d, rtol=1e-9, atol=1e-14)  # Eq. 19
+    np.testing.assert_allclose(w['F_k'], d.T @ kalman_gain, rtol=1e-9, atol=1e-14)          # Eq. 20
+    np.testing.assert_allclose(w['thresholds'], 0.5 * np.sum(d * d, axis=0))               # T_i
+
+
+def test_decoder_is_drawn_with_the_configured_variance():
+    config = EstimatorConfig(neuron_count=4000, decoder_variance=0.25)
+    estimator = make_estimator('snn_emsif', config)
+    assert estimator.decoder.shape == (6, 4000)
+    assert np.var(estimator.decoder) == pytest.approx(0.25, rel=0.03)
+    assert abs(np.mean(estimator.decoder)) < 0.01
+
+
+def test_msif_gain_uses_the_innovation_covariance_and_saturates():
+    scenario = rendezvous_scenario()
+    c = scenario.model.measurement_matrix
+    for delta, saturated in [(1e-3, True), (10.0, False)]:
+        estimator = make_estimator('emsif', scenario.estimator.replace(boundary_layer=delta))
+        p_before = estimator.P.copy()
+        estimator.step(np.array([70.1, 29.9, -5.0]), np.zeros(3), 0.1)
+        p_zz = c @ p_before @ c.T + estimator.settings.r_hat                  # Eq. 9, corrected
+        expected = np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))  # Eq. 8
+        np.testing.assert_allclose(estimator.gain, expected, rtol=1e-12)
+        if saturated:
+            np.testing.assert_allclose(estimator.gain, np.linalg.pinv(c))
+        else:
+            assert np.all(np.diag(estimator.gain[:3]) < 1.0)
+
+
+def test_sif_gain_follows_the_innovation_eq_23_24():
+    estimator = make_estimator('snn_emsif_star', EstimatorConfig(boundary_layer=(0.1, 0.2, 0.4)))
+    x_hat = estimator.x_hat.copy()
+    z = x_hat[:3] + np.array([0.05, -0.5, 0.1])
+    estimator.step(z, np.zeros(3), 0.1)
+    np.testing.assert_allclose(np.diag(estimator.gain[:3]), [0.5, 1.0, 0.25], rtol=1e-9)
+    assert np.all(estimator.gain[3:] == 0.0)
+    assert estimator.P is None
+
+
+def test_kalman_gain_and_riccati_step_follow_eq_5_and_6():
+    scenario = rendezvous_scenario()
+    model = scenario.model
+    estimator = make_estimator('ekf', scenario.estimator)
+    p = estimator.P.copy()
+    x = estimator.x_hat.copy()
+    z, u, dt = np.array([70.2, 29.8, -5.1]), np.array([0.01, 0.0, -0.01]), 0.1
+    estimator.step(z, u, dt)
+    a, c = model.system_matrix(model.mean_motion), model.measurement_matrix
+    r_inv = np.linalg.inv(estimator.settings.r_hat)
+    gain = p @ c.T @ r_inv
+    np.testing.assert_allclose(estimator.gain, gain, rtol=1e-12)
+    expected_p = p + dt * (a @ p + p @ a.T + estimator.settings.q_hat - p @ c.T @ r_inv @ c @ p)
+    np.testing.assert_allclose(estimator.P, expected_p, rtol=1e-12, atol=1e-20)
+    phi, gamma = model.discrete_matrices(dt)
+    np.testing.assert_allclose(estimator.x_hat, phi @ x + gamma @ u + dt * gain @ (z - c @ x), rtol=1e-12)
+
+
+def test_ekf_tends_to_a_discrete_kalman_filter_as_dt_shrinks(double_integrator):
+    """Eq. 3-6 stepped at dt equal a discrete KF with Q_d = Q dt and R_d = R / dt as dt -> 0."""
+    model = double_integrator
+    q, r = 0.5, 0.2
+    config = EstimatorConfig(neuron_count=1, process_noise=q, measurement_noise=r,
+                             process_noise_scale=1.0, measurement_noise_scale=1.0,
+                             initial_covariance=(1.0, 1.0), initial_state=(0.0, 0.0),
+                             boundary_layer=1.0, state_scale=None)
+    gaps = []
+    for dt in (0.02, 0.01, 0.005):
+        estimator = make_estimator('ekf', config, model)
+        x_prior, p_prior = np.zeros(2), np.eye(2)
+        phi, gamma = model.discrete_matrices(dt)
+        c = model.measurement_matrix
+        gap = 0.0
+        for k in range(int(round(4.0 / dt))):
+            t = k * dt
+            z, u = np.array([np.sin(t)]), np.array([-np.sin(t)])  # truth: p = sin t
+            estimator.step(z, u, dt)
+            gain = p_prior @ c.T / (c @ p_prior @ c.T + r / dt)
+            x_post = x_prior + gain @ (z - c @ x_prior)
+            p_post = (np.eye(2) - gain @ c) @ p_prior
+            x_prior = phi @ x_post + gamma @ u
+            p_prior = phi @ p_post @ phi.T + q * dt * np.eye(2)
+            gap = max(gap, np.max(np.abs(estimator.x_hat - x_prior)))
+        gaps.append(gap)
+    assert gaps[0] < 0.05
+    assert gaps[1] < 0.6 * gaps[0] and gaps[2] < 0.6 * gaps[1]  # first-order convergence
+
+
+# ---------------------------------------------------------------- the network
+@pytest.mark.parametrize('kind', SPIKING)
+def test_estimate_is_the_decoded_filtered_spike_train(kind):
+    scenario, zs, us = rendezvous_inputs(steps=100)
+    estimator = make_estimator(kind, scenario.estimator)
+    scale = np.asarray(scenario.estimator.state_scale)
+    for z, u in zip(zs, us):
+        estimator.step(z, u, 0.1)
+        np.testing.assert_allclose(estimator.x_hat, scale * (estimator.decoder @ estimator.rates),
+                                   rtol=1e-12, atol=1e-12)                     # Eq. 12
+    assert np.all(estimator.rates >= 0.0)
+
+
+def test_initial_rates_are_non_negative_and_decode_to_the_initial_estimate():
+    for preset in ('default', 'as_published'):
+        scenario = rendezvous_scenario(preset)
+        estimator = make_estimator('snn_emsif', scenario.estimator, runs=3)
+        assert np.all(estimator.rates >= 0.0)
+        np.testing.assert_allclose(estimator.x_hat, np.broadcast_to(scenario.x0, (3, 6)), atol=1e-9)
+        # zero coding error: no neuron starts above threshold
+        assert np.all(estimator.potentials <= estimator.thresholds)
+
+
+@pytest.mark.parametrize('kind', SPIKING)
+@pytest.mark.parametrize('rule', ['greedy', 'one_per_step', 'all_above'])
+def test_compiled_network_equals_the_dense_paper_network(kind, rule):
+    scenario, zs, us = rendezvous_inputs(steps=150)
+    config = scenario.estimator.replace(spike_rule=rule, neuron_count=60)
+    fast = make_estimator(kind, config)
+    dense = DenseSpikingFilter(fast)
+    for z, u in zip(zs, us):
+        fast.step(z, u, 0.1)
+        dense.step(z, u, 0.1)
+        np.testing.assert_array_equal(fast.spikes, dense.spikes)
+        np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-9, atol=1e-12)
+    assert fast.total_spikes > 0
+
+
+def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol():
+    scenario = van_der_pol_scenario()
+    rng = np.random.default_rng(3)
+    fast = make_estimator('snn_emsif', scenario.estimator, scenario.model)
+    dense = DenseSpikingFilter(fast)
+    for k in range(300):
+        z = np.array([2.0 * np.cos(0.01 * k) + 0.1 * rng.normal()])
+        fast.step(z, np.zeros(1), 0.01)
+        dense.step(z, np.zeros(1), 0.01)
+        np.testing.assert_array_equal(fast.spikes, dense.spikes)
+        np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-9, atol=1e-12)
+
+
+def test_spike_rules_do_what_they_say():
+    scenario, zs, us = rendezvous_inputs(steps=200)
+    for rule in ('greedy', 'one_per_step', 'all_above'):
+        estimator = make_estimator('snn_emsif', scenario.estimator.replace(spike_rule=rule))
+        for z, u in zip(zs, us):
+            estimator.step(z, u, 0.1)
+            if rule == 'one_per_step':
+                assert estimator.spike_count <= 1
+            elif rule == 'all_above':
+                assert estimator.spikes.max() <= 1
+            else:  # greedy leaves no live neuron above threshold
+                assert np.all(estimator.potentials <= estimator.thresholds + 1e-12)
+
+
+def test_a_fine_decoder_reproduces_the_non_spiking_twin():
+    scenario = rendezvous_scenario()
+    default = scenario.estimator
+    fine = default.replace(state_scale=np.asarray(default.state_scale) / 10.0)
+    for kind in SPIKING:
+        twin = simulate(scenario, TWIN_OF[kind], config=fine)
+        gaps = [np.abs(simulate(scenario, kind, config=config).estimate - twin.estimate).max(axis=(0, 1))
+                for config in (default, fine)]
+        assert np.all(gaps[1][:3] < 1e-3) and np.all(gaps[1][3:] < 1e-5), (kind, gaps[1])  # m, m/s
+        assert np.all(gaps[1] < 0.3 * gaps[0]), (kind, gaps)  # finer coding, closer to the twin
+
+
+def test_silencing_half_the_neurons_keeps_the_estimate_bounded_and_it_recovers():
+    scenario = rendezvous_scenario()
+    intact = simulate(scenario, 'snn_emsif')
+    dead = list(range(0, 200, 2))
+    damaged = simulate(scenario, 'snn_emsif', events={1000: lambda est: est.silence(dead)})
+    after = damaged.error[0, 1000:]
+    assert np.all(np.isfinite(after))
+    assert np.abs(after[:, :3]).max() < 0.2 and np.abs(after[:, 3:]).max() < 0.02
+    ratio = damaged.rmse() / intact.rmse()
+    assert np.all(ratio < 2.0), ratio
+    assert damaged.final_range()[0] < 0.1
+
+
+def test_silenced_neurons_never_fire():
+    scenario, zs, us = rendezvous_inputs(steps=200)
+    estimator = make_estimator('snn_emsif', scenario.estimator.replace(silenced_neurons=(0, 1, 2)))
+    estimator.silence([0, 1, 2, 7])
+    for z, u in zip(zs, us):
+        estimator.step(z, u, 0.1)
+        assert np.all(estimator.spikes[[0, 1, 2, 7]] == 0)
+    assert estimator.silenced == (0, 1, 2, 7)
+
+
+# ---------------------------------------------------------------- determinism and batches
+def test_same_seed_gives_identical_results_and_another_seed_does_not():
+    scenario = rendezvous_scenario()
+    first = simulate(scenario, 'snn_emsif', seed=4)
+    second = simulate(scenario, 'snn_emsif', seed=4)
+    other = simulate(scenario, 'snn_emsif', seed=5)
+    np.testing.assert_array_equal(first.estimate, second.estimate)
+    np.testing.assert_array_equal(first.raster, second.raster)
+    assert not np.array_equal(first.estimate, other.estimate)
+
+
+def test_each_run_of_a_batch_equals_the_single_run_with_its_seed():
+    scenario = rendezvous_scenario()
+    batch = simulate(scenario, 'snn_ekf', runs=3, seed=10)
+    single = simulate(scenario, 'snn_ekf', runs=1, seed=11)
+    np.testing.assert_allclose(batch.estimate[1], single.estimate[0], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(batch.spikes_per_step[1], single.spikes_per_step[0])
+
+
+def test_non_finite_input_is_refused_and_changes_nothing():
+    estimator = make_estimator('snn_emsif')
+    before = (estimator.x_hat.copy(), estimator.P.copy(), estimator.rates.copy())
+    for z, u in [([np.nan, 0, 0], [0, 0, 0]), ([0, 0, 0], [np.inf, 0, 0])]:
+        with pytest.raises(ValueError, match='finite'):
+            estimator.step(np.array(z, dtype=float), np.array(u, dtype=float), 0.1)
+    for dt in (0.0, -0.1, np.nan, np.inf):
+        with pytest.raises(ValueError, match='dt'):
+            estimator.step(np.zeros(3), np.zeros(3), dt)
+    np.testing.assert_array_equal(estimator.x_hat, before[0])
+    np.testing.assert_array_equal(estimator.P, before[1])
+    np.testing.assert_array_equal(estimator.rates, before[2])
+    assert estimator.steps == 0
+
+
+def test_reset_and_set_state_re_encode_the_network():
+    estimator = make_estimator('snn_emsif')
+    for _ in range(20):
+        estimator.step(np.array([70.0, 30.0, -5.0]), np.zeros(3), 0.1)
+    target = np.array([1.0, 2.0, 3.0, 0.01, 0.02, 0.03])
+    estimator.set_state(target, P=np.eye(6))
+    np.testing.assert_allclose(estimator.x_hat, target, atol=1e-9)
+    np.testing.assert_array_equal(estimator.P, np.eye(6))
+    estimator.reset()
+    np.testing.assert_allclose(estimator.x_hat, EstimatorConfig().initial_state, atol=1e-9)
+    assert estimator.total_spikes == 0
+
+
+# ---------------------------------------------------------------- bad configuration
+@pytest.mark.parametrize('changes, message', [
+    ({'neuron_count': 0}, 'neuron_count'),
+    ({'neuron_count': -5}, 'neuron_count'),
+    ({'neuron_count': 2.5}, 'neuron_count'),
+    ({'leak_rate': -0.1}, 'leak_rate'),
+    ({'boundary_layer': 0.0}, 'boundary_layer'),
+    ({'boundary_layer': (0.1, -0.1, 0.1)}, 'boundary_layer'),
+    ({'boundary_layer': (0.1, 0.1)}, 'boundary_layer'),
+    ({'decoder_variance': 0.0}, 'decoder_variance'),
+    ({'initial_state': (1.0, 2.0)}, 'initial_state'),
+    ({'initial_covariance': [1.0] * 35}, 'initial_covariance'),
+    ({'initial_covariance': (1.0, 1.0, 1.0, 1.0, 1.0, -1.0)}, 'positive definite'),
+    ({'measurement_noise': 0.0}, 'measurement_noise'),
+    ({'process_noise': -1.0}, 'process_noise'),
+    ({'measurement_noise_scale': 0.0}, 'measurement_noise_scale'),
+    ({'state_scale': (1.0, 1.0, 1.0, 1.0, 1.0, 0.0)}, 'state_scale'),
+    ({'spike_rule': 'fastest'}, 'spike_rule'),
+    ({'discretization': 'rk45'}, 'discretization'),
+    ({'silenced_neurons': (200,)}, 'silenced_neurons'),
+    ({'initial_state': (np.nan, 0, 0, 0, 0, 0)}, 'finite'),
+])
+def test_bad_configuration_raises_a_value_error_saying_what_to_fix(changes, message):
+    with pytest.raises(ValueError, match=message):
+        make_estimator('snn_emsif', EstimatorConfig().replace(**changes))
+
+
+def test_unknown_kind_and_large_leak_steps_are_refused():
+    with pytest.raises(ValueError, match='unknown filter kind'):
+        make_estimator('ukf')
+    estimator = make_estimator('snn_ekf', EstimatorConfig(leak_rate=20.0))
+    with pytest.raises(ValueError, match='leak_rate'):
+        estimator.step(np.zeros(3), np.zeros(3), 0.1)
+
+
+def test_a_non_symmetric_covariance_is_refused():
+    p0 = np.eye(6)
+    p0[0, 1] = 0.5
+    with pytest.raises(ValueError, match='symmetric'):
+        make_estimator('ekf', EstimatorConfig(initial_covariance=p0))
+
+
+def test_any_model_implementing_the_interface_works(double_integrator):
+    config = EstimatorConfig(neuron_count=40, process_noise=1e-4, measurement_noise=1e-2,
+                             process_noise_scale=1.0, measurement_noise_scale=1.0,
+                             initial_covariance=(1.0, 1.0), initial_state=(0.5, 0.0),
+                             boundary_layer=0.1, state_scale=(0.01, 0.01))
+    estimator = make_estimator('snn_ekf', config, double_integrator)
+    for k in range(500):
+        estimator.step(np.array([0.0]), np.array([0.0]), 0.01)
+    assert abs(estimator.x_hat[0]) < 0.05
+
+
+def test_van_der_pol_network_uses_the_jacobian_form_of_eq_17():
+    """The spiking filters implement A(x_hat) x_hat (Eq. 14), not f(x_hat): on Van der Pol they
+    differ from their twins by that linearisation even with a fine decoder."""
+    model = VanDerPol(mu=0.5)
+    x = np.array([1.5, 1.0])
+    a = model.jacobian(x, np.zeros(1))
+    assert not np.allclose(a @ x, model.f(x, np.zeros(1)))
+    np.testing.assert_allclose(a @ x - model.f(x, np.zeros(1)), [0.0, -2 * 0.5 * x[0] ** 2 * x[1]])
+    assert scipy.linalg.norm(a) > 0

@@ -1,0 +1,132 @@
+"""Models against independent computations: matrix exponentials, CW closed forms, finite differences."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from snn_estimator.models import EARTH_MU, ClohessyWiltshire, VanDerPol, zoh_matrices
+
+
+def cw_free_motion(state0, n, t):
+    """Closed-form CW solution without thrust in Fehse's LVLH axes (x V-bar, z R-bar)."""
+    x0, y0, z0, vx0, vy0, vz0 = state0
+    s, c = np.sin(n * t), np.cos(n * t)
+    x = (4 * vx0 / n - 6 * z0) * s - 2 * vz0 / n * c + (6 * n * z0 - 3 * vx0) * t + (x0 + 2 * vz0 / n)
+    y = y0 * c + vy0 / n * s
+    z = (2 * vx0 / n - 3 * z0) * c + vz0 / n * s + (4 * z0 - 2 * vx0 / n)
+    vx = (4 * vx0 - 6 * n * z0) * c + 2 * vz0 * s + (6 * n * z0 - 3 * vx0)
+    vy = -y0 * n * s + vy0 * c
+    vz = -(2 * vx0 - 3 * n * z0) * s + vz0 * c
+    return np.array([x, y, z, vx, vy, vz])
+
+
+def test_mean_motion_follows_eq39_for_a_400km_orbit():
+    model = ClohessyWiltshire()
+    assert model.mean_motion == pytest.approx(np.sqrt(EARTH_MU / 6_778_137.0 ** 3), rel=1e-12)
+    assert model.mean_motion == pytest.approx(1.1313e-3, rel=1e-3)  # ~92.6 min period
+
+
+def test_standard_cw_matches_the_closed_form_solution():
+    model = ClohessyWiltshire()
+    state0 = np.array([70.0, 30.0, -5.0, -1.7, -0.9, 0.25])
+    state = state0.copy()
+    for _ in range(3000):  # 300 s in 0.1 s steps, no thrust
+        state = model.transition(state, np.zeros(3), 0.1)
+    np.testing.assert_allclose(state, cw_free_motion(state0, model.mean_motion, 300.0),
+                               rtol=1e-9, atol=1e-9)
+
+
+def test_transition_equals_expm_with_zero_order_hold():
+    model = ClohessyWiltshire(orbit_radius=7.0e6)
+    a = model.system_matrix(model.mean_motion)
+    dt = 0.1
+    phi = scipy.linalg.expm(a * dt)
+    # Gamma = integral_0^dt expm(A s) ds B, by a fine trapezoid rule
+    s = np.linspace(0.0, dt, 2001)
+    gamma = np.trapezoid(np.stack([scipy.linalg.expm(a * si) for si in s]), s, axis=0) @ model.input_matrix
+    x = np.array([1.0, -2.0, 3.0, 0.1, -0.2, 0.3])
+    u = np.array([0.01, -0.02, 0.03])
+    np.testing.assert_allclose(model.transition(x, u, dt), phi @ x + gamma @ u, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(model.transition(x, u, dt, 'euler'), x + dt * (a @ x + model.input_matrix @ u))
+
+
+def test_printed_cw_matrix_differs_only_where_the_misprints_are():
+    n = ClohessyWiltshire().mean_motion
+    standard = ClohessyWiltshire.system_matrix(n, 'standard')
+    printed = ClohessyWiltshire.system_matrix(n, 'as_published')
+    differing = {tuple(index) for index in np.argwhere(standard != printed)}
+    # row 5 (y''): -n^2 on y vs on vy; row 6 (z''): 3n^2 on z vs 2n^2 on vz
+    assert differing == {(4, 1), (4, 4), (5, 2), (5, 5)}
+    assert standard[4, 1] == -n * n and printed[4, 4] == -n * n
+    assert standard[5, 2] == 3 * n * n and printed[5, 5] == 2 * n * n
+    # the printed y-dynamics do not oscillate: a pure y offset stays put instead of returning
+    assert np.all(printed[3:, 1] == 0.0)
+
+
+def test_partial_measurement_selects_the_position_axes():
+    model = ClohessyWiltshire(measured_axes=(0, 2))
+    assert model.measurement_names == ('x', 'z')
+    np.testing.assert_array_equal(model.h(np.arange(6.0)), [0.0, 2.0])
+
+
+@pytest.mark.parametrize('kwargs, message', [
+    ({'orbit_radius': 0.0}, 'orbit_radius'),
+    ({'orbit_radius': -7e6}, 'orbit_radius'),
+    ({'form': 'printed'}, 'cw_model'),
+    ({'measured_axes': (0, 3)}, 'measured_axes'),
+    ({'measured_axes': ()}, 'measured_axes'),
+    ({'measured_axes': (1, 1)}, 'measured_axes'),
+])
+def test_bad_cw_parameters_raise_value_errors_that_name_the_field(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        ClohessyWiltshire(**kwargs)
+
+
+def test_van_loan_process_noise_matches_q_dt_for_short_steps_and_is_exact_for_a_double_integrator():
+    model = ClohessyWiltshire(orbit_radius=1e12)  # n ~ 2e-11 rad/s: a free double integrator
+    q = np.diag([0.0, 0.0, 0.0, 1.0, 2.0, 3.0])
+    dt = 2.0
+    q_d = model.process_noise_discrete(q, dt)
+    # for a double integrator (n -> 0) the exact answer is [[q dt^3/3, q dt^2/2], [q dt^2/2, q dt]]
+    expected = np.zeros((6, 6))
+    for axis, density in zip(range(3), (1.0, 2.0, 3.0)):
+        expected[axis, axis] = density * dt ** 3 / 3
+        expected[axis, axis + 3] = expected[axis + 3, axis] = density * dt ** 2 / 2
+        expected[axis + 3, axis + 3] = density * dt
+    np.testing.assert_allclose(q_d, expected, rtol=1e-9, atol=1e-9)
+    leo = ClohessyWiltshire()
+    np.testing.assert_allclose(leo.process_noise_discrete(q, 1e-4)[3:, 3:], q[3:, 3:] * 1e-4, rtol=1e-3, atol=1e-9)
+
+
+def test_van_der_pol_jacobian_equals_finite_differences():
+    model = VanDerPol(mu=0.7)
+    rng = np.random.default_rng(5)
+    for x in rng.normal(0.0, 2.0, (5, 2)):
+        jac = model.jacobian(x, np.zeros(1))
+        eps = 1e-6
+        numeric = np.column_stack([
+            (model.f(x + eps * e, np.zeros(1)) - model.f(x - eps * e, np.zeros(1))) / (2 * eps)
+            for e in np.eye(2)])
+        np.testing.assert_allclose(jac, numeric, rtol=1e-7, atol=1e-8)
+
+
+def test_van_der_pol_batches_match_single_evaluations():
+    model = VanDerPol(mu=0.005)
+    xs = np.array([[2.0, 2.0], [-1.0, 0.5], [0.3, -0.7]])
+    us = np.zeros((3, 1))
+    batch = model.transition(xs, us, 0.01)
+    singles = np.stack([model.transition(x, u, 0.01) for x, u in zip(xs, us)])
+    np.testing.assert_allclose(batch, singles, rtol=0, atol=0)
+    np.testing.assert_allclose(model.jacobian(xs, us), np.stack([model.jacobian(x, u) for x, u in zip(xs, us)]))
+
+
+def test_linearized_increment_tends_to_the_jacobian_for_small_steps():
+    model = VanDerPol(mu=0.5)
+    x = np.array([1.2, -0.4])
+    a_exact, b_exact = model.linearized_increment(x, 1e-6, 'exact')
+    np.testing.assert_allclose(a_exact, model.jacobian(x, np.zeros(1)), atol=1e-5)
+    np.testing.assert_allclose(b_exact, model.input_matrix, atol=1e-5)
+    phi, gamma = zoh_matrices(model.jacobian(x, np.zeros(1)), model.input_matrix, 0.01)
+    a_d, b_d = model.linearized_increment(x, 0.01, 'exact')
+    np.testing.assert_allclose(np.eye(2) + 0.01 * a_d, phi)
+    np.testing.assert_allclose(0.01 * b_d, gamma)
