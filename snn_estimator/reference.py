@@ -1,4 +1,4 @@
-"""A literal dense implementation of the spiking filters, for tests and the benchmark.
+"""Literal numpy implementations of the filters, for tests and the benchmark.
 
 It forms the N x N weight matrices of Eq. 16-22 every step and integrates Eq. 15 with the
 same forward-Euler scheme and spike rule as the compiled kernel, in plain numpy. It is slow
@@ -94,3 +94,35 @@ class DenseSpikingFilter:
             self.r[best] += 1.0
             self.v += self.omega_f[:, best]
             over = np.where(self.alive, self.v - self.thresholds, -np.inf)
+
+
+class DenseFilter:
+    """Single-run numpy twin of a non-spiking :class:`Estimator` (Eq. 3-9), written out."""
+
+    def __init__(self, estimator: Estimator):
+        if estimator.spiking or estimator.runs != 1:
+            raise ValueError('needs a single-run non-spiking estimator')
+        self.model = estimator.model
+        s = estimator.settings
+        self.x_hat = estimator._x_hat[0].copy()
+        self.P = estimator._p[0].copy()
+        self.gain_law = {0: 'kalman', 1: 'msif', 2: 'sif'}[estimator._gain_code]
+        self.q_hat, self.r_hat, self.delta = s.q_hat, s.r_hat, s.boundary_layer
+        self.method = s.discretization
+
+    def step(self, z, u, dt: float) -> np.ndarray:
+        c = self.model.measurement_matrix
+        innovation = z - c @ self.x_hat
+        if self.gain_law == 'kalman':
+            gain = self.P @ c.T @ np.linalg.inv(self.r_hat)
+        elif self.gain_law == 'msif':
+            p_zz = c @ self.P @ c.T + self.r_hat
+            gain = np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / self.delta, 1.0))
+        else:
+            gain = np.linalg.pinv(c) @ np.diag(np.minimum(np.abs(innovation) / self.delta, 1.0))
+        if self.gain_law != 'sif':
+            jac = self.model.jacobian(self.x_hat, u)
+            self.P = self.P + dt * (jac @ self.P + self.P @ jac.T + self.q_hat
+                                    - self.P @ c.T @ np.linalg.inv(self.r_hat) @ c @ self.P)
+        self.x_hat = self.model.transition(self.x_hat, u, dt, self.method) + dt * gain @ innovation
+        return self.x_hat

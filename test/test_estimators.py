@@ -345,3 +345,17 @@ def test_van_der_pol_network_uses_the_jacobian_form_of_eq_17():
     assert not np.allclose(a @ x, model.f(x, np.zeros(1)))
     np.testing.assert_allclose(a @ x - model.f(x, np.zeros(1)), [0.0, -2 * 0.5 * x[0] ** 2 * x[1]])
     assert scipy.linalg.norm(a) > 0
+
+
+@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif'])
+def test_compiled_direct_filters_equal_the_written_out_equations(kind):
+    from snn_estimator.reference import DenseFilter
+    scenario, zs, us = rendezvous_inputs(steps=200)
+    fast = make_estimator(kind, scenario.estimator)
+    dense = DenseFilter(fast)
+    for z, u in zip(zs, us):
+        fast.step(z, u, 0.1)
+        dense.step(z, u, 0.1)
+    np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-10)
+    if fast.P is not None:
+        np.testing.assert_allclose(fast.P, dense.P, rtol=1e-9, atol=1e-18)

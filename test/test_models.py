@@ -130,3 +130,11 @@ def test_linearized_increment_tends_to_the_jacobian_for_small_steps():
     a_d, b_d = model.linearized_increment(x, 0.01, 'exact')
     np.testing.assert_allclose(np.eye(2) + 0.01 * a_d, phi)
     np.testing.assert_allclose(0.01 * b_d, gamma)
+
+
+def test_small_argument_expm_matches_scipy():
+    from snn_estimator.models import expm
+    rng = np.random.default_rng(1)
+    for scale in (1e-4, 1e-2, 0.0125, 0.3):
+        matrices = rng.normal(0.0, scale, (5, 3, 3))
+        np.testing.assert_allclose(expm(matrices), scipy.linalg.expm(matrices), rtol=1e-14, atol=1e-15)

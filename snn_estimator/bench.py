@@ -1,0 +1,101 @@
+"""``snn_bench``: microseconds per estimator step on the rendezvous, beside a dense reference.
+
+For every filter and N in (50, 100, 200, 300) it replays the measurements and controls of one
+closed-loop rendezvous through a fresh single-run estimator and reports the median wall time
+of ``step`` (best of three passes), next to :mod:`snn_estimator.reference` (plain numpy that
+forms the paper's N x N weight products every step) timed in the same run. It also times a
+100-run Monte Carlo of each filter. Results go to stdout and ``--out`` (JSON).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .estimators import FILTER_KINDS, make_estimator
+from .experiments import time_steps
+from .reference import DenseFilter, DenseSpikingFilter
+from .simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
+
+NEURON_COUNTS = (50, 100, 200, 300)
+
+
+def record_inputs(scenario, steps: int):
+    """z_k and u_k of one EMSIF-driven closed-loop rendezvous."""
+    model = scenario.model
+    plant = Plant(model, scenario.x0, scenario.process_noise)
+    sensor = PositionSensor(model, scenario.measurement_noise)
+    gain = lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+    driver = make_estimator('emsif', scenario.estimator, model)
+    zs, us = np.empty((steps, model.n_meas)), np.empty((steps, model.n_input))
+    for k in range(steps):
+        us[k] = lqr_control(gain, driver.x_hat)
+        zs[k] = sensor.measure(plant.x)[0]
+        driver.step(zs[k], us[k], scenario.dt)
+        plant.step(us[k], scenario.dt)
+    return zs, us
+
+
+def best_median(make, zs, us, dt, passes: int = 3) -> float:
+    best = math.inf
+    for _ in range(passes):
+        best = min(best, time_steps(make(), zs, us, dt))
+    return best
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='snn_bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--out', type=Path, default=Path('results/bench.json'))
+    parser.add_argument('--dense-steps', type=int, default=600,
+                        help='steps timed for the (slow) dense reference (default 600)')
+    parser.add_argument('--mc-runs', type=int, default=100, help='runs of the timed Monte Carlo')
+    args = parser.parse_args(argv)
+    scenario = rendezvous_scenario()
+    zs, us = record_inputs(scenario, scenario.steps)
+    dt = scenario.dt
+    print(f'snn_rendezvous benchmark: rendezvous, {scenario.steps} steps replayed, dt = {dt} s; '
+          f'{platform.processor() or platform.machine()}, Python {platform.python_version()}')
+    print(f'{"filter":<16}{"N":>5}{"compiled us/step":>18}{"dense us/step":>15}{"ratio":>8}')
+    results: dict = {}
+    for kind, (_, spiking) in FILTER_KINDS.items():
+        for neurons in NEURON_COUNTS:
+            config = scenario.estimator.replace(neuron_count=neurons)
+
+            def fresh(config=config):
+                return make_estimator(kind, config, scenario.model)
+
+            time_steps(fresh(), zs[:100], us[:100], dt)  # compile, warm caches
+            compiled = best_median(fresh, zs, us, dt)
+            dense_class = DenseSpikingFilter if spiking else DenseFilter
+            dense = best_median(lambda: dense_class(fresh()), zs[:args.dense_steps],
+                                us[:args.dense_steps], dt, passes=1)
+            results.setdefault(kind, {})[str(neurons)] = {
+                'us_per_step': round(compiled, 2), 'dense_reference_us_per_step': round(dense, 2)}
+            print(f'{kind:<16}{neurons:>5}{compiled:>18.1f}{dense:>15.1f}{dense / compiled:>7.0f}x')
+            sys.stdout.flush()
+    print(f'\n{args.mc_runs}-run rendezvous Monte Carlo (360 s each), wall time:')
+    monte_carlo = {}
+    for kind in FILTER_KINDS:
+        simulate(scenario, kind, runs=2)  # compile
+        started = time.perf_counter()
+        result = simulate(scenario, kind, runs=args.mc_runs)
+        monte_carlo[kind] = round(time.perf_counter() - started, 2)
+        print(f'  {kind:<16}{monte_carlo[kind]:>7.2f} s   (final range median '
+              f'{np.median(result.final_range()):.4f} m)')
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2) + '\n')
+    (args.out.parent / 'bench_monte_carlo.json').write_text(
+        json.dumps({'runs': args.mc_runs, 'wall_time_s': monte_carlo}, indent=2) + '\n')
+    print(f'\nwrote {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

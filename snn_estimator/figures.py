@@ -1,0 +1,217 @@
+"""Figures in the style of the paper (Fig. 2-7, 9-11), drawn from plain arrays.
+
+Used by the offline experiments and by the ``report`` tool that reads recorded bags, so both
+draw the same plots. Matplotlib runs headless (Agg).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import matplotlib
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+UNITS = {'x': 'm', 'y': 'm', 'z': 'm', 'vx': 'm/s', 'vy': 'm/s', 'vz': 'm/s', 'x1': '-', 'x2': '-'}
+LABELS = {'ekf': 'EKF', 'emsif': 'EMSIF', 'esif': 'ESIF', 'snn_ekf': 'SNN-EKF',
+          'snn_emsif': 'SNN-EMSIF', 'snn_emsif_star': 'SNN-EMSIF*'}
+COLOURS = {'ekf': 'tab:blue', 'emsif': 'tab:green', 'esif': 'tab:olive', 'snn_ekf': 'tab:orange',
+           'snn_emsif': 'tab:red', 'snn_emsif_star': 'tab:purple'}
+
+
+@dataclass
+class Track:
+    """One estimator's trajectory for the tracking plots."""
+
+    label: str
+    time: np.ndarray         # (T,) s
+    truth: np.ndarray        # (T, n)
+    estimate: np.ndarray     # (T, n)
+    sigma: np.ndarray | None = None  # (T, n) standard deviations, or None
+    colour: str | None = None
+
+
+def label_of(kind: str) -> str:
+    return LABELS.get(kind, kind)
+
+
+def colour_of(kind: str) -> str | None:
+    return COLOURS.get(kind)
+
+
+def _axis_label(state: str) -> str:
+    unit = UNITS.get(state, '')
+    return f'{state} [{unit}]' if unit and unit != '-' else state
+
+
+def _save(fig, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def tracking_figure(tracks: Sequence[Track], states: Sequence[str], path: Path, title: str) -> Path:
+    """Left: true and estimated state (Fig. 2a-b, 9). Right: error with +-3 sigma (Fig. 2c-d, 10)."""
+    rows = len(states)
+    fig, axes = plt.subplots(rows, 2, figsize=(12, 2.1 * rows + 0.8), sharex=True, squeeze=False)
+    for row, state in enumerate(states):
+        left, right = axes[row]
+        first = tracks[0]
+        left.plot(first.time, first.truth[:, row], color='black', linewidth=1.6, label='truth')
+        for track in tracks:
+            left.plot(track.time, track.estimate[:, row], color=track.colour, linewidth=1.0,
+                      linestyle='--', label=track.label)
+            error = track.truth[:, row] - track.estimate[:, row]
+            line, = right.plot(track.time, error, color=track.colour, linewidth=0.9, label=track.label)
+            if track.sigma is not None:
+                bound = 3.0 * track.sigma[:, row]
+                right.plot(track.time, bound, color=line.get_color(), linewidth=0.7, linestyle=':')
+                right.plot(track.time, -bound, color=line.get_color(), linewidth=0.7, linestyle=':')
+        left.set_ylabel(_axis_label(state))
+        right.set_ylabel(f'error {_axis_label(state)}')
+        right.axhline(0.0, color='grey', linewidth=0.5)
+        _zoom_error_axis(right, tracks, row)
+        left.grid(alpha=0.3)
+        right.grid(alpha=0.3)
+    axes[0, 0].legend(loc='upper right', fontsize=8)
+    axes[0, 1].legend(loc='upper right', fontsize=8, title='dotted: +-3 sigma', title_fontsize=7)
+    axes[0, 0].set_title('true and estimated state')
+    axes[0, 1].set_title('estimation error')
+    for ax in axes[-1]:
+        ax.set_xlabel('time [s]')
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def _zoom_error_axis(ax, tracks, row):
+    """Limit the error axis to the settled part so the steady-state error stays readable."""
+    errors = np.concatenate([np.abs(t.truth[:, row] - t.estimate[:, row])[len(t.time) // 10:]
+                             for t in tracks])
+    if errors.size and np.all(np.isfinite(errors)):
+        top = np.percentile(errors, 99.5) * 1.8
+        if top > 0:
+            ax.set_ylim(-top, top)
+
+
+def rmse_figure(series: dict, time: np.ndarray, states: Sequence[str], path: Path, title: str,
+                colours: dict | None = None) -> Path:
+    """RMSE over runs against time for each state (Fig. 3-5, 11). ``series``: label -> (T, n)."""
+    rows = len(states)
+    fig, axes = plt.subplots(rows, 1, figsize=(10, 1.9 * rows + 0.8), sharex=True, squeeze=False)
+    for row, state in enumerate(states):
+        ax = axes[row, 0]
+        for label, history in series.items():
+            ax.semilogy(time, history[:, row], linewidth=1.0, label=label,
+                        color=(colours or {}).get(label))
+        ax.set_ylabel(f'RMSE {_axis_label(state)}')
+        ax.grid(alpha=0.3, which='both')
+    axes[0, 0].legend(loc='upper right', fontsize=8, ncol=3)
+    axes[-1, 0].set_xlabel('time [s]')
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def raster_figure(time: np.ndarray, raster: np.ndarray, path: Path, title: str) -> Path:
+    """Spike raster (neurons x time, Fig. 7) above the spikes emitted per step."""
+    raster = np.asarray(raster)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(11, 6), sharex=True,
+                                      gridspec_kw={'height_ratios': [3, 1]})
+    steps, neurons = raster.shape
+    step_times = time[:steps]
+    top.imshow((raster.T > 0).astype(float), aspect='auto', origin='lower', cmap='viridis',
+               interpolation='nearest', extent=(step_times[0], step_times[-1], -0.5, neurons - 0.5))
+    top.set_ylabel('neuron')
+    per_step = raster.sum(axis=1)
+    fraction = per_step.sum() / max(steps * neurons, 1)
+    top.set_title(f'{title}\n{int(per_step.sum()):,} spikes = {100 * fraction:.1f}% of '
+                  f'{neurons} neurons x {steps} steps (yellow: spike)')
+    bottom.plot(step_times, per_step, color='tab:red', linewidth=0.7)
+    bottom.set_yscale('symlog', linthresh=10)
+    bottom.set_ylabel('spikes / step')
+    bottom.set_xlabel('time [s]')
+    bottom.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def control_figure(series: dict, path: Path, title: str) -> Path:
+    """Commanded specific force per axis. ``series``: label -> (time (T,), u (T, 3))."""
+    names = ('f_x', 'f_y', 'f_z')
+    fig, axes = plt.subplots(4, 1, figsize=(10, 8), sharex=True)
+    for label, (time, u) in series.items():
+        for axis in range(3):
+            axes[axis].plot(time, u[:, axis], linewidth=0.9, label=label)
+        axes[3].plot(time, np.linalg.norm(u, axis=1), linewidth=0.9, label=label)
+    for axis, name in enumerate(names):
+        axes[axis].set_ylabel(f'{name} [m/s^2]')
+    axes[3].set_ylabel('|u| [m/s^2]')
+    axes[3].set_yscale('log')
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    axes[-1].set_xlabel('time [s]')
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def neuron_sweep_figure(sweep: dict, path: Path) -> Path:
+    """Fig. 6: norm of the per-state RMSE (Eq. 29) over the last 10 s against N."""
+    neurons = sweep['neurons']
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for key, data in sweep.items():
+        if key == 'neurons':
+            continue
+        kind = key.split('@')[0]
+        style = '-' if '@' not in key else ':'
+        label = label_of(kind) + (' (as published)' if '@' in key else '')
+        left.plot(neurons, data['rmse_norm'], style, marker='o', color=colour_of(kind), label=label)
+        left.plot(neurons, data['mean_error_norm'], style, marker='x', color=colour_of(kind), alpha=0.6)
+        right.plot(neurons, 100 * np.asarray(data['spike_fraction']), style, marker='o',
+                   color=colour_of(kind), label=label)
+    left.set_yscale('log')
+    left.set_xlabel('neurons N')
+    left.set_ylabel('delta_x (Eq. 29)')
+    left.set_title('o: ordinary RMSE, x: |mean error| reading')
+    right.set_xlabel('neurons N')
+    right.set_ylabel('spikes [% of N x steps]')
+    right.set_title('spike fraction')
+    for ax in (left, right):
+        ax.grid(alpha=0.3, which='both')
+        ax.legend(fontsize=8)
+    fig.suptitle('Van der Pol: accuracy and activity against network size (Fig. 6)')
+    return _save(fig, path)
+
+
+# ---------------------------------------------------------------- adapters for SimulationResult
+def tracking(results: dict, states, path: Path, title: str, run: int = 0) -> Path:
+    """Tracking figure for run ``run`` of each spiking filter and its twin."""
+    keep = [k for k in ('snn_ekf', 'snn_emsif') if k in results] or list(results)
+    tracks = []
+    for kind in keep:
+        result = results[kind]
+        sigma = (np.sqrt(np.clip(result.covariance_diag[run], 0.0, None))
+                 if result.covariance_diag is not None else None)
+        tracks.append(Track(label_of(kind), result.time, result.truth[run], result.estimate[run],
+                            sigma, colour_of(kind)))
+    return tracking_figure(tracks, states, path, title)
+
+
+def rmse_histories(results: dict, states, path: Path, title: str) -> Path:
+    any_result = next(iter(results.values()))
+    series = {label_of(kind): r.rmse_history() for kind, r in results.items()}
+    colours = {label_of(kind): colour_of(kind) for kind in results}
+    return rmse_figure(series, any_result.time, states, path, title, colours)
+
+
+def raster(result, path: Path, title: str) -> Path:
+    return raster_figure(result.time, result.raster, path, title)
+
+
+def neuron_sweep(sweep: dict, path: Path) -> Path:
+    return neuron_sweep_figure(sweep, path)
