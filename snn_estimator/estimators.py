@@ -82,6 +82,7 @@ class Estimator:
         self._c_pinv = np.linalg.pinv(c)
         self._gain = np.zeros((self.runs, n, m))
         self._no_drift = np.zeros((1, n))
+        self._no_measurement = np.zeros((self.runs, m))
         self._linear_cache: dict[float, np.ndarray] = {}
         self._rule_code = _RULES[self.settings.spike_rule]
         self._scale = np.ascontiguousarray(self.settings.state_scale)
@@ -295,15 +296,23 @@ class Estimator:
         return (np.ascontiguousarray(np.concatenate([jac, b_d, jac], axis=2)),
                 np.ascontiguousarray(drift), True)
 
+    def predict(self, u, dt: float) -> np.ndarray:
+        """Advance by ``dt`` without a measurement (sensor dropout): K = 0, and Eq. 6 without
+        its measurement term."""
+        return self.step(None, u, dt)
+
     def step(self, z, u, dt: float) -> np.ndarray:
         """Advance every run by ``dt`` seconds with measurement ``z`` (at the current time) and
-        control ``u`` (held over the step). Shapes (m,), (m_u,) or with a leading runs axis.
+        control ``u`` (held over the step). Shapes (m,), (m_u,) or with a leading runs axis;
+        ``z`` None means no measurement this step (see :meth:`predict`).
 
         Raises ValueError for non-finite input or a bad dt (the state is then unchanged) and
         FloatingPointError if the state became non-finite (reset() before going on).
         """
         runs = self.runs
-        z = np.asarray(z, dtype=float).reshape(runs, -1)
+        measured = z is not None
+        z = (np.asarray(z, dtype=float).reshape(runs, -1) if measured
+             else self._no_measurement)
         u = np.asarray(u, dtype=float).reshape(runs, -1)
         if z.shape[1] != self.model.n_meas or u.shape[1] != self.model.n_input:
             raise ValueError(f'z must have {self.model.n_meas} and u {self.model.n_input} entries '
@@ -321,7 +330,7 @@ class Estimator:
                               for g in self._noise_rngs])
         status, capped = kernels.estimator_step(
             self._gain_code, self.spiking, self._rule_code, self.has_covariance, use_drift,
-            float(dt), leak, self.settings.max_spikes_per_step, self._consts, dynamics, drift, z, u,
+            measured, float(dt), leak, self.settings.max_spikes_per_step, self._consts, dynamics, drift, z, u,
             self._x_hat, self._p, self._gain, self._decoder, self._gram, self._thresholds,
             self._alive, self._r, self._v, noise, self._spikes, self._total_spikes)
         if status == kernels.STATUS_BAD_INPUT:

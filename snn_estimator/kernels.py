@@ -125,8 +125,8 @@ def fire_only(spike_rule, max_spikes, decoder, gram, thresholds, alive, r, v, sc
 
 
 @numba.njit(cache=True, fastmath=_FAST)
-def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, dt, leak,
-                   max_spikes, consts, dynamics, drift, z, u, x_hat, P, gain, decoder, gram,
+def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, measured, dt,
+                   leak, max_spikes, consts, dynamics, drift, z, u, x_hat, P, gain, decoder, gram,
                    thresholds, alive, r, v, noise, spikes, total_spikes):
     """Advance every run by dt. Returns (status, runs whose spike loop hit max_spikes).
 
@@ -140,13 +140,14 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
         r = (1 - lambda dt) r, then spikes by ``spike_rule`` (r_i += 1, v -= D^T D_i),
         x_hat = S D r (Eq. 12).
     ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + m_u)); a leading axis of 1 is shared.
+    Without a measurement (``measured`` False: a sensor dropout) K = 0 and z is not read.
     """
     runs, n = x_hat.shape
     m = z.shape[1]
     n_u = u.shape[1]
     for b in range(runs):
         for j in range(m):
-            if not np.isfinite(z[b, j]):
+            if measured and not np.isfinite(z[b, j]):
                 return STATUS_BAD_INPUT, 0
         for j in range(n_u):
             if not np.isfinite(u[b, j]):
@@ -166,9 +167,10 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
         bd = 0 if dynamics.shape[0] == 1 else b
         # innovation
         for j in range(m):
-            acc = z[b, j]
-            for k in range(n):
-                acc -= c[j, k] * x_hat[b, k]
+            acc = z[b, j] if measured else 0.0
+            if measured:
+                for k in range(n):
+                    acc -= c[j, k] * x_hat[b, k]
             nu[j] = acc
         # P C^T and P C^T R^-1 (needed by the Kalman gain and the Riccati step)
         if propagate_p:
@@ -201,6 +203,10 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
                 sat = ratio if ratio < 1.0 else 1.0
                 for i in range(n):
                     gain[b, i, j] = c_pinv[i, j] * sat
+        if not measured:
+            for i in range(n):
+                for j in range(m):
+                    gain[b, i, j] = 0.0
         # right-hand side of Eq. 3
         for i in range(n):
             if use_given_drift:
@@ -225,8 +231,9 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
             for i in range(n):
                 for j in range(i, n):
                     acc = jp[i, j] + jp[j, i] + q_hat[i, j]
-                    for k in range(m):
-                        acc -= pctr[i, k] * pct[j, k]
+                    if measured:
+                        for k in range(m):
+                            acc -= pctr[i, k] * pct[j, k]
                     value = P[b, i, j] + dt * acc
                     P[b, i, j] = value
                     P[b, j, i] = value

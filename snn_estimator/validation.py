@@ -29,8 +29,8 @@ def as_matrix(value, shape: tuple[int, int], name: str) -> np.ndarray:
     """
     rows, cols = shape
     array = np.array(value, dtype=float)
-    if array.ndim == 0 and rows == cols:
-        array = float(array) * np.eye(rows)
+    if array.size == 1 and rows == cols:
+        array = float(array.ravel()[0]) * np.eye(rows)
     elif array.ndim == 1 and array.size == rows * cols:
         array = array.reshape(rows, cols)
     elif array.ndim == 1 and rows == cols and array.size == rows:

@@ -359,3 +359,20 @@ def test_compiled_direct_filters_equal_the_written_out_equations(kind):
     np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-10)
     if fast.P is not None:
         np.testing.assert_allclose(fast.P, dense.P, rtol=1e-9, atol=1e-18)
+
+
+@pytest.mark.parametrize('kind', ['ekf', 'snn_emsif'])
+def test_predict_without_a_measurement_propagates_the_model_only(kind):
+    scenario = rendezvous_scenario()
+    model = scenario.model
+    estimator = make_estimator(kind, scenario.estimator)
+    x, p = estimator.x_hat.copy(), estimator.P.copy()
+    u = np.array([0.01, 0.0, -0.02])
+    estimator.predict(u, 0.1)
+    phi, gamma = model.discrete_matrices(0.1)
+    tolerance = 1e-12 if kind == 'ekf' else 5e-3  # spike quantisation of the network
+    np.testing.assert_allclose(estimator.x_hat, phi @ x + gamma @ u, atol=tolerance)
+    a = model.system_matrix(model.mean_motion)
+    np.testing.assert_allclose(estimator.P, p + 0.1 * (a @ p + p @ a.T + estimator.settings.q_hat),
+                               rtol=1e-12)
+    assert np.all(estimator.gain == 0.0)

@@ -1,0 +1,174 @@
+"""Read a recorded run back from its rosbag2 directory and compute its summary.
+
+Only rosbags is needed (no rclpy), so a bag can be examined anywhere. The summary is computed
+from the bag, never from in-memory data of the run.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+
+STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
+NS = 1_000_000_000
+
+
+def _stamp(header) -> int:
+    return int(header.stamp.sec) * NS + int(header.stamp.nanosec)
+
+
+def _odometry(msg) -> tuple[np.ndarray, np.ndarray]:
+    p, v = msg.pose.pose.position, msg.twist.twist.linear
+    state = np.array([p.x, p.y, p.z, v.x, v.y, v.z])
+    variances = np.concatenate([np.asarray(msg.pose.covariance).reshape(6, 6).diagonal()[:3],
+                                np.asarray(msg.twist.covariance).reshape(6, 6).diagonal()[:3]])
+    return state, variances
+
+
+@dataclass
+class RunData:
+    """Everything a report needs, as arrays (times in seconds)."""
+
+    path: Path
+    counts: dict = field(default_factory=dict)        # topic -> messages in the bag
+    types: dict = field(default_factory=dict)         # topic -> message type
+    truth_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    truth: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    estimate_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    estimate: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    estimate_variance: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    measurement_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    measurement: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    control_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    control: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    spike_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    spikes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
+    receive_times: dict = field(default_factory=dict)  # topic -> (k,) ns, in bag order
+    diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
+
+    def last_diagnostics(self, name: str) -> dict:
+        entries = self.diagnostics.get(name)
+        return entries[-1][1] if entries else {}
+
+
+def read_bag(path: str | Path, namespace: str = '') -> RunData:
+    """Load the pipeline topics of a bag (topic names under ``namespace``)."""
+    path = Path(path)
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    prefix = namespace.rstrip('/') + '/'
+    run = RunData(path=path)
+    series = defaultdict(list)
+    receive = defaultdict(list)
+    with Reader(path) as reader:
+        for connection in reader.connections:
+            run.types[connection.topic] = connection.msgtype
+            run.counts[connection.topic] = run.counts.get(connection.topic, 0) + connection.msgcount
+        for connection, timestamp, raw in reader.messages():
+            topic = connection.topic
+            receive[topic].append(timestamp)
+            if not topic.startswith(prefix):
+                continue
+            name = topic[len(prefix):]
+            msg = typestore.deserialize_cdr(raw, connection.msgtype)
+            if name in ('truth', 'estimate'):
+                state, variances = _odometry(msg)
+                series[name].append((_stamp(msg.header), state, variances))
+            elif name == 'measurement':
+                series[name].append((_stamp(msg.header), np.array([msg.point.x, msg.point.y, msg.point.z])))
+            elif name == 'control':
+                linear = msg.accel.linear
+                series[name].append((_stamp(msg.header), np.array([linear.x, linear.y, linear.z])))
+            elif name == 'spike_count':
+                series[name].append(int(msg.data))
+            elif name == 'spikes':
+                series[name].append(np.asarray(msg.data, dtype=np.int64))
+            elif name == 'diagnostics':
+                stamp = _stamp(msg.header) / NS
+                for status in msg.status:
+                    values = {kv.key: kv.value for kv in status.values}
+                    run.diagnostics.setdefault(status.name, []).append((stamp, values))
+    run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}
+    if series['truth']:
+        run.truth_t = np.array([s[0] for s in series['truth']]) / NS
+        run.truth = np.stack([s[1] for s in series['truth']])
+    if series['estimate']:
+        run.estimate_t = np.array([s[0] for s in series['estimate']]) / NS
+        run.estimate = np.stack([s[1] for s in series['estimate']])
+        run.estimate_variance = np.stack([s[2] for s in series['estimate']])
+    for name in ('measurement', 'control'):
+        if series[name]:
+            setattr(run, f'{name}_t', np.array([s[0] for s in series[name]]) / NS)
+            setattr(run, name, np.stack([s[1] for s in series[name]]))
+    run.spike_count = np.asarray(series['spike_count'], dtype=np.int64)
+    if series['spikes'] and max(len(s) for s in series['spikes']) > 0:
+        run.spikes = np.stack(series['spikes'])
+    return run
+
+
+def matched_errors(run: RunData) -> tuple[np.ndarray, np.ndarray]:
+    """Times and errors truth - estimate where both have a sample (same stamp)."""
+    truth_index = {int(round(t * NS)): i for i, t in enumerate(run.truth_t)}
+    times, errors = [], []
+    for j, t in enumerate(run.estimate_t):
+        i = truth_index.get(int(round(t * NS)))
+        if i is not None:
+            times.append(t)
+            errors.append(run.truth[i] - run.estimate[j])
+    return np.asarray(times), np.asarray(errors).reshape(-1, 6)
+
+
+def _number(values: dict, key: str, default=0.0) -> float:
+    try:
+        return float(values.get(key, default))
+    except (TypeError, ValueError):
+        return default
+
+
+def summarize(run: RunData, window: float = 60.0, namespace: str = '') -> dict:
+    """The demo's summary.json, computed from the bag alone."""
+    plant = run.last_diagnostics('cw_plant')
+    estimator = run.last_diagnostics('estimator')
+    sensor = run.last_diagnostics('position_sensor')
+    controller = run.last_diagnostics('lqr_controller')
+    times, errors = matched_errors(run)
+    if times.size:
+        recent = times >= times[-1] - window + 1e-9
+        rmse = np.sqrt(np.mean(errors[recent] ** 2, axis=0))
+    else:
+        rmse = np.full(6, np.nan)
+    neurons = int(_number(estimator, 'neurons'))
+    steps = int(_number(estimator, 'steps'))
+    spikes_total = int(run.spike_count.sum())
+    prefix = namespace.rstrip('/') + '/'
+    published = {
+        'truth': int(_number(plant, 'truth_published')),
+        'measurement': int(_number(sensor, 'measurements_published')),
+        'control': int(_number(controller, 'controls_published')),
+        'estimate': int(_number(estimator, 'estimates_published')),
+        'spike_count': int(_number(estimator, 'estimates_published')),
+        'spikes': int(_number(estimator, 'estimates_published')),
+    }
+    recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
+    return {
+        'estimator': estimator.get('filter', 'unknown'),
+        'sim_time_s': _number(plant, 'sim_time'),
+        'wall_time_s': _number(plant, 'wall_time'),
+        'real_time_factor': _number(plant, 'real_time_factor'),
+        'steps': int(_number(plant, 'steps')),
+        'rmse_last_60s': {state: float(value) for state, value in zip(STATES, rmse)},
+        'final_range_m': float(np.linalg.norm(run.truth[-1, :3])) if run.truth.size else float('nan'),
+        'spikes_total': spikes_total,
+        'spike_fraction': spikes_total / (neurons * steps) if neurons and steps else 0.0,
+        'control_timeouts': int(_number(plant, 'control_timeouts')),
+        'measurements_rejected': int(_number(estimator, 'measurements_rejected')),
+        'controls_missing': int(_number(estimator, 'controls_missing')),
+        'estimator_spikes_total': int(_number(estimator, 'spikes_total')),
+        'neurons': neurons,
+        'messages': {name: {'published': published[name], 'recorded': recorded[name]} for name in published},
+        'recording_complete': all(recorded[n] == published[n] for n in published),
+    }

@@ -1,0 +1,58 @@
+"""Counters every node keeps and reports on `diagnostics` (diagnostic_msgs/DiagnosticArray)."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+
+from .conversions import diagnostic_status, ns_to_stamp
+
+
+class Rejections(Counter):
+    """Rejected inputs by reason, e.g. {'non_finite': 2, 'stale': 1}."""
+
+    @property
+    def total(self) -> int:
+        return sum(self.values())
+
+    def as_values(self, prefix: str) -> dict:
+        values = {f'{prefix}_rejected': self.total}
+        values.update({f'{prefix}_rejected.{reason}': count for reason, count in sorted(self.items())})
+        return values
+
+
+def diagnostic_array(stamp_ns: int, name: str, node_name: str, values: dict,
+                     problems: list[str] | None = None) -> DiagnosticArray:
+    """One status named ``name``; WARN with the problems listed when there are any."""
+    level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
+    message = '; '.join(problems) if problems else 'OK'
+    array = DiagnosticArray()
+    array.header.stamp = ns_to_stamp(stamp_ns)
+    array.status = [diagnostic_status(name, node_name, level, message, values)]
+    return array
+
+
+class DiagnosticsPublisher:
+    """Publishes one node's status on `diagnostics` at most every ``period`` simulated seconds."""
+
+    def __init__(self, node, name: str, period: float):
+        from . import qos
+        self._node = node
+        self._name = name
+        self._period_ns = int(round(period * 1e9))
+        self._last_ns = None
+        self._publisher = node.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.PIPELINE_QOS)
+
+    def due(self, stamp_ns: int) -> bool:
+        return self._last_ns is None or (self._period_ns > 0 and stamp_ns - self._last_ns >= self._period_ns)
+
+    def publish(self, stamp_ns: int, values: dict, problems: list[str] | None = None) -> None:
+        self._last_ns = stamp_ns
+        self._publisher.publish(diagnostic_array(
+            stamp_ns, self._name, self._node.get_fully_qualified_name(), values, problems))
+
+    def flush(self, timeout: float = 1.0) -> None:
+        """Wait until subscribers acknowledged what was published (before the process exits)."""
+        from rclpy.duration import Duration
+        self._publisher.wait_for_all_acked(Duration(seconds=timeout))

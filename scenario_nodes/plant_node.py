@@ -1,0 +1,186 @@
+"""cw_plant: the Clohessy-Wiltshire truth. Owns simulated time and publishes /clock.
+
+lockstep: publish x_k at t_k, wait for the control stamped t_k, step, repeat (a control that
+does not come within ``control_timeout`` wall-clock seconds is replaced by the last one and
+counted). realtime: step on a wall-clock timer at ``real_time_factor`` with the latest control.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from geometry_msgs.msg import AccelStamped
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock as ClockMessage
+
+from snn_estimator.simulation import Plant
+
+from . import qos
+from .conversions import (MessageError, accel_to_control, ns_to_stamp, seconds_to_ns, stamp_to_ns,
+                          state_to_odometry)
+from .diagnostics import DiagnosticsPublisher, Rejections
+from .parameters import PLANT, cw_model, declare
+from .runtime import run_node
+
+#: Wall-clock seconds the lockstep plant waits for the very first control before warning again.
+STARTUP_NOTICE_PERIOD = 5.0
+#: Wall-clock seconds the plant stays up after its last step so subscribers receive it.
+LINGER_AFTER_DONE = 0.5
+
+
+class PlantNode(Node):
+    """Wraps :class:`snn_estimator.simulation.Plant`; holds no dynamics of its own."""
+
+    def __init__(self, **kwargs):
+        super().__init__('cw_plant', **kwargs)
+        p = declare(self, PLANT)
+        self._p = p
+        self._plant = Plant(cw_model(p), p['initial_state'], p['process_noise'], seeds=[p['seed']])
+        self._dt = p['time_step']
+        self._dt_ns = seconds_to_ns(self._dt)
+        self._t_ns = seconds_to_ns(p['start_time'])
+        self._total_steps = int(round(p['duration'] / self._dt)) if p['duration'] > 0 else None
+        self._lockstep = p['mode'] == 'lockstep'
+        self._control = np.zeros(3)
+        self._step = 0
+        self._timeouts = 0
+        self._controls_received = 0
+        self._rejected = Rejections()
+        self._truth_published = 0
+        self._waiting_since = None
+        self._started_wall = None
+        self._finished_wall = None
+        self.done = False
+        self.exit_code = 0
+
+        self._truth_pub = self.create_publisher(Odometry, qos.TRUTH, qos.PIPELINE_QOS)
+        self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
+                           if p['publish_clock'] else None)
+        self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'])
+        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.PIPELINE_QOS)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if self._lockstep:
+            self._watchdog = self.create_timer(min(0.05, p['control_timeout'] / 4), self._on_watchdog,
+                                               clock=steady)
+        else:
+            period = self._dt / p['real_time_factor']
+            self._ticker = self.create_timer(period, self._on_tick, clock=steady)
+        self.get_logger().info(
+            f"{p['mode']} CW truth, dt {self._dt} s, n = {self._plant.model.mean_motion:.4e} rad/s, "
+            f"{'until stopped' if self._total_steps is None else f'{self._total_steps} steps'}")
+        self._publish_sample()
+
+    # ---------------------------------------------------------------- events
+    def _on_control(self, msg: AccelStamped) -> None:
+        try:
+            u = accel_to_control(msg)
+        except MessageError as error:
+            self._reject(error.reason, str(error))
+            return
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        self._controls_received += 1
+        if self.done:
+            return
+        if not self._lockstep:
+            self._control = u
+            return
+        if abs(stamp_ns - self._t_ns) * 2 < self._dt_ns and self._waiting_since is not None:
+            self._advance(u)
+        elif stamp_ns < self._t_ns:
+            self._reject('stale', f'control stamped {stamp_ns * 1e-9:.3f} s, plant at {self._t_ns * 1e-9:.3f} s')
+
+    def _on_watchdog(self) -> None:
+        if self._waiting_since is None or self.done:
+            return
+        waited = time.monotonic() - self._waiting_since
+        if self._step == 0 and self._controls_received == 0:
+            if waited > STARTUP_NOTICE_PERIOD:
+                self.get_logger().info("waiting for the first control on 'control' "
+                                       '(is the lqr_controller running?)')
+                self._waiting_since = time.monotonic()
+            return
+        if waited > self._p['control_timeout']:
+            self._timeouts += 1
+            self.get_logger().warning(
+                f'no control for t = {self._t_ns * 1e-9:.3f} s within {self._p["control_timeout"]} s: '
+                f'holding the last control ({self._timeouts} timeouts so far)', throttle_duration_sec=5.0)
+            self._advance(self._control)
+
+    def _on_tick(self) -> None:
+        if not self.done:
+            self._advance(self._control)
+
+    # ---------------------------------------------------------------- stepping
+    def _advance(self, u: np.ndarray) -> None:
+        if self._started_wall is None:
+            self._started_wall = time.monotonic()
+        self._control = u
+        self._plant.step(u, self._dt)
+        self._step += 1
+        self._t_ns += self._dt_ns
+        self._publish_sample()
+        if self._total_steps is not None and self._step >= self._total_steps:
+            self._finish()
+
+    def _publish_sample(self) -> None:
+        if self._clock_pub is not None:
+            self._clock_pub.publish(ClockMessage(clock=ns_to_stamp(self._t_ns)))
+        x = self._plant.x[0]
+        self._truth_pub.publish(state_to_odometry(
+            x, None, self._t_ns, self._p['frame_id'], self._p['child_frame_id']))
+        self._truth_published += 1
+        self._waiting_since = time.monotonic()
+        if self._diagnostics.due(self._t_ns):
+            self._publish_diagnostics()
+
+    def _finish(self) -> None:
+        self._finished_wall = time.monotonic()
+        self._waiting_since = None
+        self._publish_diagnostics()
+        values = self._values()
+        self.get_logger().info(
+            f"done: {values['steps']} steps, {values['sim_time']:.1f} s simulated in "
+            f"{values['wall_time']:.2f} s (x{values['real_time_factor']:.0f}), "
+            f"{self._timeouts} control timeouts, final range {values['range']:.4f} m")
+        if self._p['exit_when_done']:
+            self._linger = self.create_timer(LINGER_AFTER_DONE, self._on_linger_end,
+                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _on_linger_end(self) -> None:
+        self.done = True
+
+    # ---------------------------------------------------------------- reporting
+    def _reject(self, reason: str, detail: str) -> None:
+        self._rejected[reason] += 1
+        self.get_logger().warning(f'rejected control ({reason}): {detail}', throttle_duration_sec=5.0)
+
+    def _values(self) -> dict:
+        end = self._finished_wall or time.monotonic()
+        wall = (end - self._started_wall) if self._started_wall else 0.0
+        sim = self._step * self._dt
+        values = {
+            'steps': self._step, 'sim_time': sim, 'wall_time': wall,
+            'real_time_factor': sim / wall if wall > 0 else 0.0,
+            'control_timeouts': self._timeouts, 'controls_received': self._controls_received,
+            'truth_published': self._truth_published,
+            'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished_wall is not None,
+        }
+        values.update(self._rejected.as_values('controls'))
+        return values
+
+    def _publish_diagnostics(self) -> None:
+        problems = [f'{self._timeouts} control timeouts'] if self._timeouts else []
+        if self._rejected.total:
+            problems.append(f'{self._rejected.total} controls rejected')
+        self._diagnostics.publish(self._t_ns, self._values(), problems)
+
+
+def main(args=None) -> int:
+    return run_node(PlantNode, args, 'cw_plant')
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

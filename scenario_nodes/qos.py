@@ -1,0 +1,34 @@
+"""Topic names, frames and QoS of the pipeline, defined once.
+
+All pipeline topics are RELIABLE and TRANSIENT_LOCAL with a history of 100: a node that starts
+late (or a recorder) still receives what was published before it matched, which is how the
+lockstep loop starts without a handshake, and the lockstep rate never has 100 messages
+outstanding on one topic, so nothing is dropped.
+"""
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+PIPELINE_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+#: /clock as rosgraph expects it (rclpy's time source subscribes best-effort, depth 1).
+CLOCK_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1,
+    reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+
+# Relative names, so namespaces and remapping work.
+TRUTH = 'truth'
+MEASUREMENT = 'measurement'
+CONTROL = 'control'
+ESTIMATE = 'estimate'
+SPIKE_COUNT = 'spike_count'
+SPIKES = 'spikes'
+DIAGNOSTICS = 'diagnostics'
+CLOCK = '/clock'
+
+PIPELINE_TOPICS = (TRUTH, MEASUREMENT, CONTROL, ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS)
+
+#: The target's local-vertical/local-horizontal frame (x V-bar, y -H, z R-bar toward Earth).
+LVLH_FRAME = 'lvlh'
+CHASER_FRAME = 'chaser'

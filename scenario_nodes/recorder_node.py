@@ -1,0 +1,166 @@
+"""recorder: writes the pipeline's topics to a rosbag2 directory (MCAP or sqlite3) with rosbags.
+
+The same format ``ros2 bag record`` writes (metadata version 9, CDR payloads as received, RIHS01
+type hashes and message definitions from the Jazzy type store, offered QoS profiles), so
+``ros2 bag info/play``, Foxglove and PlotJuggler open it. Receive timestamps come from the node
+clock (simulated time with use_sim_time, like ``ros2 bag record --use-sim-time``) and never
+go backwards. SIGINT/SIGTERM close the bag cleanly.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from datetime import datetime
+from pathlib import Path
+
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+from . import qos
+from .parameters import Spec, declare
+from .runtime import run_node
+
+KNOWN_TYPES = {
+    qos.TRUTH: 'nav_msgs/msg/Odometry',
+    qos.MEASUREMENT: 'geometry_msgs/msg/PointStamped',
+    qos.CONTROL: 'geometry_msgs/msg/AccelStamped',
+    qos.ESTIMATE: 'nav_msgs/msg/Odometry',
+    qos.SPIKE_COUNT: 'std_msgs/msg/UInt32',
+    qos.SPIKES: 'std_msgs/msg/UInt32MultiArray',
+    qos.DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
+    'clock': 'rosgraph_msgs/msg/Clock',
+}
+
+RECORDER = (
+    Spec('topics', list(qos.PIPELINE_TOPICS), 'Topics to record (relative names resolve in the '
+         "node's namespace); types of topics outside the pipeline are discovered from the graph"),
+    Spec('output', '', 'Bag directory to create (empty: bag_<date>-<time> in the working directory)'),
+    Spec('storage', 'mcap', 'Storage plugin', choices=('mcap', 'sqlite3')),
+)
+
+_ZERO = QosTime(sec=0, nsec=0)
+
+
+def message_class(type_name: str):
+    """'pkg/msg/Type' -> the Python message class."""
+    package, _, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.msg'), name)
+
+
+def bag_qos(profile: QoSProfile) -> Qos:
+    """rosbags' description of an rclpy QoS profile (for metadata.yaml)."""
+    return Qos(
+        history=QosHistory.KEEP_LAST, depth=profile.depth,
+        reliability=(QosReliability.RELIABLE if profile.reliability == ReliabilityPolicy.RELIABLE
+                     else QosReliability.BEST_EFFORT),
+        durability=(QosDurability.TRANSIENT_LOCAL if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                    else QosDurability.VOLATILE),
+        deadline=_ZERO, lifespan=_ZERO, liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=_ZERO, avoid_ros_namespace_conventions=False)
+
+
+def adapted_qos(publishers) -> QoSProfile:
+    """A subscription profile compatible with every publisher (as rosbag2 adapts)."""
+    reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers)
+    latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
+    return QoSProfile(depth=qos.PIPELINE_QOS.depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+class RecorderNode(Node):
+    """Subscribes with raw=True and hands the CDR bytes to a rosbags Writer."""
+
+    def __init__(self, **kwargs):
+        super().__init__('recorder', **kwargs)
+        p = declare(self, RECORDER)
+        output = p['output'] or f"bag_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+        self.path = Path(output).expanduser().resolve()
+        if self.path.exists():
+            raise ValueError(f'output {self.path} exists already: choose a new bag directory')
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._typestore = get_typestore(Stores.ROS2_JAZZY)
+        plugin = StoragePlugin.MCAP if p['storage'] == 'mcap' else StoragePlugin.SQLITE3
+        self._writer = Writer(self.path, version=9, storage_plugin=plugin)
+        self._writer.open()
+        self._closed = False
+        self._last_stamp = 0
+        self.counts: dict[str, int] = {}
+        self._waiting: dict[str, str] = {}  # fully qualified topic -> requested name
+        for topic in p['topics']:
+            name = self.resolve_topic_name(topic)
+            base = name.rsplit('/', 1)[-1]
+            if topic in KNOWN_TYPES or base in KNOWN_TYPES:
+                profile = qos.CLOCK_QOS if base == 'clock' else qos.PIPELINE_QOS
+                self._record(name, KNOWN_TYPES.get(topic, KNOWN_TYPES.get(base)), profile)
+            else:
+                self._waiting[name] = topic
+        if self._waiting:
+            self._discovery = self.create_timer(0.5, self._discover,
+                                                clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(f"recording {sorted(self.counts) + sorted(self._waiting)} to {self.path} "
+                               f"({p['storage']})")
+
+    def _record(self, topic: str, type_name: str, profile: QoSProfile) -> None:
+        connection = self._writer.add_connection(topic, type_name, typestore=self._typestore,
+                                                 offered_qos_profiles=[bag_qos(profile)])
+        self.counts[topic] = 0
+
+        def on_message(raw: bytes, connection=connection, topic=topic) -> None:
+            self._write(connection, topic, raw)
+
+        self.create_subscription(message_class(type_name), topic, on_message, profile, raw=True)
+
+    def _write(self, connection, topic: str, raw: bytes) -> None:
+        if self._closed:
+            return
+        stamp = max(self.get_clock().now().nanoseconds, self._last_stamp)
+        self._last_stamp = stamp
+        self._writer.write(connection, stamp, raw)
+        self.counts[topic] += 1
+
+    def _discover(self) -> None:
+        types = dict(self.get_topic_names_and_types())
+        for name in list(self._waiting):
+            if name in types:
+                publishers = self.get_publishers_info_by_topic(name)
+                self._record(name, types[name][0], adapted_qos(publishers) if publishers else qos.PIPELINE_QOS)
+                del self._waiting[name]
+                self.get_logger().info(f'found {name} ({types[name][0]}): recording')
+        if not self._waiting:
+            self._discovery.cancel()
+
+    def drain(self, executor, quiet: float = 0.5, limit: float = 60.0) -> None:
+        """Keep writing until nothing arrived for ``quiet`` s (messages still queued when the
+        stop came), at most ``limit`` s."""
+        started = last_change = time.monotonic()
+        total = sum(self.counts.values())
+        while time.monotonic() - last_change < quiet and time.monotonic() - started < limit:
+            executor.spin_once(timeout_sec=0.05)
+            now_total = sum(self.counts.values())
+            if now_total != total:
+                total, last_change = now_total, time.monotonic()
+
+    def close(self) -> None:
+        """Close the bag (idempotent): writes the summary and metadata.yaml."""
+        if self._closed:
+            return
+        self._closed = True
+        started = time.monotonic()
+        self._writer.close()
+        total = sum(self.counts.values())
+        self.get_logger().info(f'closed {self.path}: {total} messages '
+                               f'{dict(sorted(self.counts.items()))} ({time.monotonic() - started:.2f} s)')
+
+
+def main(args=None) -> int:
+    return run_node(RecorderNode, args, 'recorder')
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

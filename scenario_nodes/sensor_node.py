@@ -1,0 +1,74 @@
+"""position_sensor: noisy partial position measurements z = C x + v of the truth."""
+
+from __future__ import annotations
+
+from geometry_msgs.msg import PointStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+
+from snn_estimator.simulation import PositionSensor
+
+from . import qos
+from .conversions import MessageError, measurement_to_point, odometry_to_state, stamp_to_ns
+from .diagnostics import DiagnosticsPublisher, Rejections
+from .parameters import SENSOR, cw_model, declare
+from .runtime import run_node
+
+
+class SensorNode(Node):
+    """Wraps :class:`snn_estimator.simulation.PositionSensor`: one measurement per truth sample,
+    stamped with the truth's time, NaN on the axes it does not measure."""
+
+    def __init__(self, **kwargs):
+        super().__init__('position_sensor', **kwargs)
+        p = declare(self, SENSOR)
+        self._p = p
+        self._axes = tuple(int(a) for a in p['measured_axes'])
+        model = cw_model(p, measured_axes=self._axes)
+        self._sensor = PositionSensor(model, p['measurement_noise'], seeds=[p['seed']])
+        self._published = 0
+        self._rejected = Rejections()
+        self._last_stamp_ns = None
+        self._pub = self.create_publisher(PointStamped, qos.MEASUREMENT, qos.PIPELINE_QOS)
+        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'])
+        self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.PIPELINE_QOS)
+        self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
+
+    def _on_truth(self, msg: Odometry) -> None:
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        try:
+            x, _ = odometry_to_state(msg)
+        except MessageError as error:
+            self._rejected[error.reason] += 1
+            self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)
+            return
+        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
+            self._rejected['not_newer'] += 1
+            self.get_logger().warning('truth stamp did not advance; not measured twice',
+                                      throttle_duration_sec=5.0)
+            return
+        self._last_stamp_ns = stamp_ns
+        z = self._sensor.measure(x)[0]
+        self._pub.publish(measurement_to_point(z, self._axes, stamp_ns, self._p['frame_id']))
+        self._published += 1
+        if self._diagnostics.due(stamp_ns):
+            self._publish_diagnostics(stamp_ns)
+
+    def _publish_diagnostics(self, stamp_ns: int) -> None:
+        values = {'measurements_published': self._published, **self._rejected.as_values('truth')}
+        problems = [f'{self._rejected.total} truth messages rejected'] if self._rejected.total else []
+        self._diagnostics.publish(stamp_ns, values, problems)
+
+    def close(self) -> None:
+        """Final diagnostics, so the totals of the run are on record."""
+        if self._last_stamp_ns is not None:
+            self._publish_diagnostics(self._last_stamp_ns)
+            self._diagnostics.flush()
+
+
+def main(args=None) -> int:
+    return run_node(SensorNode, args, 'position_sensor')
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
