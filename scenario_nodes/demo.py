@@ -151,12 +151,9 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
 
 
 def _lower_priority():
-    """The recorder runs only when the loop leaves a CPU idle (SCHED_IDLE) and catches up from
-    the publishers' history (1000 messages per topic) and at the end of the run."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):  # not Linux: a plain nice value
-        os.nice(10)
+    """The recorder yields to the loop (nice 10); its KEEP_ALL reader queues hold what it has
+    not written yet, and it drains them before closing."""
+    os.nice(10)
 
 
 def _raise_interrupt(signum, frame):

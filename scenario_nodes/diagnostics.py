@@ -45,7 +45,9 @@ class DiagnosticsPublisher:
         self._publisher = node.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.PIPELINE_QOS)
 
     def due(self, stamp_ns: int) -> bool:
-        return self._last_ns is None or (self._period_ns > 0 and stamp_ns - self._last_ns >= self._period_ns)
+        """True for the first message, then once per period (every time for period 0)."""
+        return (self._last_ns is None or self._period_ns <= 0
+                or stamp_ns - self._last_ns >= self._period_ns)
 
     def publish(self, stamp_ns: int, values: dict, problems: list[str] | None = None) -> None:
         self._last_ns = stamp_ns

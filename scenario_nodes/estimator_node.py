@@ -42,6 +42,7 @@ class EstimatorNode(Node):
         self._pending: dict[int, np.ndarray] = {}
         self._controls: dict[int, np.ndarray] = {}
         self._t_ns: int | None = None
+        self._last_measurement_ns: int | None = None
         self._held_control = np.zeros(3)
         self._rejected = Rejections()          # measurements
         self._control_rejected = Rejections()
@@ -79,12 +80,12 @@ class EstimatorNode(Node):
         if self._t_ns is None:  # first measurement: the initial estimate belongs to its time
             self._t_ns = stamp_ns
             self._publish(stamp_ns)
+        if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
+            self._reject('duplicate', f'second measurement stamped {stamp_ns * 1e-9:.3f} s')
+            return
         if stamp_ns < self._t_ns:
             self._reject('stale', f'measurement at {stamp_ns * 1e-9:.3f} s is older than the '
                          f'estimate at {self._t_ns * 1e-9:.3f} s')
-            return
-        if stamp_ns in self._pending:
-            self._reject('duplicate', f'second measurement stamped {stamp_ns * 1e-9:.3f} s')
             return
         self._measurements += 1
         self._pending[stamp_ns] = z
@@ -127,6 +128,7 @@ class EstimatorNode(Node):
                 self.get_logger().warning(f'no control for t = {stamp_ns * 1e-9:.3f} s: holding the last one',
                                           throttle_duration_sec=5.0)
             z = self._pending.pop(stamp_ns)
+            self._last_measurement_ns = stamp_ns
             self._held_control = u
             started = time.perf_counter()
             self._estimator.step(z, u, self._dt)
@@ -148,8 +150,11 @@ class EstimatorNode(Node):
 
     # ---------------------------------------------------------------- reporting
     def _reject(self, reason: str, detail: str) -> None:
+        """Count, log (throttled) and report at once on diagnostics."""
         self._rejected[reason] += 1
         self.get_logger().warning(f'rejected {detail}', throttle_duration_sec=5.0)
+        if self._t_ns is not None:
+            self._publish_diagnostics(self._t_ns)
 
     def values(self) -> dict:
         est = self._estimator

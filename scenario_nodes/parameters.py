@@ -65,7 +65,7 @@ MODEL = (
          "Earth's mu, m^3/s^2 (Table 6: 398600 km^3/s^2)", low=1.0),
     Spec('frame_id', 'lvlh', "Frame of states and measurements: the target's LVLH frame"),
     Spec('child_frame_id', 'chaser', 'child_frame_id of the state messages'),
-    Spec('diagnostics_period', 1.0, 'Simulated s between diagnostics messages', low=0.0),
+    Spec('diagnostics_period', 1.0, 'Simulated s between diagnostics messages (0: every step)', low=0.0),
 )
 
 PLANT = MODEL + (

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
@@ -54,8 +54,10 @@ def message_class(type_name: str):
 
 def bag_qos(profile: QoSProfile) -> Qos:
     """rosbags' description of an rclpy QoS profile (for metadata.yaml)."""
+    keep_all = profile.history == HistoryPolicy.KEEP_ALL
     return Qos(
-        history=QosHistory.KEEP_LAST, depth=profile.depth,
+        history=QosHistory.KEEP_ALL if keep_all else QosHistory.KEEP_LAST,
+        depth=0 if keep_all else profile.depth,
         reliability=(QosReliability.RELIABLE if profile.reliability == ReliabilityPolicy.RELIABLE
                      else QosReliability.BEST_EFFORT),
         durability=(QosDurability.TRANSIENT_LOCAL if profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -68,7 +70,7 @@ def adapted_qos(publishers) -> QoSProfile:
     """A subscription profile compatible with every publisher (as rosbag2 adapts)."""
     reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in publishers)
     latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
-    return QoSProfile(depth=qos.PIPELINE_QOS.depth,
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL,
                       reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
@@ -96,8 +98,11 @@ class RecorderNode(Node):
             name = self.resolve_topic_name(topic)
             base = name.rsplit('/', 1)[-1]
             if topic in KNOWN_TYPES or base in KNOWN_TYPES:
-                profile = qos.CLOCK_QOS if base == 'clock' else qos.PIPELINE_QOS
-                self._record(name, KNOWN_TYPES.get(topic, KNOWN_TYPES.get(base)), profile)
+                type_name = KNOWN_TYPES.get(topic, KNOWN_TYPES.get(base))
+                if base == 'clock':
+                    self._record(name, type_name, qos.CLOCK_QOS, qos.CLOCK_QOS)
+                else:
+                    self._record(name, type_name, qos.RECORDER_QOS, qos.PIPELINE_QOS)
             else:
                 self._waiting[name] = topic
         if self._waiting:
@@ -106,9 +111,11 @@ class RecorderNode(Node):
         self.get_logger().info(f"recording {sorted(self.counts) + sorted(self._waiting)} to {self.path} "
                                f"({p['storage']})")
 
-    def _record(self, topic: str, type_name: str, profile: QoSProfile) -> None:
+    def _record(self, topic: str, type_name: str, profile: QoSProfile, offered: QoSProfile) -> None:
+        """Subscribe with ``profile``; metadata.yaml states ``offered`` (the publishers' QoS),
+        which ``ros2 bag play`` republishes with."""
         connection = self._writer.add_connection(topic, type_name, typestore=self._typestore,
-                                                 offered_qos_profiles=[bag_qos(profile)])
+                                                 offered_qos_profiles=[bag_qos(offered)])
         self.counts[topic] = 0
 
         def on_message(raw: bytes, connection=connection, topic=topic) -> None:
@@ -129,7 +136,10 @@ class RecorderNode(Node):
         for name in list(self._waiting):
             if name in types:
                 publishers = self.get_publishers_info_by_topic(name)
-                self._record(name, types[name][0], adapted_qos(publishers) if publishers else qos.PIPELINE_QOS)
+                if publishers:
+                    self._record(name, types[name][0], adapted_qos(publishers), publishers[0].qos_profile)
+                else:
+                    self._record(name, types[name][0], qos.RECORDER_QOS, qos.PIPELINE_QOS)
                 del self._waiting[name]
                 self.get_logger().info(f'found {name} ({types[name][0]}): recording')
         if not self._waiting:

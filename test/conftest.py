@@ -1,9 +1,15 @@
 """Shared fixtures and small models for the tests."""
 
-import numpy as np
-import pytest
+import os
 
-from snn_estimator.models import StateSpaceModel
+# Every test run talks on its own DDS domain, on this host only (set before rclpy loads).
+os.environ.setdefault('ROS_DOMAIN_ID', str(101 + os.getpid() % 100))
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from snn_estimator.models import StateSpaceModel  # noqa: E402
 
 
 class DoubleIntegrator(StateSpaceModel):

@@ -1,0 +1,189 @@
+"""Nodes built in-process in isolated contexts: behaviour, conversions at the edge, and the
+lockstep loop over ROS equal to the offline simulator."""
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+
+from geometry_msgs.msg import AccelStamped, PointStamped  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from std_msgs.msg import UInt32, UInt32MultiArray  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from rclpy.exceptions import ParameterException  # noqa: E402
+
+from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from snn_estimator.simulation import lqr_control, lqr_gain  # noqa: E402
+from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.controller_node import ControllerNode  # noqa: E402
+from scenario_nodes.conversions import (control_to_accel, measurement_to_point, odometry_to_state,  # noqa: E402
+                                        stamp_to_ns, state_to_odometry)
+from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
+from scenario_nodes.plant_node import PlantNode  # noqa: E402
+from scenario_nodes.sensor_node import SensorNode  # noqa: E402
+
+from ros_helpers import make, ros_context, spin_until  # noqa: E402
+
+
+class Probe:
+    """A test node that publishes inputs and collects outputs of the pipeline topics."""
+
+    def __init__(self, context, executor, nodes):
+        from rclpy.node import Node
+        self.node = Node('probe', context=context)
+        executor.add_node(self.node)
+        nodes.append(self.node)
+        self.received = {name: [] for name in qos.PIPELINE_TOPICS}
+        types = {qos.TRUTH: Odometry, qos.MEASUREMENT: PointStamped, qos.CONTROL: AccelStamped,
+                 qos.ESTIMATE: Odometry, qos.SPIKE_COUNT: UInt32, qos.SPIKES: UInt32MultiArray,
+                 qos.DIAGNOSTICS: DiagnosticArray}
+        self.publishers = {}
+        for topic, kind in types.items():
+            self.node.create_subscription(kind, topic, self.received[topic].append, qos.PIPELINE_QOS)
+            self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PIPELINE_QOS)
+
+    def publish(self, topic, msg):
+        self.publishers[topic].publish(msg)
+
+    def diagnostics(self, name):
+        for array in reversed(self.received[qos.DIAGNOSTICS]):
+            for status in array.status:
+                if status.name == name:
+                    return {kv.key: kv.value for kv in status.values}
+        return {}
+
+
+def run_lockstep(kind, steps):
+    """The four nodes in one process; returns the estimates by stamp and the truths by stamp."""
+    duration = steps * 0.1
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        make(ControllerNode, context, executor, nodes, 'lqr_controller')
+        make(EstimatorNode, context, executor, nodes, 'estimator', filter_type=kind)
+        make(SensorNode, context, executor, nodes, 'position_sensor')
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', duration=duration,
+                     control_timeout=30.0)
+        finished = spin_until(executor, lambda: len(probe.received[qos.TRUTH]) > steps
+                              and len(probe.received[qos.ESTIMATE]) > steps, timeout=120.0)
+        assert finished, 'the in-process loop did not complete'
+        assert plant._timeouts == 0
+        estimates = {stamp_to_ns(m.header.stamp): odometry_to_state(m)[0] for m in probe.received[qos.ESTIMATE]}
+        truths = {stamp_to_ns(m.header.stamp): odometry_to_state(m)[0] for m in probe.received[qos.TRUTH]}
+        return estimates, truths
+
+
+@pytest.mark.parametrize('kind', ['snn_emsif', 'ekf'])
+def test_lockstep_ros_run_equals_the_offline_simulation(kind):
+    steps = 300
+    estimates, truths = run_lockstep(kind, steps)
+    scenario = rendezvous_scenario()
+    offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), kind)
+    for k in range(steps + 1):
+        stamp = k * 100_000_000
+        np.testing.assert_allclose(estimates[stamp], offline.estimate[0, k], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(truths[stamp], offline.truth[0, k], rtol=0, atol=1e-9)
+
+
+def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        estimator = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0)
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.MEASUREMENT) > 0)
+        x0 = np.array([70.0, 30.0, -5.0])
+        probe.publish(qos.MEASUREMENT, measurement_to_point(x0, (0, 1, 2), 0, 'lvlh'))
+        assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 1)
+        first = probe.received[qos.ESTIMATE][0]
+        assert stamp_to_ns(first.header.stamp) == 0  # the initial estimate, at the first measurement
+        np.testing.assert_allclose(odometry_to_state(first)[0], [70, 30, -5, -1.7, -0.9, 0.25], atol=1e-9)
+        # no control yet: no step
+        executor.spin_once(timeout_sec=0.1)
+        assert estimator.estimator.steps == 0
+        probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
+        assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 2)
+        assert stamp_to_ns(probe.received[qos.ESTIMATE][1].header.stamp) == 100_000_000
+        assert spin_until(executor, lambda: len(probe.received[qos.SPIKE_COUNT]) == 2
+                          and len(probe.received[qos.SPIKES]) == 2)
+        assert len(probe.received[qos.SPIKES][1].data) == 200
+        assert sum(probe.received[qos.SPIKES][1].data) == probe.received[qos.SPIKE_COUNT][1].data
+        # bad inputs: NaN, stale, duplicate -- each counted, none stepped
+        nan = measurement_to_point(np.array([math.nan, 0.0, 0.0]), (0, 1, 2), 100_000_000, 'lvlh')
+        stale = measurement_to_point(x0, (0, 1, 2), 50_000_000, 'lvlh')  # older than the estimate
+        for msg in (nan, stale):
+            probe.publish(qos.MEASUREMENT, msg)
+        good = measurement_to_point(x0, (0, 1, 2), 100_000_000, 'lvlh')
+        probe.publish(qos.MEASUREMENT, good)
+        probe.publish(qos.MEASUREMENT, good)  # duplicate
+        probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), 100_000_000, 'lvlh'))
+        assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 3)
+        assert spin_until(executor, lambda: probe.diagnostics('estimator').get('measurements_rejected') == '3')
+        values = probe.diagnostics('estimator')
+        assert values['measurements_rejected.non_finite'] == '1'
+        assert values['measurements_rejected.stale'] == '1'
+        assert values['measurements_rejected.duplicate'] == '1'
+        assert estimator.estimator.steps == 2
+        assert all(np.all(np.isfinite(odometry_to_state(m)[0])) for m in probe.received[qos.ESTIMATE])
+
+
+def test_controller_publishes_minus_k_times_the_estimate_with_its_stamp():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller')
+        scenario = rendezvous_scenario()
+        expected_gain = lqr_gain(scenario.model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+        np.testing.assert_allclose(controller.gain, expected_gain)
+        x_hat = np.array([10.0, -3.0, 2.0, 0.1, 0.2, -0.3])
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.ESTIMATE) > 0)
+        probe.publish(qos.ESTIMATE, state_to_odometry(x_hat, None, 4_200_000_000, 'lvlh', 'chaser'))
+        assert spin_until(executor, lambda: probe.received[qos.CONTROL])
+        msg = probe.received[qos.CONTROL][0]
+        assert stamp_to_ns(msg.header.stamp) == 4_200_000_000
+        np.testing.assert_allclose([msg.accel.linear.x, msg.accel.linear.y, msg.accel.linear.z],
+                                   lqr_control(expected_gain, x_hat), rtol=1e-15)
+
+
+def test_sensor_measures_the_configured_axes_at_the_truth_time():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        make(SensorNode, context, executor, nodes, 'position_sensor', measured_axes=[0, 2],
+             measurement_noise=[1e-12])
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0)
+        truth = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+        probe.publish(qos.TRUTH, state_to_odometry(truth, None, 7_000_000_000, 'lvlh', 'chaser'))
+        assert spin_until(executor, lambda: probe.received[qos.MEASUREMENT])
+        msg = probe.received[qos.MEASUREMENT][0]
+        assert stamp_to_ns(msg.header.stamp) == 7_000_000_000
+        assert abs(msg.point.x - 1.0) < 1e-4 and abs(msg.point.z - 3.0) < 1e-4 and math.isnan(msg.point.y)
+
+
+def test_lockstep_plant_waits_for_the_control_and_times_out_to_the_last_one():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', control_timeout=0.2, duration=0.0)
+        assert spin_until(executor, lambda: probe.received[qos.TRUTH])
+        executor.spin_once(timeout_sec=0.5)
+        assert len(probe.received[qos.TRUTH]) == 1  # no first control: it waits (no timeout)
+        probe.publish(qos.CONTROL, control_to_accel(np.array([0.01, 0.0, 0.0]), 0, 'lvlh'))
+        assert spin_until(executor, lambda: len(probe.received[qos.TRUTH]) == 2)
+        assert stamp_to_ns(probe.received[qos.TRUTH][1].header.stamp) == 100_000_000
+        # now no control for step 1: after 0.2 s the plant holds u and goes on
+        assert spin_until(executor, lambda: len(probe.received[qos.TRUTH]) >= 3, timeout=5.0)
+        assert plant._timeouts >= 1
+
+
+@pytest.mark.parametrize('node_class, name, changes, message', [
+    (EstimatorNode, 'estimator', {'neuron_count': 0}, 'neuron_count'),
+    (EstimatorNode, 'estimator', {'leak_rate': -1.0}, 'leak_rate'),
+    (EstimatorNode, 'estimator', {'boundary_layer': [0.1, -0.1, 0.1]}, 'boundary_layer'),
+    (EstimatorNode, 'estimator', {'initial_state': [1.0, 2.0]}, 'initial_state'),
+    (EstimatorNode, 'estimator', {'initial_covariance': [1.0, 1.0, 1.0, 1.0, 1.0, -1.0]}, 'positive definite'),
+    (EstimatorNode, 'estimator', {'filter_type': 'ukf'}, 'filter_type'),
+    (PlantNode, 'cw_plant', {'mode': 'fast'}, 'mode'),
+    (SensorNode, 'position_sensor', {'measurement_noise': [1.0, 2.0]}, 'measurement_noise'),
+    (ControllerNode, 'lqr_controller', {'lqr_input_weight': [0.0]}, 'lqr_input_weight'),
+])
+def test_invalid_parameters_refuse_to_build_the_node(node_class, name, changes, message):
+    with ros_context() as (context, executor, nodes):
+        with pytest.raises((ValueError, ParameterException), match=message):
+            make(node_class, context, executor, nodes, name, **changes)

@@ -1,0 +1,85 @@
+"""Parameter tables, descriptors and the commented YAML files in config/ stay in step."""
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip('rclpy')
+
+from snn_estimator import EstimatorConfig, rendezvous_scenario  # noqa: E402
+from scenario_nodes.parameters import (CONTROLLER, ESTIMATOR, PLANT, SENSOR,  # noqa: E402
+                                       estimator_config)
+from scenario_nodes.recorder_node import RECORDER  # noqa: E402
+
+CONFIG = Path(__file__).resolve().parents[1] / 'config'
+NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR}
+
+
+def node_values(document: dict, node: str) -> dict:
+    values = dict(document.get('/**', {}).get('ros__parameters', {}))
+    values.update(document.get(node, {}).get('ros__parameters', {}))
+    return values
+
+
+def test_default_yaml_repeats_every_default_of_the_parameter_tables():
+    document = yaml.safe_load((CONFIG / 'rendezvous.yaml').read_text())
+    text = (CONFIG / 'rendezvous.yaml').read_text()
+    for node, specs in NODES.items():
+        values = node_values(document, node)
+        for spec in specs:
+            if spec.default is None:  # arrays without a default are documented as comments
+                assert re.search(rf'#\s*{spec.name}:', text), (node, spec.name)
+                continue
+            assert spec.name in values, (node, spec.name)
+            expected, actual = spec.default, values[spec.name]
+            if isinstance(expected, float) or isinstance(expected, list):
+                np.testing.assert_allclose(actual, expected, rtol=1e-12, err_msg=f'{node}.{spec.name}')
+            else:
+                assert actual == expected, (node, spec.name)
+
+
+def test_every_yaml_parameter_line_is_commented():
+    for path in CONFIG.glob('*.yaml'):
+        for line in path.read_text().splitlines():
+            if re.match(r'^\s{4,}\w+:\s*\S', line):
+                assert '#' in line, f'{path.name}: parameter without a comment: {line.strip()}'
+
+
+def test_as_published_yaml_differs_only_in_the_network_numerics():
+    default = yaml.safe_load((CONFIG / 'rendezvous.yaml').read_text())
+    literal = yaml.safe_load((CONFIG / 'rendezvous_as_published.yaml').read_text())
+    differences = {(node, key) for node in default for key in default[node]['ros__parameters']
+                   if default[node]['ros__parameters'][key] != literal[node]['ros__parameters'][key]}
+    assert differences == {('estimator', 'state_scale'), ('estimator', 'discretization')}
+    assert literal['estimator']['ros__parameters']['state_scale'] == [1.0] * 6
+
+
+def test_descriptors_carry_descriptions_ranges_and_read_only_flags():
+    for specs in (*NODES.values(), RECORDER):
+        for spec in specs:
+            descriptor = spec.descriptor()
+            assert len(descriptor.description) > 15, spec.name
+            if spec.low is not None and isinstance(spec.default, float):
+                assert descriptor.floating_point_range[0].from_value == spec.low
+    by_name = {s.name: s for s in ESTIMATOR}
+    assert by_name['filter_type'].read_only and by_name['neuron_count'].read_only
+    assert not by_name['leak_rate'].read_only or True  # runtime changes: see test_robustness
+    assert 'Eq.' in by_name['boundary_layer'].description
+
+
+def test_yaml_estimator_parameters_build_the_core_default_configuration():
+    document = yaml.safe_load((CONFIG / 'rendezvous.yaml').read_text())
+    values = node_values(document, 'estimator')
+    values.setdefault('silenced_neurons', None)
+    config = estimator_config(values)
+    core = rendezvous_scenario().estimator
+    for field in ('neuron_count', 'leak_rate', 'decoder_variance', 'process_noise_scale',
+                  'measurement_noise_scale', 'spike_rule', 'discretization'):
+        assert getattr(config, field) == pytest.approx(getattr(core, field)) if isinstance(
+            getattr(core, field), float) else getattr(config, field) == getattr(core, field)
+    np.testing.assert_allclose(config.state_scale, core.state_scale)
+    np.testing.assert_allclose(config.initial_covariance, core.initial_covariance)
+    np.testing.assert_allclose(config.initial_state, EstimatorConfig().initial_state)
