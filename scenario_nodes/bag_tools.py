@@ -50,17 +50,18 @@ class RunData:
     spikes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
     receive_times: dict = field(default_factory=dict)  # topic -> (k,) ns, in bag order
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
+    namespace: str = ''
 
     def last_diagnostics(self, name: str) -> dict:
         entries = self.diagnostics.get(name)
         return entries[-1][1] if entries else {}
 
 
-def read_bag(path: str | Path, namespace: str = '') -> RunData:
-    """Load the pipeline topics of a bag (topic names under ``namespace``)."""
+def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
+    """Load the pipeline topics of a bag (topic names under ``namespace``; None: the namespace
+    of the bag's ``truth`` or ``estimate`` topic)."""
     path = Path(path)
     typestore = get_typestore(Stores.ROS2_JAZZY)
-    prefix = namespace.rstrip('/') + '/'
     run = RunData(path=path)
     series = defaultdict(list)
     receive = defaultdict(list)
@@ -68,6 +69,11 @@ def read_bag(path: str | Path, namespace: str = '') -> RunData:
         for connection in reader.connections:
             run.types[connection.topic] = connection.msgtype
             run.counts[connection.topic] = run.counts.get(connection.topic, 0) + connection.msgcount
+        if namespace is None:
+            namespace = next((topic.rsplit('/', 1)[0] for topic in run.types
+                              if topic.rsplit('/', 1)[-1] in ('truth', 'estimate')), '')
+        prefix = namespace.rstrip('/') + '/'
+        run.namespace = namespace.rstrip('/')
         for connection, timestamp, raw in reader.messages():
             topic = connection.topic
             receive[topic].append(timestamp)
@@ -129,7 +135,7 @@ def _number(values: dict, key: str, default=0.0) -> float:
         return default
 
 
-def summarize(run: RunData, window: float = 60.0, namespace: str = '') -> dict:
+def summarize(run: RunData, window: float = 60.0) -> dict:
     """The demo's summary.json, computed from the bag alone."""
     plant = run.last_diagnostics('cw_plant')
     estimator = run.last_diagnostics('estimator')
@@ -144,7 +150,7 @@ def summarize(run: RunData, window: float = 60.0, namespace: str = '') -> dict:
     neurons = int(_number(estimator, 'neurons'))
     steps = int(_number(estimator, 'steps'))
     spikes_total = int(run.spike_count.sum())
-    prefix = namespace.rstrip('/') + '/'
+    prefix = run.namespace + '/'
     published = {
         'truth': int(_number(plant, 'truth_published')),
         'measurement': int(_number(sensor, 'measurements_published')),

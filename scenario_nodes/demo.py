@@ -35,7 +35,9 @@ FILTERS = ('snn_emsif', 'snn_ekf', 'snn_emsif_star', 'emsif', 'ekf', 'esif')
 class Pipeline:
     """The node processes of one run, with their logs in ``<run>/logs``."""
 
-    def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True):
+    def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
+                 namespace: str = ''):
+        self.namespace = namespace
         self.run_dir = run_dir
         self.params_file = params_file
         self.overrides = overrides
@@ -47,15 +49,18 @@ class Pipeline:
     def command(self, name: str, module: str) -> list[str]:
         # Run-specific values go in a second parameter file: node-specific entries of the first
         # file would win over '-p' arguments, which rcl files under the /** wildcard.
-        return [sys.executable, '-m', module, '--ros-args', '--params-file', str(self.params_file),
-                '--params-file', str(self.overrides_file)]
+        command = [sys.executable, '-m', module, '--ros-args', '--params-file', str(self.params_file),
+                   '--params-file', str(self.overrides_file)]
+        if self.namespace:
+            command += ['-r', f'__ns:={self.namespace}']
+        return command
 
     @property
     def overrides_file(self) -> Path:
         return self.run_dir / 'overrides.yaml'
 
     def start(self) -> None:
-        document = {name: {'ros__parameters': values} for name, values in self.overrides.items()}
+        document = {f'/**/{name}': {'ros__parameters': values} for name, values in self.overrides.items()}
         self.overrides_file.write_text(yaml.safe_dump(document, sort_keys=True))
         for name, module in self.nodes:
             log = open(self.run_dir / 'logs' / f'{name}.log', 'w')
@@ -113,7 +118,7 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
                  params_file: Path | None = None, duration: float | None = None,
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
-                 storage: str = 'mcap') -> dict:
+                 storage: str = 'mcap', namespace: str = '') -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag'}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs)."""
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -127,7 +132,7 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
                  'recorder': {'output': str(run_dir / 'bag'), 'storage': storage}}
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
-    pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id))
+    pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)

@@ -41,6 +41,8 @@ RECORDER = (
          "node's namespace); types of topics outside the pipeline are discovered from the graph"),
     Spec('output', '', 'Bag directory to create (empty: bag_<date>-<time> in the working directory)'),
     Spec('storage', 'mcap', 'Storage plugin', choices=('mcap', 'sqlite3')),
+    Spec('drain_timeout', 5.0, 'On SIGINT/SIGTERM, wall-clock s at most to keep writing queued '
+         'messages before closing the bag', low=0.0),
 )
 
 _ZERO = QosTime(sec=0, nsec=0)
@@ -91,6 +93,7 @@ class RecorderNode(Node):
         self._writer = Writer(self.path, version=9, storage_plugin=plugin)
         self._writer.open()
         self._closed = False
+        self._drain_timeout = p['drain_timeout']
         self._last_stamp = 0
         self.counts: dict[str, int] = {}
         self._waiting: dict[str, str] = {}  # fully qualified topic -> requested name
@@ -145,9 +148,10 @@ class RecorderNode(Node):
         if not self._waiting:
             self._discovery.cancel()
 
-    def drain(self, executor, quiet: float = 0.5, limit: float = 60.0) -> None:
+    def drain(self, executor, quiet: float = 0.5) -> None:
         """Keep writing until nothing arrived for ``quiet`` s (messages still queued when the
-        stop came), at most ``limit`` s."""
+        stop came), at most ``drain_timeout`` s (the pipeline may still be running)."""
+        limit = self._drain_timeout
         started = last_change = time.monotonic()
         total = sum(self.counts.values())
         while time.monotonic() - last_change < quiet and time.monotonic() - started < limit:

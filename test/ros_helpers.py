@@ -36,7 +36,7 @@ def overrides(node: str, **changes) -> list[Parameter]:
     """The node's parameters from config/rendezvous.yaml with ``changes`` applied."""
     document = yaml.safe_load(CONFIG.read_text())
     values = dict(document['/**']['ros__parameters'])
-    values.update(document.get(node, {}).get('ros__parameters', {}))
+    values.update(document.get(f'/**/{node}', {}).get('ros__parameters', {}))
     values.update(changes)
     return [Parameter(name, value=value) for name, value in values.items()]
 

@@ -20,7 +20,7 @@ NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROL
 
 def node_values(document: dict, node: str) -> dict:
     values = dict(document.get('/**', {}).get('ros__parameters', {}))
-    values.update(document.get(node, {}).get('ros__parameters', {}))
+    values.update(document.get(f'/**/{node}', {}).get('ros__parameters', {}))
     return values
 
 
@@ -53,8 +53,8 @@ def test_as_published_yaml_differs_only_in_the_network_numerics():
     literal = yaml.safe_load((CONFIG / 'rendezvous_as_published.yaml').read_text())
     differences = {(node, key) for node in default for key in default[node]['ros__parameters']
                    if default[node]['ros__parameters'][key] != literal[node]['ros__parameters'][key]}
-    assert differences == {('estimator', 'state_scale'), ('estimator', 'discretization')}
-    assert literal['estimator']['ros__parameters']['state_scale'] == [1.0] * 6
+    assert differences == {('/**/estimator', 'state_scale'), ('/**/estimator', 'discretization')}
+    assert literal['/**/estimator']['ros__parameters']['state_scale'] == [1.0] * 6
 
 
 def test_descriptors_carry_descriptions_ranges_and_read_only_flags():

@@ -1,0 +1,182 @@
+"""The package installs the ROS way (colcon) and the pip way, and `ros2 run` finds every node.
+
+`ros2 run <pkg> <exe>` resolves ament_index_python.get_package_prefix(pkg)/lib/<pkg>/<exe> and
+needs the executable bit; these tests resolve executables exactly so and start them.
+"""
+
+import ast
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import types
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = 'snn_rendezvous'
+NODES = ('cw_plant', 'position_sensor', 'lqr_controller', 'estimator', 'recorder')
+EXECUTABLES = NODES + ('report',)
+
+
+def ros2_run_path(prefix_env: dict, executable: str) -> Path:
+    """What `ros2 run` would execute, resolved through the ament index in a clean process."""
+    code = ('from ament_index_python.packages import get_package_prefix;'
+            f'print(get_package_prefix("{PACKAGE}"))')
+    prefix = subprocess.run([sys.executable, '-c', code], env=prefix_env, check=True,
+                            capture_output=True, text=True).stdout.strip()
+    path = Path(prefix) / 'lib' / PACKAGE / executable
+    assert path.is_file() and os.access(path, os.X_OK), path
+    return path
+
+
+def start_and_stop(path: Path, env: dict, log: Path, extra=()) -> tuple[int, str]:
+    """Start a node with the package's parameters, let it come up, SIGINT it."""
+    with open(log, 'w') as out:
+        process = subprocess.Popen([str(path), '--ros-args', '--params-file', str(ROOT / 'config' / 'rendezvous.yaml'),
+                                    *extra], env=env, stdout=out, stderr=subprocess.STDOUT, cwd=log.parent)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and process.poll() is None and '] ' not in log.read_text():
+            time.sleep(0.1)
+        time.sleep(0.5)
+        process.send_signal(signal.SIGINT)
+        code = process.wait(20)
+    return code, log.read_text()
+
+
+def source_files(destination: Path) -> Path:
+    files = subprocess.run(['git', 'ls-files'], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    for name in files + [p.relative_to(ROOT).as_posix() for p in ROOT.glob('*/*.py')]:
+        source = ROOT / name
+        if source.is_file():
+            target = destination / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, target)
+    return destination
+
+
+@pytest.fixture(scope='module')
+def pip_prefix(tmp_path_factory):
+    prefix = tmp_path_factory.mktemp('pip_prefix')
+    source = source_files(tmp_path_factory.mktemp('pip_source') / PACKAGE)
+    subprocess.run([sys.executable, '-m', 'pip', 'install', '--quiet', '--no-deps', '--prefix', str(prefix),
+                    str(source)], check=True, capture_output=True)
+    return prefix
+
+
+def prefix_env(prefix: Path, site: Path) -> dict:
+    env = dict(os.environ)
+    env['AMENT_PREFIX_PATH'] = str(prefix)
+    env['PYTHONPATH'] = str(site)
+    return env
+
+
+def test_pip_install_puts_ros2_run_wrappers_index_marker_and_share_files(pip_prefix, tmp_path):
+    site = next(pip_prefix.glob('lib/python3*/site-packages'))
+    assert (pip_prefix / 'share/ament_index/resource_index/packages' / PACKAGE).is_file()
+    share = pip_prefix / 'share' / PACKAGE
+    for name in ('package.xml', 'launch/rendezvous.launch.py', 'config/rendezvous.yaml',
+                 'config/rendezvous_as_published.yaml'):
+        assert (share / name).is_file(), name
+    env = prefix_env(pip_prefix, site)
+    for executable in EXECUTABLES:
+        ros2_run_path(env, executable)
+    # every node starts alone through that path and stops cleanly on SIGINT
+    for node in NODES:
+        extra = ('-p', f'output:={tmp_path / "bag"}') if node == 'recorder' else ()
+        code, log = start_and_stop(ros2_run_path(env, node), env, tmp_path / f'{node}.log', extra)
+        assert code == 0, log
+        assert f'[{node}]' in log, log
+    imported = subprocess.run([sys.executable, '-c', 'import scenario_nodes; print(scenario_nodes.__file__)'],
+                              env=env, capture_output=True, text=True, cwd=tmp_path).stdout
+    assert imported.startswith(str(site)), imported  # the installed copy, not the checkout
+
+
+def test_a_node_with_an_invalid_parameter_exits_2_and_says_what_to_fix(pip_prefix):
+    site = next(pip_prefix.glob('lib/python3*/site-packages'))
+    env = prefix_env(pip_prefix, site)
+    result = subprocess.run([str(ros2_run_path(env, 'estimator')), '--ros-args', '-p', 'neuron_count:=0'],
+                            env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert 'neuron_count' in result.stderr
+
+
+def test_colcon_build_installs_an_ament_python_package(tmp_path):
+    colcon = Path(sys.executable).with_name('colcon')
+    if not colcon.exists():
+        pytest.skip('colcon-common-extensions is not installed in this environment')
+    workspace = tmp_path / 'ws'
+    source_files(workspace / 'src' / PACKAGE)
+    env = dict(os.environ)
+    env.pop('AMENT_PREFIX_PATH', None)
+    result = subprocess.run([str(colcon), 'build', '--base-paths', 'src'], cwd=workspace, env=env,
+                            capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr
+    install = workspace / 'install' / PACKAGE
+    assert (install / 'share/ament_index/resource_index/packages' / PACKAGE).is_file()
+    for name in ('package.xml', 'launch/rendezvous.launch.py', 'config/rendezvous.yaml'):
+        assert (install / 'share' / PACKAGE / name).is_file(), name
+    site = next(install.glob('lib/python3*/site-packages'))
+    run_env = prefix_env(install, site)
+    for executable in EXECUTABLES:
+        path = ros2_run_path(run_env, executable)
+        assert path.read_text().startswith('#!'), path  # console scripts, not the pip wrappers
+    code, log = start_and_stop(ros2_run_path(run_env, 'estimator'), run_env, tmp_path / 'estimator.log')
+    assert code == 0 and '[estimator]' in log, log
+
+
+def test_package_xml_declares_every_runtime_dependency():
+    text = (ROOT / 'package.xml').read_text()
+    assert '<build_type>ament_python</build_type>' in text and 'format="3"' in text
+    for key in ('rclpy', 'nav_msgs', 'geometry_msgs', 'std_msgs', 'std_srvs', 'diagnostic_msgs',
+                'rosgraph_msgs', 'ament_index_python', 'launch_ros', 'python3-numpy', 'python3-scipy',
+                'python3-matplotlib', 'python3-control-pip', 'python3-numba-pip', 'python3-rosbags-pip'):
+        assert f'<exec_depend>{key}</exec_depend>' in text, key
+    rosdep = (ROOT / 'rosdep' / 'snn_rendezvous.yaml').read_text()
+    for key in ('python3-control-pip', 'python3-numba-pip', 'python3-rosbags-pip'):
+        assert f'{key}:' in rosdep
+
+
+def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
+    """Run generate_launch_description() against stand-ins for launch/launch_ros (not
+    installable here) and check what it would start."""
+    created = {}
+
+    def recorder(kind):
+        class Action:
+            def __init__(self, *args, **kwargs):
+                self.args, self.kwargs = args, kwargs
+                created.setdefault(kind, []).append(self)
+        return Action
+
+    stubs = {
+        'launch': {'LaunchDescription': lambda actions: actions},
+        'launch.actions': {'DeclareLaunchArgument': recorder('argument')},
+        'launch.conditions': {'IfCondition': recorder('condition')},
+        'launch.substitutions': {'LaunchConfiguration': lambda name: ('config', name),
+                                 'PathJoinSubstitution': lambda parts: ('join', tuple(parts))},
+        'launch_ros.actions': {'Node': recorder('node')},
+        'launch_ros.substitutions': {'FindPackageShare': lambda name: ('share', name)},
+    }
+    for name, members in stubs.items():
+        module = types.ModuleType(name)
+        module.__dict__.update(members)
+        monkeypatch.setitem(sys.modules, name, module)
+    path = ROOT / 'launch' / 'rendezvous.launch.py'
+    ast.parse(path.read_text())
+    namespace = {}
+    exec(compile(path.read_text(), str(path), 'exec'), namespace)
+    namespace['generate_launch_description']()
+    arguments = {a.args[0]: a.kwargs for a in created['argument']}
+    assert {'estimator', 'params_file', 'mode'} <= set(arguments)
+    assert all(kwargs.get('description') for kwargs in arguments.values())
+    assert arguments['params_file']['default_value'] == ('join', (('share', PACKAGE), 'config', 'rendezvous.yaml'))
+    nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
+    assert set(nodes) == set(NODES)
+    assert all(n['package'] == PACKAGE and n['name'] == exe for exe, n in nodes.items())
+    assert nodes['estimator']['parameters'][1] == {'filter_type': ('config', 'estimator')}
+    assert nodes['cw_plant']['parameters'][1]['mode'] == ('config', 'mode')

@@ -1,0 +1,153 @@
+"""Recorder and report: the bag is a real rosbag2, complete, and survives SIGTERM; the report's
+numbers are the bag's numbers."""
+
+import json
+import re
+import signal
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+pytest.importorskip('rclpy')
+
+from rclpy.serialization import deserialize_message  # noqa: E402
+from rosbags.rosbag2 import Reader  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
+from scenario_nodes.demo import Pipeline, pipeline_env, run_pipeline  # noqa: E402
+from scenario_nodes.paths import config_file  # noqa: E402
+from scenario_nodes.recorder_node import KNOWN_TYPES, message_class  # noqa: E402
+from scenario_nodes.report import moving_rms, write_report  # noqa: E402
+
+pytestmark = pytest.mark.slow
+TOPICS = ('truth', 'measurement', 'control', 'estimate', 'spike_count', 'spikes', 'diagnostics')
+
+
+@pytest.fixture(scope='module')
+def recorded(tmp_path_factory):
+    """A 60 s snn_ekf run (MCAP) and a 20 s run under a namespace with sqlite3 storage."""
+    mcap = tmp_path_factory.mktemp('mcap_run')
+    run_pipeline(mcap, estimator='snn_ekf', duration=60.0, timeout=180.0)
+    sqlite = tmp_path_factory.mktemp('sqlite_run')
+    run_pipeline(sqlite, estimator='emsif', duration=20.0, timeout=180.0, storage='sqlite3',
+                 namespace='/chaser1')
+    return mcap, sqlite
+
+
+def test_bag_has_every_topic_with_its_type_hash_and_definition(recorded):
+    mcap, _ = recorded
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    metadata = yaml.safe_load((mcap / 'bag' / 'metadata.yaml').read_text())['rosbag2_bagfile_information']
+    assert metadata['storage_identifier'] == 'mcap' and metadata['version'] == 9
+    hashes = {entry['topic_metadata']['name']: entry['topic_metadata']['type_description_hash']
+              for entry in metadata['topics_with_message_count']}
+    with Reader(mcap / 'bag') as reader:
+        by_topic = {c.topic: c for c in reader.connections}
+        assert set(by_topic) == {f'/{t}' for t in TOPICS}
+        for topic in TOPICS:
+            connection = by_topic[f'/{topic}']
+            assert connection.msgtype == KNOWN_TYPES[topic]
+            assert connection.digest == typestore.hash_rihs01(connection.msgtype)
+            assert connection.msgdef.data  # the message definition is stored
+            assert hashes[f'/{topic}'] == connection.digest
+        # rclpy can deserialise what was recorded, and agrees with rosbags
+        for connection, _, raw in reader.messages(connections=[by_topic['/estimate']]):
+            with_rclpy = deserialize_message(raw, message_class(connection.msgtype))
+            with_rosbags = typestore.deserialize_cdr(raw, connection.msgtype)
+            assert with_rclpy.pose.pose.position.x == with_rosbags.pose.pose.position.x
+            assert list(with_rclpy.pose.covariance) == list(with_rosbags.pose.covariance)
+            break
+
+
+def test_bag_holds_every_message_the_nodes_published_with_monotonic_stamps(recorded):
+    for run in recorded:
+        data = read_bag(run / 'bag')
+        summary = summarize(data)
+        for name, counts in summary['messages'].items():
+            assert counts['recorded'] == counts['published'] > 0, (run, name, counts)
+        for times in (data.truth_t, data.estimate_t, data.measurement_t, data.control_t):
+            assert np.all(np.diff(times) > 0)
+        for topic, receive in data.receive_times.items():
+            assert np.all(np.diff(receive) >= 0), topic
+
+
+def test_namespace_and_sqlite_storage(recorded):
+    _, sqlite = recorded
+    metadata = (sqlite / 'bag' / 'metadata.yaml').read_text()
+    assert 'storage_identifier: sqlite3' in metadata
+    data = read_bag(sqlite / 'bag')
+    assert data.namespace == '/chaser1'
+    assert '/chaser1/estimate' in data.counts and summarize(data)['steps'] == 200
+
+
+def test_a_bag_cut_off_by_sigterm_mid_run_still_opens(tmp_path):
+    run_dir = tmp_path / 'cut'
+    run_dir.mkdir()
+    pipeline = Pipeline(run_dir, config_file(), {
+        'cw_plant': {'duration': 3600.0, 'mode': 'lockstep'},
+        'recorder': {'output': str(run_dir / 'bag')}}, pipeline_env())
+    pipeline.start()
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (run_dir / 'bag').exists():
+            time.sleep(0.1)
+        time.sleep(3.0)  # mid-run
+        recorder = pipeline.processes['recorder']
+        recorder.send_signal(signal.SIGTERM)
+        assert recorder.wait(30) == 0
+    finally:
+        pipeline.stop_all()
+    with Reader(run_dir / 'bag') as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        assert counts['/truth'] > 10
+        assert sum(1 for _ in reader.messages()) == sum(counts.values())
+
+
+def test_report_figures_exist_and_its_numbers_are_the_bags(recorded, tmp_path):
+    mcap, sqlite = recorded
+    report = write_report([mcap], tmp_path / 'single')
+    for name in ('states_and_errors.png', 'rmse.png', 'spikes.png', 'control.png'):
+        assert (tmp_path / 'single' / name).stat().st_size > 10_000, name
+    # independent computation straight from the bag with rosbags
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    truth, estimate, spikes = {}, {}, 0
+    with Reader(mcap / 'bag') as reader:
+        for connection, _, raw in reader.messages():
+            msg = typestore.deserialize_cdr(raw, connection.msgtype)
+            if connection.topic in ('/truth', '/estimate'):
+                stamp = msg.header.stamp.sec * 10 ** 9 + msg.header.stamp.nanosec
+                p, v = msg.pose.pose.position, msg.twist.twist.linear
+                (truth if connection.topic == '/truth' else estimate)[stamp] = [p.x, p.y, p.z, v.x, v.y, v.z]
+            elif connection.topic == '/spike_count':
+                spikes += msg.data
+    common = sorted(set(truth) & set(estimate))
+    errors = np.array([np.subtract(truth[t], estimate[t]) for t in common])
+    window = np.array(common) >= common[-1] - 60 * 10 ** 9 + 1
+    rmse = np.sqrt(np.mean(errors[window] ** 2, axis=0))
+    final_range = np.linalg.norm(truth[max(truth)][:3])
+    text = report.read_text()
+    row = next(line for line in text.splitlines() if line.startswith('| SNN-EKF'))
+    numbers = [float(x) for x in re.findall(r'-?\d+\.\d+e[-+]\d+|-?\d+\.\d+', row)]
+    assert f'{final_range:.4f}' in row
+    assert f'{rmse[0]:.3e}, {rmse[1]:.3e}, {rmse[2]:.3e}' in row
+    assert f'{rmse[3]:.3e}, {rmse[4]:.3e}, {rmse[5]:.3e}' in row
+    assert f'| {spikes} |' in row and numbers
+    summary = json.loads((tmp_path / 'single' / 'report_summary.json').read_text())
+    assert summary['SNN-EKF']['spikes_total'] == spikes
+    # two runs overlay in the same figures
+    write_report([mcap, sqlite], tmp_path / 'both')
+    assert 'EMSIF' in (tmp_path / 'both' / 'report.md').read_text()
+    assert (tmp_path / 'both' / 'states_and_errors.png').exists()
+
+
+def test_moving_rms_is_the_rms_of_the_preceding_window():
+    times = np.arange(0.0, 10.0, 0.1)
+    errors = np.column_stack([np.sin(times), np.ones_like(times)])
+    rms = moving_rms(times, errors, 2.0)
+    k = 50
+    window = (times > times[k] - 2.0 + 1e-9) & (times <= times[k])
+    np.testing.assert_allclose(rms[k], np.sqrt(np.mean(errors[window] ** 2, axis=0)))
+    np.testing.assert_allclose(rms[:, 1], 1.0)
