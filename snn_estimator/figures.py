@@ -110,12 +110,23 @@ def rmse_figure(series: dict, time: np.ndarray, states: Sequence[str], path: Pat
         for label, history in series.items():
             ax.semilogy(time, history[:, row], linewidth=1.0, label=label,
                         color=(colours or {}).get(label))
+        _zoom_log_axis(ax, [history[:, row] for history in series.values()])
         ax.set_ylabel(f'RMSE {_axis_label(state)}')
         ax.grid(alpha=0.3, which='both')
     axes[0, 0].legend(loc='upper right', fontsize=8, ncol=3)
     axes[-1, 0].set_xlabel('time [s]')
     fig.suptitle(title)
     return _save(fig, path)
+
+
+def _zoom_log_axis(ax, curves) -> None:
+    """Log axis limits from the curves after their first 5% (an exact initial estimate would
+    otherwise pull the axis down to 1e-15)."""
+    tails = [c[len(c) // 20:] for c in curves if len(c)]
+    values = np.concatenate(tails) if tails else np.zeros(0)
+    values = values[np.isfinite(values) & (values > 0)]
+    if values.size:
+        ax.set_ylim(np.percentile(values, 0.5) / 2.0, values.max() * 2.0)
 
 
 def raster_figure(time: np.ndarray, raster: np.ndarray, path: Path, title: str) -> Path:
