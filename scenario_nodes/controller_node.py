@@ -1,20 +1,29 @@
-"""lqr_controller: u = -K x_hat (Eq. 42) from each state estimate, stamped with the estimate's time."""
+"""lqr_controller: u = -K x_hat (Eq. 42) from each state estimate, stamped with the estimate's time.
+
+Safe mode: when no usable estimate came for ``estimate_timeout`` simulated seconds (estimator
+down), it commands zero thrust at every simulated step and says so, until estimates return.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import JumpThreshold
+from rclpy.duration import Duration
 from rclpy.node import Node
 
 from snn_estimator.simulation import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix
 
 from . import qos
-from .conversions import MessageError, control_to_accel, odometry_to_state, stamp_to_ns
+from .conversions import MessageError, control_to_accel, odometry_to_state, seconds_to_ns, stamp_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
 from .runtime import run_node
+
+GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
 
 def design_gain(values: dict) -> np.ndarray:
@@ -34,43 +43,115 @@ class ControllerNode(Node):
         self._p = p
         self._gain = design_gain(p)
         self._published = 0
+        self._safe_steps = 0
+        self._safe = False
         self._rejected = Rejections()
         self._last_stamp_ns = None
+        self._last_estimate_ns = None  # simulated time of the newest usable estimate
         self._pub = self.create_publisher(AccelStamped, qos.CONTROL, qos.PIPELINE_QOS)
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'])
         self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.PIPELINE_QOS)
-        poles = np.linalg.eigvals(cw_model(p).jacobian(np.zeros(6), np.zeros(3))
-                                  - cw_model(p).input_matrix @ self._gain)
-        self.get_logger().info(
-            f'LQR gain K = {np.array2string(self._gain, precision=4, max_line_width=200)}; '
-            f'slowest closed-loop pole {poles.real.max():.4f} 1/s')
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._jump = self.get_clock().create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
+            post_callback=self._on_time_jump)
+        self.create_timer(p['time_step'], self._on_clock_tick)  # simulated time: safe mode
+        self._log_gain()
 
     @property
     def gain(self) -> np.ndarray:
         return self._gain.copy()
 
+    def _log_gain(self) -> None:
+        model = cw_model(self._p)
+        poles = np.linalg.eigvals(model.jacobian(np.zeros(6), np.zeros(3)) - model.input_matrix @ self._gain)
+        self.get_logger().info(
+            f'LQR gain K = {np.array2string(self._gain, precision=4, max_line_width=200)}; '
+            f'slowest closed-loop pole {poles.real.max():.4f} 1/s')
+
+    def _reject(self, reason: str, detail: str, stamp_ns: int) -> None:
+        self._rejected[reason] += 1
+        self.get_logger().warning(f'rejected estimate ({detail})', throttle_duration_sec=5.0)
+        self._publish_diagnostics(max(stamp_ns, self._last_stamp_ns or 0))
+
     def _on_estimate(self, msg: Odometry) -> None:
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        if msg.header.frame_id != self._p['frame_id']:
+            self._reject('wrong_frame', f"frame '{msg.header.frame_id}', expected '{self._p['frame_id']}'",
+                         stamp_ns)
+            return
         try:
             x_hat, _ = odometry_to_state(msg)
         except MessageError as error:
-            self._rejected[error.reason] += 1
-            self.get_logger().warning(f'rejected estimate ({error})', throttle_duration_sec=5.0)
+            self._reject(error.reason, str(error), stamp_ns)
             return
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
-            self._rejected['not_newer'] += 1
-            self.get_logger().warning('estimate stamp did not advance; ignored', throttle_duration_sec=5.0)
+            if stamp_ns < self._last_stamp_ns - seconds_to_ns(self._p['time_jump_threshold']):
+                self.get_logger().warning('estimate time went back: starting over')
+                self._last_stamp_ns = None
+            else:
+                self._reject('not_newer', f'stamp {stamp_ns * 1e-9:.3f} s did not advance', stamp_ns)
+                return
+        now = self.get_clock().now().nanoseconds
+        if now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age']):
+            self._reject('too_old', f"{(now - stamp_ns) * 1e-9:.3f} s behind the clock", stamp_ns)
             return
-        self._last_stamp_ns = stamp_ns
-        u = lqr_control(self._gain, x_hat)
+        self._last_stamp_ns = self._last_estimate_ns = stamp_ns
+        if self._safe:
+            self._safe = False
+            self.get_logger().info(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s: leaving safe mode')
+        self._publish_control(lqr_control(self._gain, x_hat), stamp_ns)
+
+    def _on_clock_tick(self) -> None:
+        """Simulated-time timer: zero thrust while the estimate is stale."""
+        now = self.get_clock().now().nanoseconds
+        if now <= 0 or self._last_estimate_ns is None:
+            return
+        if now - self._last_estimate_ns > seconds_to_ns(self._p['estimate_timeout']):
+            if not self._safe:
+                self._safe = True
+                self.get_logger().error(
+                    f"no estimate since t = {self._last_estimate_ns * 1e-9:.3f} s: safe mode, zero thrust")
+            if self._last_stamp_ns is None or now > self._last_stamp_ns:
+                self._safe_steps += 1
+                self._last_stamp_ns = now
+                self._publish_control(np.zeros(3), now)
+
+    def _publish_control(self, u: np.ndarray, stamp_ns: int) -> None:
         self._pub.publish(control_to_accel(u, stamp_ns, self._p['frame_id']))
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
 
+    def _on_time_jump(self, jump) -> None:
+        if jump.delta.nanoseconds < 0:
+            self.get_logger().warning('the clock jumped back: starting over')
+            self._last_stamp_ns = self._last_estimate_ns = None
+            self._safe = False
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        """Gains change between two estimates, after the new ones were checked."""
+        changes = {p.name: p.value for p in parameters}
+        if not GAIN_PARAMETERS & set(changes):
+            if 'estimate_timeout' in changes and changes['estimate_timeout'] <= 0:
+                return SetParametersResult(successful=False, reason='estimate_timeout must be > 0')
+            self._p = dict(self._p, **changes)
+            return SetParametersResult(successful=True)
+        values = dict(self._p, **changes)
+        try:
+            gain = design_gain(values)
+        except ValueError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        self._p, self._gain = values, gain
+        self._log_gain()
+        return SetParametersResult(successful=True)
+
     def _publish_diagnostics(self, stamp_ns: int) -> None:
-        values = {'controls_published': self._published, **self._rejected.as_values('estimates')}
+        values = {'controls_published': self._published, 'safe_mode': self._safe,
+                  'safe_mode_steps': self._safe_steps, **self._rejected.as_values('estimates')}
         problems = [f'{self._rejected.total} estimates rejected'] if self._rejected.total else []
+        if self._safe:
+            problems.append('safe mode: zero thrust, no estimate')
         self._diagnostics.publish(stamp_ns, values, problems)
 
     def close(self) -> None:

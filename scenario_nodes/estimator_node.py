@@ -2,32 +2,55 @@
 
 Timing: the estimate x_hat_k stamped t_k is published first; the controller answers with u_k
 stamped t_k; when both the measurement z_k (stamped t_k) and u_k are here, the filter steps and
-x_hat_{k+1} is published stamped t_k + time_step. If u_k is
-still missing two steps later, the last control is held (as the plant does) and counted.
+x_hat_{k+1} is published stamped t_k + time_step. If u_k is still missing two measurements
+later, the last control is held (as the plant does) and counted; if z_k is still missing when
+the clock is two steps ahead, the filter predicts without it (sensor dropout).
+
+Start-up: the first measurement initialises the filter from the parameters, or, when an earlier
+estimator left estimates on the `estimate` topic (hot swap), from the newest of them; the
+measurements and controls since then (the topics' history) are replayed to catch up.
 """
 
 from __future__ import annotations
 
 import time
+from collections import Counter
 
 import numpy as np
 from geometry_msgs.msg import AccelStamped, PointStamped
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType, JumpThreshold
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import UInt32, UInt32MultiArray
+from std_srvs.srv import Trigger
 
 from snn_estimator import make_estimator
 
 from . import qos
-from .conversions import (MessageError, accel_to_control, point_to_measurement, seconds_to_ns,
-                          spike_count_message, spikes_message, stamp_to_ns, state_to_odometry)
+from .conversions import (MessageError, accel_to_control, odometry_to_state, point_to_measurement,
+                          seconds_to_ns, spike_count_message, spikes_message, stamp_to_ns,
+                          state_to_odometry)
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import ESTIMATOR, cw_model, declare, estimator_config
+from .parameters import ESTIMATOR, cw_model, declare, estimator_config, silenced_set
 from .runtime import run_node
+
+#: Parameters applied between steps through the parameter services; everything else is read-only.
+RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
+           'membrane_noise', 'silenced_neurons', 'silenced_fraction', 'nis_threshold', 'nis_window',
+           'max_input_age'}
+CONTROL_MEMORY = 2000  # controls kept for replay after a hot swap
+
+
+def _check_leak(leak_rate: float, dt: float) -> None:
+    if leak_rate * dt >= 1.0:
+        raise ValueError(f'leak_rate * time_step must be < 1 for the Euler step of Eq. 10-11; '
+                         f'got {leak_rate} * {dt}')
 
 
 class EstimatorNode(Node):
-    """Converts messages, calls ``Estimator.step``, publishes; holds no filter math."""
+    """Converts messages, calls the core estimator, publishes; holds no filter math."""
 
     def __init__(self, **kwargs):
         super().__init__('estimator', **kwargs)
@@ -36,18 +59,28 @@ class EstimatorNode(Node):
         self._axes = tuple(int(a) for a in p['measured_axes'])
         model = cw_model(p, form=p['cw_model'], measured_axes=self._axes)
         self._estimator = make_estimator(p['filter_type'], estimator_config(p), model)
+        self._measurement_r = self._estimator.settings.r_hat / p['measurement_noise_scale']
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
+        _check_leak(p['leak_rate'], self._dt)
         self._frame, self._child = p['frame_id'], p['child_frame_id']
+        self._started = time.monotonic()
         self._pending: dict[int, np.ndarray] = {}
         self._controls: dict[int, np.ndarray] = {}
+        self._previous: tuple[int, np.ndarray, np.ndarray] | None = None  # newest foreign estimate
         self._t_ns: int | None = None
+        self._init_ns: int | None = None
         self._last_measurement_ns: int | None = None
         self._held_control = np.zeros(3)
         self._rejected = Rejections()          # measurements
         self._control_rejected = Rejections()
+        self._events = Counter()               # resets, time jumps, reinitialisations, ...
         self._controls_missing = 0
-        self._measurements = 0
+        self._dropout_steps = 0
+        self._high_nis = 0
+        self._measurements = 0  # received = rejected + used + dropped + pending
+        self._used = 0
+        self._dropped = 0
         self._step_times: list[float] = []
         self._published = 0
 
@@ -58,84 +91,255 @@ class EstimatorNode(Node):
         self._diagnostics = DiagnosticsPublisher(self, 'estimator', p['diagnostics_period'])
         self.create_subscription(PointStamped, qos.MEASUREMENT, self._on_measurement, qos.PIPELINE_QOS)
         self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.PIPELINE_QOS)
+        self.create_subscription(Odometry, qos.SET_STATE, self._on_set_state, qos.PIPELINE_QOS)
+        self._previous_sub = (self.create_subscription(Odometry, qos.ESTIMATE, self._on_previous_estimate,
+                                                       qos.PIPELINE_QOS)
+                              if p['initialization'] != 'parameters' else None)
+        self.create_service(Trigger, '~/reset', self._on_reset)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._jump = self.get_clock().create_jump_callback(
+            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
+            post_callback=self._on_time_jump)
+        self.create_timer(self._dt, self._on_clock_tick)  # simulated time: dropouts
+        self.create_timer(0.1, self._try_initialise, clock=Clock(clock_type=ClockType.STEADY_TIME))
         est = self._estimator
         self.get_logger().info(
             f"{p['filter_type']}: " + (
                 f"N = {est.neuron_count}, lambda = {p['leak_rate']}, delta = {list(p['boundary_layer'])}, "
                 f"rule {p['spike_rule']}, S = {list(p['state_scale'])}, " if est.spiking else '')
-            + f"{p['discretization']} steps of {self._dt} s, measured axes {self._axes}")
+            + f"{p['discretization']} steps of {self._dt} s, measured axes {self._axes}, "
+            f"initialization {p['initialization']}")
 
     @property
     def estimator(self):
         return self._estimator
 
     # ---------------------------------------------------------------- inputs
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def _too_old(self, stamp_ns: int) -> bool:
+        """Older than max_input_age behind the simulated clock (when there is a clock)."""
+        now = self._now_ns()
+        return now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age'])
+
     def _on_measurement(self, msg: PointStamped) -> None:
+        self._measurements += 1
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        where = f'measurement at {stamp_ns * 1e-9:.3f} s'
+        if msg.header.frame_id != self._frame:
+            self._reject('wrong_frame', f"{where} in frame '{msg.header.frame_id}', expected '{self._frame}'")
+            return
         try:
             z = point_to_measurement(msg, self._axes)
         except MessageError as error:
-            self._reject(error.reason, f'measurement at {stamp_ns * 1e-9:.3f} s: {error}')
+            self._reject(error.reason, f'{where}: {error}')
             return
-        if self._t_ns is None:  # first measurement: the initial estimate belongs to its time
-            self._t_ns = stamp_ns
-            self._publish(stamp_ns)
+        if self._t_ns is not None and stamp_ns < self._t_ns - seconds_to_ns(self._p['time_jump_threshold']):
+            self._restart(f'measurement time went back from {self._t_ns * 1e-9:.3f} s to '
+                          f'{stamp_ns * 1e-9:.3f} s', 'time_jumps')
         if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
-            self._reject('duplicate', f'second measurement stamped {stamp_ns * 1e-9:.3f} s')
+            self._reject('duplicate', f'second {where}')
             return
-        if stamp_ns < self._t_ns:
-            self._reject('stale', f'measurement at {stamp_ns * 1e-9:.3f} s is older than the '
-                         f'estimate at {self._t_ns * 1e-9:.3f} s')
+        if self._t_ns is not None and stamp_ns < self._t_ns:
+            self._reject('stale', f'{where} is older than the estimate at {self._t_ns * 1e-9:.3f} s')
             return
-        self._measurements += 1
+        if self._t_ns is not None and (stamp_ns - self._t_ns) % self._dt_ns:
+            self._reject('misaligned', f'{where} does not fall on the estimate time '
+                         f'{self._t_ns * 1e-9:.3f} s plus steps of {self._dt} s (time_step?)')
+            return
+        if self._t_ns is not None and self._too_old(stamp_ns):
+            self._reject('too_old', f"{where} is more than {self._p['max_input_age']} s behind the clock")
+            return
         self._pending[stamp_ns] = z
-        self._process()
+        if self._t_ns is None:
+            self._try_initialise()
+        else:
+            self._process()
 
     def _on_control(self, msg: AccelStamped) -> None:
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if msg.header.frame_id != self._frame:
+            self._reject_control('wrong_frame', f"control in frame '{msg.header.frame_id}'")
+            return
         try:
             u = accel_to_control(msg)
         except MessageError as error:
-            self._control_rejected[error.reason] += 1
-            self.get_logger().warning(f'rejected control: {error}', throttle_duration_sec=5.0)
+            self._reject_control(error.reason, str(error))
             return
-        self._controls[stamp_to_ns(msg.header.stamp)] = u
-        self._process()
+        if self._init_ns is not None and stamp_ns < self._init_ns:
+            self._reject_control('before_init', f'control at {stamp_ns * 1e-9:.3f} s predates the '
+                                 f'initialisation at {self._init_ns * 1e-9:.3f} s')
+            return
+        self._controls[stamp_ns] = u
+        if len(self._controls) > CONTROL_MEMORY:
+            del self._controls[min(self._controls)]
+        if self._t_ns is not None:
+            self._process()
+
+    def _on_previous_estimate(self, msg: Odometry) -> None:
+        """Estimates on our own output topic published before we initialised (hot swap)."""
+        if self._t_ns is not None:
+            return
+        try:
+            x, covariance = odometry_to_state(msg)
+        except MessageError:
+            return
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self._previous is None or stamp_ns > self._previous[0]:
+            self._previous = (stamp_ns, x, covariance)
+        self._try_initialise()
 
     def _control_for(self, stamp_ns: int) -> np.ndarray | None:
-        for control_ns, u in self._controls.items():
+        u = self._controls.get(stamp_ns)
+        if u is not None:
+            return u
+        for control_ns, value in self._controls.items():
             if abs(control_ns - stamp_ns) * 2 < self._dt_ns:
-                return u
+                return value
         return None
+
+    # ---------------------------------------------------------------- initialisation
+    def _try_initialise(self) -> None:
+        if self._t_ns is not None or not self._pending:
+            return
+        mode = self._p['initialization']
+        previous = self._previous
+        if previous is not None and mode != 'parameters' and previous[0] <= max(self._pending):
+            stamp_ns, x, covariance = previous
+            self._estimator.reset()
+            try:
+                self._estimator.set_state(x, self._warm_start_covariance(covariance))
+            except ValueError as error:
+                self.get_logger().warning(f'cannot warm start from the earlier estimate: {error}')
+                self._previous = None
+                return
+            self._drop({t for t in self._pending if t < stamp_ns}, 'it predates the warm start')
+            self._begin(stamp_ns, publish=False)
+            self._events['warm_starts'] += 1
+            self.get_logger().info(f'warm start from the estimate of {stamp_ns * 1e-9:.3f} s on '
+                                   f"'{qos.ESTIMATE}'; replaying {len(self._pending)} measurements")
+            self._process()
+            return
+        waited = time.monotonic() - self._started
+        if mode == 'last_estimate' or (mode == 'auto' and waited < self._p['warm_start_wait']):
+            return  # an earlier estimate may still be on its way
+        self._estimator.reset()
+        self._begin(min(self._pending), publish=True)
+        self._process()
+
+    def _warm_start_covariance(self, blocks: np.ndarray) -> np.ndarray | None:
+        """The received covariance blocks, or P0 where they are not positive definite."""
+        if not self._estimator.has_covariance:
+            return None
+        p0 = self._estimator.settings.initial_covariance
+        if (np.all(np.isfinite(blocks)) and np.allclose(blocks, blocks.T)
+                and np.all(np.linalg.eigvalsh(blocks[:3, :3]) > 0)
+                and np.all(np.linalg.eigvalsh(blocks[3:, 3:]) > 0)):
+            return blocks
+        return p0
+
+    def _begin(self, stamp_ns: int, publish: bool) -> None:
+        self._t_ns = self._init_ns = stamp_ns
+        self._controls = {t: u for t, u in self._controls.items() if t >= stamp_ns}
+        if self._previous_sub is not None:
+            self.destroy_subscription(self._previous_sub)
+            self._previous_sub = None
+        if publish:
+            self._publish(stamp_ns)
+
+    def _restart(self, why: str, event: str) -> None:
+        """Back to the configured initial state, initialised again by the next measurement."""
+        self._events[event] += 1
+        self.get_logger().warning(f'{why}: restarting the filter from its initial state')
+        self._estimator.reset()
+        self._t_ns = self._init_ns = self._last_measurement_ns = None
+        self._drop(set(self._pending), 'the filter restarted')
+        self._controls.clear()
+        self._previous = None
+        self._high_nis = 0
+
+    def _drop(self, stamps, why: str) -> None:
+        """Discard queued measurements (counted as dropped, not as rejected)."""
+        for stamp_ns in stamps:
+            del self._pending[stamp_ns]
+            self._dropped += 1
+            self.get_logger().warning(f'dropped the measurement at {stamp_ns * 1e-9:.3f} s: {why}',
+                                      throttle_duration_sec=5.0)
 
     # ---------------------------------------------------------------- stepping
     def _process(self) -> None:
-        """Step through every measurement whose control is known (in stamp order)."""
-        while self._pending:
-            stamp_ns = min(self._pending)
-            if stamp_ns != self._t_ns:
-                self._reject('misaligned', f'measurement at {stamp_ns * 1e-9:.3f} s does not fall on '
-                             f'the estimate time {self._t_ns * 1e-9:.3f} s (time_step {self._dt} s?)')
-                del self._pending[stamp_ns]
+        """Step through every measurement whose control is known (in stamp order); a missing
+        measurement between two that came is predicted over."""
+        while self._pending and self._t_ns is not None:
+            first = min(self._pending)
+            if first < self._t_ns or (first - self._t_ns) % self._dt_ns:
+                self._drop({first}, 'it does not fall on a step of the estimate')
                 continue
-            u = self._control_for(stamp_ns)
-            if u is None:
-                # The next measurement may overtake this step's control on the way here; only
-                # when two newer ones are waiting did the plant go on without our control.
-                if len(self._pending) <= 2:
-                    return
-                u = self._held_control
-                self._controls_missing += 1
-                self.get_logger().warning(f'no control for t = {stamp_ns * 1e-9:.3f} s: holding the last one',
-                                          throttle_duration_sec=5.0)
-            z = self._pending.pop(stamp_ns)
+            if self._control_for(self._t_ns) is None and len(self._pending) <= 2:
+                return  # wait: the next measurement may overtake this step's control
+            self._step(self._pending.pop(first) if first == self._t_ns else None, self._t_ns)
+
+    def _step(self, z: np.ndarray | None, stamp_ns: int) -> None:
+        u = self._control_for(stamp_ns)
+        if u is None:
+            u = self._held_control
+            self._controls_missing += 1
+            self.get_logger().warning(f'no control for t = {stamp_ns * 1e-9:.3f} s: holding the last one',
+                                      throttle_duration_sec=5.0)
+        self._held_control = u
+        if z is None:
+            self._dropout_steps += 1
+        else:
+            self._used += 1
             self._last_measurement_ns = stamp_ns
-            self._held_control = u
-            started = time.perf_counter()
+            self._check_consistency(z)
+        started = time.perf_counter()
+        try:
             self._estimator.step(z, u, self._dt)
-            self._step_times.append(time.perf_counter() - started)
-            self._t_ns = stamp_ns + self._dt_ns
-            self._controls = {t: v for t, v in self._controls.items() if t > stamp_ns}
-            self._publish(self._t_ns)
+        except FloatingPointError as error:
+            self._reinitialise(z, f'{error}', 'non_finite_state')
+        self._step_times.append(time.perf_counter() - started)
+        if len(self._step_times) > 2000:
+            del self._step_times[:1000]
+        self._t_ns = stamp_ns + self._dt_ns
+        self._controls = {t: v for t, v in self._controls.items() if t > stamp_ns}
+        self._publish(self._t_ns)
+
+    def _check_consistency(self, z: np.ndarray) -> None:
+        """Normalised innovation squared over ``nis_threshold`` for ``nis_window`` steps in a
+        row means the filter lost the truth: re-initialise from the measurement."""
+        nis = float(self._estimator.innovation_nis(z, self._measurement_r)[0])
+        self._high_nis = self._high_nis + 1 if nis > self._p['nis_threshold'] else 0
+        if self._high_nis >= self._p['nis_window'] > 0:
+            self._reinitialise(z, f'normalised innovation squared {nis:.1f} > '
+                               f"{self._p['nis_threshold']} for {self._high_nis} steps", 'inconsistent_innovation')
+
+    def _reinitialise(self, z: np.ndarray | None, why: str, reason: str) -> None:
+        """Measured position from ``z``, the rest of the estimate kept where finite (else the
+        initial state), covariance P0."""
+        est = self._estimator
+        x = np.array(est.x_hat, dtype=float)
+        x = np.where(np.isfinite(x), x, est.settings.initial_state)
+        if z is not None:
+            x[list(self._axes)] = z
+        try:
+            est.reset(x, est.settings.initial_covariance)
+        except ValueError:  # not representable (absurd measurement): back to the parameters
+            est.reset()
+        self._high_nis = 0
+        self._events[f'reinitialisations.{reason}'] += 1
+        self.get_logger().error(f'filter re-initialised from the measurement: {why}')
+
+    def _on_clock_tick(self) -> None:
+        """Simulated-time timer: when the clock is two steps past the estimate and no
+        measurement came (sensor dropout), predict up to the clock."""
+        if self._t_ns is None or self._pending:
+            return
+        now = self._now_ns()
+        if now >= self._t_ns + 2 * self._dt_ns:
+            while self._t_ns + self._dt_ns <= now:
+                self._step(None, self._t_ns)
 
     def _publish(self, stamp_ns: int) -> None:
         est = self._estimator
@@ -148,10 +352,63 @@ class EstimatorNode(Node):
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
 
+    # ---------------------------------------------------------------- services, parameters, time
+    def _on_reset(self, request, response):
+        self._restart('reset requested', 'resets')
+        response.success = True
+        response.message = 'filter reset: the next measurement initialises it from initial_state, P0'
+        return response
+
+    def _on_set_state(self, msg: Odometry) -> None:
+        try:
+            x, covariance = odometry_to_state(msg)
+            self._estimator.set_state(x, self._warm_start_covariance(covariance))
+        except ValueError as error:  # MessageError included
+            self._events['set_state_rejected'] += 1
+            self.get_logger().warning(f'rejected set_state: {error}', throttle_duration_sec=5.0)
+            return
+        self._high_nis = 0
+        self._events['set_state'] += 1
+        self.get_logger().info(f'state set to {np.array2string(x, precision=4)}')
+
+    def _on_time_jump(self, jump) -> None:
+        if jump.delta.nanoseconds < 0:
+            self._restart(f'the clock jumped back by {-jump.delta.nanoseconds * 1e-9:.3f} s', 'time_jumps')
+
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        """Validate all changes together and apply them between two steps, or none of them."""
+        changes = {p.name: p.value for p in parameters}
+        for name in changes:
+            if name not in RUNTIME and name in {s.name for s in ESTIMATOR}:
+                return SetParametersResult(successful=False, reason=f'{name} is read-only')
+        values = dict(self._p, **changes)
+        retune = {k: changes[k] for k in self._estimator.RETUNABLE if k in changes}
+        if 'boundary_layer' in retune:
+            retune['boundary_layer'] = list(retune['boundary_layer'])
+        try:  # validate everything before changing anything
+            _check_leak(values['leak_rate'], self._dt)
+            silenced = silenced_set(values, self._estimator.neuron_count, self._estimator.settings.seed)
+            if retune:
+                self._estimator.retune(**retune)  # validates first; raises without changing
+        except ValueError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        if self._estimator.spiking and ('silenced_neurons' in changes or 'silenced_fraction' in changes):
+            self._estimator.silence(silenced)
+            self._events['silencing_changes'] += 1
+        self._p = values
+        self.get_logger().info(f'parameters changed: {changes}')
+        return SetParametersResult(successful=True)
+
     # ---------------------------------------------------------------- reporting
     def _reject(self, reason: str, detail: str) -> None:
         """Count, log (throttled) and report at once on diagnostics."""
         self._rejected[reason] += 1
+        self.get_logger().warning(f'rejected {detail}', throttle_duration_sec=5.0)
+        if self._t_ns is not None:
+            self._publish_diagnostics(self._t_ns)
+
+    def _reject_control(self, reason: str, detail: str) -> None:
+        self._control_rejected[reason] += 1
         self.get_logger().warning(f'rejected {detail}', throttle_duration_sec=5.0)
         if self._t_ns is not None:
             self._publish_diagnostics(self._t_ns)
@@ -163,23 +420,34 @@ class EstimatorNode(Node):
         values = {
             'filter': est.kind, 'neurons': est.neuron_count, 'steps': steps,
             'estimates_published': self._published, 'measurements_received': self._measurements,
+            'measurements_used': self._used, 'measurements_dropped': self._dropped,
+            'measurements_pending': len(self._pending),
             'spikes_total': est.total_spikes,
             'spike_fraction': (est.total_spikes / (steps * est.neuron_count)
                                if steps and est.neuron_count else 0.0),
+            'silenced_neurons': len(est.silenced),
             'step_time_us_last': float(times[-1]) if times.size else 0.0,
             'step_time_us_median': float(np.median(times)) if times.size else 0.0,
-            'controls_missing': self._controls_missing,
+            'controls_missing': self._controls_missing, 'dropout_steps': self._dropout_steps,
         }
         values.update(self._rejected.as_values('measurements'))
         values.update(self._control_rejected.as_values('controls'))
+        values.update(sorted(self._events.items()))
+        values['reinitialisations'] = sum(v for k, v in self._events.items() if k.startswith('reinit'))
         return values
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
         problems = []
-        if self._rejected.total or self._control_rejected.total:
-            problems.append(f'{self._rejected.total + self._control_rejected.total} inputs rejected')
+        rejected = self._rejected.total + self._control_rejected.total
+        if rejected:
+            problems.append(f'{rejected} inputs rejected')
         if self._controls_missing:
             problems.append(f'{self._controls_missing} controls missing')
+        if self._dropout_steps:
+            problems.append(f'{self._dropout_steps} steps without measurement')
+        reinit = sum(v for k, v in self._events.items() if k.startswith('reinit'))
+        if reinit:
+            problems.append(f'{reinit} re-initialisations')
         self._diagnostics.publish(stamp_ns, self.values(), problems)
 
     def close(self) -> None:

@@ -10,6 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+import numpy as np
+
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import ParameterUninitializedException
 from rclpy.parameter import Parameter
@@ -84,6 +86,8 @@ PLANT = MODEL + (
     Spec('start_time', 0.0, 'Simulated time of the first sample, s', low=0.0),
     Spec('publish_clock', True, 'Publish /clock (the plant owns simulated time)'),
     Spec('exit_when_done', False, 'Exit the process after the last step (used by the demo)'),
+    Spec('paused', False, 'Hold simulated time (no steps, no /clock) until set false again',
+         read_only=False),
 )
 
 SENSOR = MODEL + (
@@ -103,6 +107,12 @@ CONTROLLER = MODEL + (
          read_only=False, kind=Parameter.Type.DOUBLE_ARRAY),
     Spec('cw_model', 'standard', 'CW matrix used for the LQR design',
          choices=('standard', 'as_published')),
+    Spec('estimate_timeout', 0.5, 'Simulated s without a usable estimate before safe mode (zero '
+         'thrust)', read_only=False, low=1e-9),
+    Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock are rejected, s',
+         read_only=False, low=1e-9),
+    Spec('time_jump_threshold', 1.0, 'An estimate this far before the last one means the clock '
+         'went back: start over, s', low=0.0),
 )
 
 ESTIMATOR = MODEL + (
@@ -113,18 +123,18 @@ ESTIMATOR = MODEL + (
     Spec('neuron_count', _DEFAULTS.neuron_count, 'N, number of LIF neurons (Table 6: 200)',
          low=1, high=100000),
     Spec('leak_rate', _DEFAULTS.leak_rate, 'lambda, leak of v and r, 1/s (Eq. 10-11; Table 6: 0.001)',
-         low=0.0),
+         read_only=False, low=0.0),
     Spec('boundary_layer', [0.1], 'delta, sliding boundary layer per measured axis or one for '
-         'all, m (Eq. 7-8, 21-24; Table 6: 0.1)'),
+         'all, m (Eq. 7-8, 21-24; Table 6: 0.1)', read_only=False),
     Spec('decoder_variance', _DEFAULTS.decoder_variance,
          'Variance of the decoder entries, D ~ N(0, var) (Sec. 3.2: 1/15)', low=1e-300),
     Spec('seed', 0, 'Seed of the decoder and membrane noise (stream 3 of the seed)', low=0),
     Spec('process_noise', [1e-12], "Q the filter's Q_hat is scaled from, (m/s^2)^2/Hz"),
     Spec('measurement_noise', [1e-2], "R the filter's R_hat is scaled from, m^2"),
     Spec('process_noise_scale', _DEFAULTS.process_noise_scale, 'Q_hat = scale * Q (Sec. 3.2: 0.9)',
-         low=0.0),
+         read_only=False, low=0.0),
     Spec('measurement_noise_scale', _DEFAULTS.measurement_noise_scale,
-         'R_hat = scale * R (Sec. 3.2: 5)', low=1e-300),
+         'R_hat = scale * R (Sec. 3.2: 5)', read_only=False, low=1e-300),
     Spec('initial_covariance', _floats(_DEFAULTS.initial_covariance),
          'P0, initial error covariance, m^2 and (m/s)^2 (not in the paper)'),
     Spec('initial_state', _floats(_DEFAULTS.initial_state), 'x_hat0, m and m/s (Table 6: x0)'),
@@ -134,11 +144,28 @@ ESTIMATOR = MODEL + (
          'x~ = S^-1 x (all 1: the literal network), m and m/s per unit'),
     Spec('discretization', _DEFAULTS.discretization, 'Stepping of the continuous equations',
          choices=('exact', 'euler')),
-    Spec('membrane_noise', 0.0, 'eta, membrane noise, per sqrt(s) (Eq. 10; 0 = off)', low=0.0),
+    Spec('membrane_noise', 0.0, 'eta, membrane noise, per sqrt(s) (Eq. 10; 0 = off)', read_only=False,
+         low=0.0),
     Spec('max_spikes_per_step', 0, 'Cap on spikes per step for the greedy rule (0: 1000 N)', low=0),
-    Spec('silenced_neurons', None, 'Indices of silenced neurons', read_only=False,
+    Spec('silenced_neurons', None, 'Indices of silenced (dead) neurons', read_only=False,
          kind=Parameter.Type.INTEGER_ARRAY),
+    Spec('silenced_fraction', 0.0, 'Fraction of neurons silenced, chosen at random with the seed '
+         '(added to silenced_neurons)', read_only=False, low=0.0, high=1.0),
     Spec('publish_spikes', True, 'Publish per-neuron spike counts on `spikes` every step'),
+    Spec('initialization', 'auto', 'Start from the parameters, or from the newest estimate an '
+         'earlier estimator left on `estimate` (hot swap) and replay the inputs since then; '
+         'auto: the latter when one arrives within warm_start_wait',
+         choices=('auto', 'parameters', 'last_estimate')),
+    Spec('warm_start_wait', 0.5, 'auto initialization: wall-clock s after start-up to wait for an '
+         'earlier estimate', low=0.0),
+    Spec('max_input_age', 1.0, 'Inputs older than this behind the simulated clock are rejected, s',
+         read_only=False, low=1e-9),
+    Spec('time_jump_threshold', 1.0, 'A measurement this far before the estimate time means the '
+         'clock went back (simulation restart, bag loop): the filter restarts, s', low=0.0),
+    Spec('nis_threshold', 25.0, 'Normalised innovation squared above which a step counts as '
+         'inconsistent (chi-square, 3 dof: p = 1.5e-5)', read_only=False, low=1e-9),
+    Spec('nis_window', 10, 'Inconsistent steps in a row that trigger a re-initialisation from the '
+         'measurement (0: never)', read_only=False, low=0),
 )
 
 
@@ -173,7 +200,19 @@ def estimator_config(values: dict) -> EstimatorConfig:
         initial_state=list(values['initial_state']), spike_rule=values['spike_rule'],
         state_scale=list(values['state_scale']), discretization=values['discretization'],
         membrane_noise=values['membrane_noise'], max_spikes_per_step=values['max_spikes_per_step'],
-        silenced_neurons=tuple(values.get('silenced_neurons') or ()))
+        silenced_neurons=tuple(silenced_set(values, values['neuron_count'], values['seed'])))
+
+
+def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
+    """silenced_neurons plus a seeded random silenced_fraction of the N neurons."""
+    explicit = [int(i) for i in (values.get('silenced_neurons') or [])]
+    if any(i < 0 or i >= max(neurons, 1) for i in explicit):
+        raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {explicit}')
+    fraction = float(values.get('silenced_fraction') or 0.0)
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f'silenced_fraction must be in [0, 1], got {fraction}')
+    order = np.random.default_rng([int(seed), 4]).permutation(neurons)
+    return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})
 
 
 def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
@@ -181,3 +220,35 @@ def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
     from snn_estimator import ClohessyWiltshire
     return ClohessyWiltshire(orbit_radius=values['orbit_radius'], mu=values['gravitational_parameter'],
                              form=form, measured_axes=tuple(measured_axes))
+
+
+def markdown() -> str:
+    """Parameter reference tables (README, between the 'parameters' markers)."""
+    from .recorder_node import RECORDER
+
+    def show(value) -> str:
+        if value is None:
+            return '(unset)'
+        if isinstance(value, float):
+            return f'{value:g}'
+        if isinstance(value, list):
+            return '[' + ', '.join(show(v) for v in value) + ']'
+        return str(value)
+
+    shared = {spec.name for spec in MODEL}
+    lines = []
+    for title, specs in (('all pipeline nodes', MODEL), ('cw_plant', PLANT), ('position_sensor', SENSOR),
+                         ('lqr_controller', CONTROLLER), ('estimator', ESTIMATOR), ('recorder', RECORDER)):
+        lines += [f'**{title}**', '', '| parameter | default | meaning |', '|---|---|---|']
+        for spec in specs:
+            if specs is not MODEL and spec.name in shared:
+                continue
+            choices = ' (' + ' \\| '.join(spec.choices) + ')' if spec.choices else ''
+            runtime = '' if spec.read_only else ' **[runtime]**'
+            lines.append(f'| `{spec.name}` | `{show(spec.default)}` | {spec.description}{choices}{runtime} |')
+        lines.append('')
+    return '\n'.join(lines)
+
+
+if __name__ == '__main__':
+    print(markdown())

@@ -12,6 +12,7 @@ import time
 import numpy as np
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMessage
@@ -41,7 +42,7 @@ class PlantNode(Node):
         self._plant = Plant(cw_model(p), p['initial_state'], p['process_noise'], seeds=[p['seed']])
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
-        self._t_ns = seconds_to_ns(p['start_time'])
+        self._t_ns = self._start_ns = seconds_to_ns(p['start_time'])
         self._total_steps = int(round(p['duration'] / self._dt)) if p['duration'] > 0 else None
         self._lockstep = p['mode'] == 'lockstep'
         self._control = np.zeros(3)
@@ -53,6 +54,7 @@ class PlantNode(Node):
         self._waiting_since = None
         self._started_wall = None
         self._finished_wall = None
+        self._held = None
         self.done = False
         self.exit_code = 0
 
@@ -61,6 +63,7 @@ class PlantNode(Node):
                            if p['publish_clock'] else None)
         self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'])
         self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.PIPELINE_QOS)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self._lockstep:
             self._watchdog = self.create_timer(min(0.05, p['control_timeout'] / 4), self._on_watchdog,
@@ -75,12 +78,20 @@ class PlantNode(Node):
 
     # ---------------------------------------------------------------- events
     def _on_control(self, msg: AccelStamped) -> None:
+        if msg.header.frame_id != self._p['frame_id']:
+            self._reject('wrong_frame', f"control in frame '{msg.header.frame_id}', expected "
+                         f"'{self._p['frame_id']}'")
+            return
         try:
             u = accel_to_control(msg)
         except MessageError as error:
             self._reject(error.reason, str(error))
             return
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        if stamp_ns < self._start_ns:
+            self._reject('before_init', f'control stamped {stamp_ns * 1e-9:.3f} s, before the start '
+                         f'at {self._start_ns * 1e-9:.3f} s')
+            return
         self._controls_received += 1
         if self.done:
             return
@@ -88,12 +99,28 @@ class PlantNode(Node):
             self._control = u
             return
         if abs(stamp_ns - self._t_ns) * 2 < self._dt_ns and self._waiting_since is not None:
-            self._advance(u)
+            if self._p['paused']:
+                self._held = u  # applied on resume
+            else:
+                self._advance(u)
         elif stamp_ns < self._t_ns:
             self._reject('stale', f'control stamped {stamp_ns * 1e-9:.3f} s, plant at {self._t_ns * 1e-9:.3f} s')
 
+    def _on_set_parameters(self, parameters) -> SetParametersResult:
+        for parameter in parameters:
+            if parameter.name == 'paused':
+                self._p['paused'] = bool(parameter.value)
+                self.get_logger().info(f"{'paused' if parameter.value else 'resumed'} at "
+                                       f't = {self._t_ns * 1e-9:.3f} s')
+                if not parameter.value and self._held is not None and self._lockstep:
+                    held, self._held = self._held, None
+                    self._advance(held)
+        return SetParametersResult(successful=True)
+
     def _on_watchdog(self) -> None:
-        if self._waiting_since is None or self.done:
+        if self._waiting_since is None or self.done or self._p['paused']:
+            if self._p['paused'] and self._waiting_since is not None:
+                self._waiting_since = time.monotonic()
             return
         waited = time.monotonic() - self._waiting_since
         if self._step == 0 and self._controls_received == 0:
@@ -110,7 +137,7 @@ class PlantNode(Node):
             self._advance(self._control)
 
     def _on_tick(self) -> None:
-        if not self.done:
+        if not self.done and not self._p['paused']:
             self._advance(self._control)
 
     # ---------------------------------------------------------------- stepping
@@ -156,6 +183,7 @@ class PlantNode(Node):
     def _reject(self, reason: str, detail: str) -> None:
         self._rejected[reason] += 1
         self.get_logger().warning(f'rejected control ({reason}): {detail}', throttle_duration_sec=5.0)
+        self._publish_diagnostics()
 
     def _values(self) -> dict:
         end = self._finished_wall or time.monotonic()

@@ -31,6 +31,7 @@ ESTIMATE = 'estimate'
 SPIKE_COUNT = 'spike_count'
 SPIKES = 'spikes'
 DIAGNOSTICS = 'diagnostics'
+SET_STATE = 'set_state'  # estimator input: replace the estimate (nav_msgs/Odometry)
 CLOCK = '/clock'
 
 PIPELINE_TOPICS = (TRUTH, MEASUREMENT, CONTROL, ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS)

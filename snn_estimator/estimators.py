@@ -185,6 +185,7 @@ class Estimator:
         self._r = np.zeros((self.runs, neurons))
         self._v = np.zeros((self.runs, neurons))
         self._alive = np.ones((self.runs, neurons), dtype=np.bool_)
+        self._alive[:, list(s.silenced_neurons)] = False
         self._spikes = np.zeros((self.runs, neurons), dtype=np.int64)
         self._total_spikes = np.zeros(self.runs, dtype=np.int64)
         self._zero_noise = np.zeros((self.runs, neurons))
@@ -211,8 +212,6 @@ class Estimator:
             self._v[:] = 0.0
             self._spikes[:] = 0
             self._total_spikes[:] = 0
-            self._alive[:] = True
-            self._alive[:, list(self.settings.silenced_neurons)] = False
             for b in range(self.runs):
                 self.encode(x0[b], run=b)
 
@@ -220,13 +219,21 @@ class Estimator:
         """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons)."""
         self._require_network()
         target = np.asarray(x_hat, dtype=float) / self._scale
+        if not np.all(np.isfinite(target)):
+            raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: not finite on the network '
+                             f'scale S = {self._scale.tolist()}')
         alive = self._alive[run]
         decoder = self._decoder[run]
         rates = np.zeros(decoder.shape[1])
-        rates[alive], _ = nnls(decoder[:, alive], target, maxiter=50 * decoder.shape[1])
+        if np.any(alive):
+            rates[alive], _ = nnls(decoder[:, alive], target, maxiter=50 * decoder.shape[1])
+        decoded = decoder @ rates
+        potentials = decoder.T @ (target - decoded)
+        if not (np.all(np.isfinite(decoded)) and np.all(np.isfinite(potentials))):
+            raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: the network overflows')
         self._r[run] = rates
-        self._v[run] = decoder.T @ (target - decoder @ rates)
-        self._x_hat[run] = self._scale * (decoder @ rates)
+        self._v[run] = potentials
+        self._x_hat[run] = self._scale * decoded
 
     def set_state(self, x_hat, P=None) -> None:
         """Replace the estimate (and covariance) of every run, keeping the network's decoder."""
@@ -234,13 +241,16 @@ class Estimator:
         x = np.broadcast_to(np.asarray(x_hat, dtype=float), (self.runs, n))
         if not np.all(np.isfinite(x)):
             raise ValueError('x_hat must be finite')
-        if P is not None:
-            self._p[:] = np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n))
+        covariance = None if P is None else np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n))
+        if covariance is not None and not np.all(np.isfinite(covariance)):
+            raise ValueError('P must be finite')
         if self.spiking:
             for b in range(self.runs):
-                self.encode(x[b], run=b)
+                self.encode(x[b], run=b)  # raises before changing the run if x is not encodable
         else:
             self._x_hat[:] = x
+        if covariance is not None:
+            self._p[:] = covariance
 
     def silence(self, neurons: Sequence[int]) -> None:
         """Silence exactly ``neurons`` (others revive). A silenced neuron stops firing and its
@@ -268,6 +278,35 @@ class Estimator:
             self._rule_code, self.settings.max_spikes_per_step, self._decoder, self._gram,
             self._thresholds, self._alive, self._r, self._v, self._scale, self._spikes,
             self._total_spikes, self._x_hat)
+
+    #: Settings that may change between steps (Sec. "Parameters" of the README).
+    RETUNABLE = ('leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
+                 'membrane_noise')
+
+    def retune(self, **changes) -> None:
+        """Change settings of :attr:`RETUNABLE` between steps. Validated first: a ValueError
+        leaves the filter exactly as it was."""
+        unknown = set(changes) - set(self.RETUNABLE)
+        if unknown:
+            raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
+        config = self.config.replace(**changes)
+        settings = resolve(config, self.model)
+        consts = kernels.pack_constants(
+            self._c, self._c_pinv, settings.q_hat, np.linalg.inv(settings.r_hat),
+            np.diag(settings.r_hat), settings.boundary_layer, self._scale)
+        self.config, self.settings, self._consts = config, settings, consts
+
+    def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
+        """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
+        estimate, per run (R per sample; P = 0 for the covariance-free filters)."""
+        z = np.asarray(z, dtype=float).reshape(self.runs, -1)
+        nu = z - self._x_hat @ self._c.T
+        s = np.asarray(measurement_covariance, dtype=float)
+        if self.has_covariance:
+            s = self._c @ self._p @ self._c.T + s
+        else:
+            s = np.broadcast_to(s, (self.runs,) + s.shape)
+        return np.einsum('bi,bi->b', nu, np.linalg.solve(s, nu[..., None])[..., 0])
 
     # ------------------------------------------------------------------ stepping
     def _dynamics(self, dt: float, u: np.ndarray):

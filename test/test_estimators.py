@@ -376,3 +376,26 @@ def test_predict_without_a_measurement_propagates_the_model_only(kind):
     np.testing.assert_allclose(estimator.P, p + 0.1 * (a @ p + p @ a.T + estimator.settings.q_hat),
                                rtol=1e-12)
     assert np.all(estimator.gain == 0.0)
+
+
+def test_retune_changes_gain_settings_between_steps_and_refuses_bad_values():
+    estimator = make_estimator('emsif')
+    estimator.retune(boundary_layer=1e-3, measurement_noise_scale=1.0)
+    estimator.step(np.array([70.1, 30.0, -5.0]), np.zeros(3), 0.1)
+    np.testing.assert_allclose(np.diag(estimator.gain[:3]), 1.0)  # saturated with the small delta
+    before = (estimator.config, estimator.settings)
+    for bad in ({'boundary_layer': -1.0}, {'leak_rate': -0.5}, {'measurement_noise_scale': 0.0}):
+        with pytest.raises(ValueError):
+            estimator.retune(**bad)
+        assert (estimator.config, estimator.settings) == before
+    with pytest.raises(ValueError, match='cannot change'):
+        estimator.retune(neuron_count=10)
+
+
+def test_normalised_innovation_squared():
+    estimator = make_estimator('ekf')
+    p = estimator.P
+    z = estimator.x_hat[:3] + np.array([0.1, 0.0, 0.0])
+    r = 1e-2 * np.eye(3)
+    expected = 0.1 ** 2 / (p[0, 0] + 1e-2)
+    assert estimator.innovation_nis(z, r)[0] == pytest.approx(expected)

@@ -1,0 +1,342 @@
+"""Bad input, runtime parameters, faults: rejected, counted, reported; never a crash or a NaN.
+
+Inputs are sent over ROS to nodes built in-process (isolated contexts); each rejection is
+checked in `diagnostics` together with the next good input being processed.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+hypothesis = pytest.importorskip('hypothesis')
+
+from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.controller_node import ControllerNode  # noqa: E402
+from scenario_nodes.conversions import (control_to_accel, measurement_to_point, ns_to_stamp,  # noqa: E402
+                                        odometry_to_state, stamp_to_ns, state_to_odometry)
+from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
+from scenario_nodes.plant_node import PlantNode  # noqa: E402
+
+from ros_helpers import make, ros_context, spin_until  # noqa: E402
+from test_nodes import Probe  # noqa: E402
+
+DT = 100_000_000
+X0 = np.array([70.0, 30.0, -5.0])
+
+
+class Harness(Probe):
+    """A probe that can also drive /clock and call services."""
+
+    def __init__(self, context, executor, nodes):
+        super().__init__(context, executor, nodes)
+        self.executor = executor
+        self.clock_pub = self.node.create_publisher(Clock, '/clock', qos.CLOCK_QOS)
+        self.publishers[qos.SET_STATE] = self.node.create_publisher(Odometry, qos.SET_STATE, qos.PIPELINE_QOS)
+
+    def clock(self, stamp_ns):
+        self.clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
+
+    def call(self, service_type, name, request, timeout=10.0):
+        client = self.node.create_client(service_type, name)
+        assert spin_until(self.executor, client.service_is_ready, timeout)
+        future = client.call_async(request)
+        assert spin_until(self.executor, future.done, timeout)
+        return future.result()
+
+    def set_parameters(self, node_name, **values):
+        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                    for k, v in values.items()])
+        return self.call(SetParameters, f'/{node_name}/set_parameters', request).results
+
+    def estimates(self):
+        return [(stamp_to_ns(m.header.stamp), odometry_to_state(m)[0]) for m in self.received[qos.ESTIMATE]]
+
+    def wait_estimates(self, count, timeout=10.0):
+        assert spin_until(self.executor, lambda: len(self.received[qos.ESTIMATE]) >= count, timeout), \
+            f'{len(self.received[qos.ESTIMATE])} estimates, expected {count}'
+
+    def wait_value(self, name, key, value, timeout=10.0):
+        assert spin_until(self.executor, lambda: self.diagnostics(name).get(key) == str(value), timeout), \
+            (key, self.diagnostics(name).get(key), value)
+
+
+@pytest.fixture
+def estimator_rig():
+    """An estimator with a harness; initialised and stepped once (estimates at 0 and 0.1 s)."""
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0,
+                    warm_start_wait=0.0)
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
+        harness.clock(0)
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
+        harness.wait_estimates(2)
+        yield harness, node
+
+
+def step(harness, stamp_ns, count):
+    """Send a good measurement and control for stamp_ns; wait for estimate number ``count``."""
+    harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), stamp_ns, 'lvlh'))
+    harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), stamp_ns, 'lvlh'))
+    harness.wait_estimates(count)
+
+
+@pytest.mark.parametrize('bad, reason', [
+    (lambda: measurement_to_point(np.array([np.inf, 0, 0]), (0, 1, 2), DT, 'lvlh'), 'non_finite'),
+    (lambda: measurement_to_point(X0, (0, 1, 2), DT, 'map'), 'wrong_frame'),
+    (lambda: measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'), 'duplicate'),
+    (lambda: measurement_to_point(X0, (0, 1, 2), DT // 2, 'lvlh'), 'stale'),
+])
+def test_estimator_rejects_bad_measurements_and_goes_on(estimator_rig, bad, reason):
+    harness, node = estimator_rig
+    harness.publish(qos.MEASUREMENT, bad())
+    harness.wait_value('estimator', f'measurements_rejected.{reason}', 1)
+    step(harness, DT, 3)
+    assert node.estimator.steps == 2
+    assert all(np.all(np.isfinite(x)) for _, x in harness.estimates())
+
+
+def test_estimator_rejects_measurements_too_old_for_the_clock(estimator_rig):
+    harness, node = estimator_rig
+    assert harness.set_parameters('estimator', max_input_age=0.05)[0].successful
+    harness.clock(DT * 5 // 2)  # 0.25 s: the measurement for the estimate at 0.1 s is 0.15 s old
+    assert spin_until(harness.executor, lambda: node.get_clock().now().nanoseconds == DT * 5 // 2)
+    harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), DT, 'lvlh'))
+    harness.wait_value('estimator', 'measurements_rejected.too_old', 1)
+    assert node.estimator.steps == 1
+
+
+def test_estimator_rejects_controls_from_before_its_initialisation(estimator_rig):
+    harness, node = estimator_rig
+    harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'map'))
+    harness.wait_value('estimator', 'controls_rejected.wrong_frame', 1)
+    estimator_stamp = node._init_ns
+    assert estimator_stamp == 0
+    step(harness, DT, 3)
+
+
+def test_a_backwards_time_jump_restarts_the_filter(estimator_rig):
+    harness, node = estimator_rig
+    step(harness, DT, 3)
+    for k in range(2, 40):
+        step(harness, k * DT, k + 2)
+    # the simulation restarts: measurements from t = 0 again
+    harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
+    harness.wait_value('estimator', 'time_jumps', 1)
+    assert node._init_ns == 0  # initialised again at the new t = 0
+    harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
+    assert spin_until(harness.executor, lambda: harness.estimates()[-1][0] == DT)
+
+
+def test_the_clock_going_back_restarts_the_filter(estimator_rig):
+    harness, node = estimator_rig
+    harness.clock(50 * DT)
+    assert spin_until(harness.executor, lambda: node.get_clock().now().nanoseconds == 50 * DT)
+    harness.clock(0)
+    assert spin_until(harness.executor, lambda: node.values().get('time_jumps') == 1)
+    assert node._t_ns is None
+
+
+def test_sensor_dropout_is_predicted_over_and_a_burst_is_processed_in_order(estimator_rig):
+    harness, node = estimator_rig
+    for k in range(1, 6):  # controls keep coming, measurements do not
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), k * DT, 'lvlh'))
+    harness.clock(6 * DT)
+    harness.wait_estimates(7)
+    assert [s for s, _ in harness.estimates()][-1] == 6 * DT
+    assert node.values()['dropout_steps'] == 5
+    # a burst: six measurements and controls at once
+    for k in range(6, 12):
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), k * DT, 'lvlh'))
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), k * DT, 'lvlh'))
+    harness.wait_estimates(13)
+    stamps = [s for s, _ in harness.estimates()]
+    assert stamps[-6:] == [k * DT for k in range(7, 13)]
+    assert node.values()['measurements_rejected'] == 0
+
+
+def test_a_missing_measurement_between_two_is_predicted_over(estimator_rig):
+    harness, node = estimator_rig
+    harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), DT, 'lvlh'))
+    step(harness, 2 * DT, 4)  # z(0.1 s) never came
+    assert [s for s, _ in harness.estimates()][-2:] == [2 * DT, 3 * DT]
+    assert node.values()['dropout_steps'] == 1
+
+
+def test_reset_service_and_set_state_topic(estimator_rig):
+    harness, node = estimator_rig
+    target = np.array([1.0, 2.0, 3.0, 0.1, 0.0, -0.1])
+    covariance = np.diag([0.5, 0.5, 0.5, 0.01, 0.01, 0.01])
+    harness.publish(qos.SET_STATE, state_to_odometry(target, covariance, DT, 'lvlh', 'chaser'))
+    assert spin_until(harness.executor, lambda: node.values().get('set_state') == 1)
+    np.testing.assert_allclose(node.estimator.x_hat, target, atol=1e-6)
+    np.testing.assert_allclose(np.diag(node.estimator.P), np.diag(covariance))
+    response = harness.call(Trigger, '/estimator/reset', Trigger.Request())
+    assert response.success and 'initial_state' in response.message
+    assert node._t_ns is None
+    harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 20 * DT, 'lvlh'))
+    assert spin_until(harness.executor, lambda: harness.estimates()[-1][0] == 20 * DT)
+    np.testing.assert_allclose(harness.estimates()[-1][1], [70, 30, -5, -1.7, -0.9, 0.25], atol=1e-6)
+
+
+def test_a_persistently_inconsistent_innovation_re_initialises_from_the_measurement(estimator_rig):
+    harness, node = estimator_rig
+    wrong = np.array([170.0, 30.0, -5.0, -1.7, -0.9, 0.25])  # 100 m off
+    harness.publish(qos.SET_STATE, state_to_odometry(wrong, np.diag([1e-2] * 3 + [1e-4] * 3), DT, 'lvlh', 'c'))
+    assert spin_until(harness.executor, lambda: node.values().get('set_state') == 1)
+    for k in range(1, 12):
+        step(harness, k * DT, k + 2)
+    assert node.values()['reinitialisations.inconsistent_innovation'] == 1
+    assert abs(harness.estimates()[-1][1][0] - 70.0) < 1.0
+
+
+def test_runtime_parameters_apply_atomically_or_are_refused_with_a_reason(estimator_rig):
+    harness, node = estimator_rig
+    results = harness.set_parameters('estimator', boundary_layer=[0.2, 0.2, 0.2], leak_rate=0.01)
+    assert all(r.successful for r in results)
+    assert node.estimator.settings.leak_rate == 0.01
+    np.testing.assert_allclose(node.estimator.settings.boundary_layer, 0.2)
+    before = node.estimator.settings
+    for values, words in [({'boundary_layer': [-1.0]}, 'boundary_layer'),
+                          ({'leak_rate': -1.0}, 'leak_rate'),
+                          ({'neuron_count': 10}, 'read-only'),
+                          ({'filter_type': 'ekf'}, 'read-only'),
+                          ({'silenced_neurons': [500]}, 'silenced_neurons')]:
+        results = harness.set_parameters('estimator', **values)
+        assert not results[0].successful and words in results[0].reason, (values, results[0].reason)
+        assert node.estimator.settings == before
+    assert all(r.successful for r in harness.set_parameters('estimator', silenced_fraction=0.5))
+    assert len(node.estimator.silenced) == 100
+    step(harness, DT, 3)
+    assert np.all(node.estimator.spikes[list(node.estimator.silenced)] == 0)
+
+
+def test_controller_bad_inputs_safe_mode_and_gain_changes():
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller', diagnostics_period=0.0)
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.ESTIMATE) > 0)
+        x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+        for bad, reason in [(state_to_odometry(np.full(6, np.nan), None, DT, 'lvlh', 'c'), 'non_finite'),
+                            (state_to_odometry(x, None, DT, 'map', 'c'), 'wrong_frame')]:
+            harness.publish(qos.ESTIMATE, bad)
+            harness.wait_value('lqr_controller', f'estimates_rejected.{reason}', 1)
+        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: len(harness.received[qos.CONTROL]) == 1)
+        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
+        harness.wait_value('lqr_controller', 'estimates_rejected.not_newer', 1)
+        # an estimate newer than the last but more than max_input_age behind the clock
+        assert harness.set_parameters('lqr_controller', estimate_timeout=100.0)[0].successful
+        harness.clock(15 * DT)
+        assert spin_until(executor, lambda: controller.get_clock().now().nanoseconds == 15 * DT)
+        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 2 * DT, 'lvlh', 'c'))
+        harness.wait_value('lqr_controller', 'estimates_rejected.too_old', 1)
+        # the clock runs on without estimates: safe mode, zero thrust at every step
+        assert harness.set_parameters('lqr_controller', estimate_timeout=0.5)[0].successful
+        for k in range(16, 30):
+            harness.clock(k * DT)
+            executor.spin_once(timeout_sec=0.05)
+        assert spin_until(executor, lambda: controller._safe)
+        zero = harness.received[qos.CONTROL][-1]
+        assert [zero.accel.linear.x, zero.accel.linear.y, zero.accel.linear.z] == [0.0, 0.0, 0.0]
+        assert stamp_to_ns(zero.header.stamp) > 15 * DT
+        harness.wait_value('lqr_controller', 'safe_mode', True)
+        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 30 * DT, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: not controller._safe and stamp_to_ns(
+            harness.received[qos.CONTROL][-1].header.stamp) == 30 * DT)
+        back = harness.received[qos.CONTROL][-1]
+        assert stamp_to_ns(back.header.stamp) == 30 * DT and back.accel.linear.x != 0.0
+        gain = controller.gain
+        assert all(r.successful for r in harness.set_parameters('lqr_controller', lqr_input_weight=[1e3]))
+        assert not np.allclose(controller.gain, gain)
+        refused = harness.set_parameters('lqr_controller', lqr_input_weight=[-1.0])[0]
+        assert not refused.successful and 'lqr_input_weight' in refused.reason
+
+
+def test_plant_rejects_bad_controls_and_pauses():
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        make(PlantNode, context, executor, nodes, 'cw_plant', start_time=1.0, duration=0.0,
+             diagnostics_period=0.0)
+        assert spin_until(executor, lambda: harness.received[qos.TRUTH])
+        start = 10 * DT
+        for bad, reason in [(control_to_accel(np.array([np.nan, 0, 0]), start, 'lvlh'), 'non_finite'),
+                            (control_to_accel(np.zeros(3), start, 'map'), 'wrong_frame'),
+                            (control_to_accel(np.zeros(3), 0, 'lvlh'), 'before_init')]:
+            harness.publish(qos.CONTROL, bad)
+            harness.wait_value('cw_plant', f'controls_rejected.{reason}', 1)
+        assert len(harness.received[qos.TRUTH]) == 1
+        assert all(r.successful for r in harness.set_parameters('cw_plant', paused=True))
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), start, 'lvlh'))
+        executor.spin_once(timeout_sec=0.3)
+        assert len(harness.received[qos.TRUTH]) == 1  # paused: no step
+        harness.set_parameters('cw_plant', paused=False)
+        assert spin_until(executor, lambda: len(harness.received[qos.TRUTH]) == 2)
+        assert stamp_to_ns(harness.received[qos.TRUTH][1].header.stamp) == start + DT
+
+
+floats = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                   st.floats(-1e3, 1e3))
+messages = st.tuples(st.sampled_from(['measurement', 'control', 'set_state', 'clock', 'param']),
+                     st.lists(floats, min_size=6, max_size=6),
+                     st.integers(-2, 40), st.sampled_from(['lvlh', 'lvlh', 'map', '']))
+parameter_values = st.sampled_from([
+    ('boundary_layer', [0.05]), ('boundary_layer', [-0.1]), ('boundary_layer', [0.1, 0.2]),
+    ('leak_rate', 0.01), ('leak_rate', -3.0), ('leak_rate', 20.0), ('measurement_noise_scale', 0.0),
+    ('process_noise_scale', 2.0), ('silenced_fraction', 0.3), ('silenced_fraction', 1.0),
+    ('silenced_neurons', [1, 2, 3]), ('silenced_neurons', [-1]), ('nis_window', 0)])
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
+@given(st.lists(messages, min_size=1, max_size=30), st.lists(parameter_values, max_size=3))
+def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequence, parameters):
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', warm_start_wait=0.0,
+                    diagnostics_period=0.0, neuron_count=40)
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller')
+        controls = []  # what the controller itself publishes
+        publish = controller._pub.publish
+        controller._pub.publish = lambda msg: (controls.append(msg), publish(msg))
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
+        measurements = 0
+        for kind, values, k, frame in sequence:
+            stamp = max(k, 0) * DT
+            if kind == 'measurement':
+                measurements += 1
+                harness.publish(qos.MEASUREMENT, measurement_to_point(np.array(values[:3]), (0, 1, 2), stamp, frame))
+            elif kind == 'control':
+                harness.publish(qos.CONTROL, control_to_accel(np.array(values[:3]), stamp, frame))
+            elif kind == 'set_state':
+                harness.publish(qos.SET_STATE, state_to_odometry(np.array(values), None, stamp, frame, 'c'))
+            elif kind == 'clock':
+                harness.clock(stamp)
+            elif parameters:
+                name, value = parameters[k % len(parameters)]
+                harness.node.get_logger().debug(f'setting {name}')
+                node.set_parameters([Parameter(name, value=value)])
+            for _ in range(4):
+                executor.spin_once(timeout_sec=0.0)  # an exception in a callback would raise here
+        spin_until(executor, lambda: False, timeout=0.2)
+        values = node.values()
+        assert values['measurements_received'] == measurements == (
+            values['measurements_rejected'] + values['measurements_used'] + values['measurements_dropped']
+            + values['measurements_pending'])
+        assert sum(v for k, v in values.items() if k.startswith('measurements_rejected.')) == \
+            values['measurements_rejected']
+        for _, x in harness.estimates():
+            assert np.all(np.isfinite(x))
+        for msg in controls:
+            assert all(math.isfinite(v) for v in (msg.accel.linear.x, msg.accel.linear.y, msg.accel.linear.z))
+        assert np.all(np.isfinite(node.estimator.x_hat))
+        assert controller.gain.shape == (3, 6)
