@@ -60,13 +60,20 @@ class Pipeline:
         return self.run_dir / 'overrides.yaml'
 
     def start(self) -> None:
-        document = {f'/**/{name}': {'ros__parameters': values} for name, values in self.overrides.items()}
-        self.overrides_file.write_text(yaml.safe_dump(document, sort_keys=True))
         for name, module in self.nodes:
-            log = open(self.run_dir / 'logs' / f'{name}.log', 'w')
-            self.processes[name] = subprocess.Popen(
-                self.command(name, module), env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                start_new_session=True, preexec_fn=_lower_priority if name == 'recorder' else None)
+            self.start_node(name, module)
+
+    def start_node(self, name: str, module: str, overrides: dict | None = None, log_name: str | None = None):
+        """Start (or restart, e.g. a hot swap) one node; ``overrides`` update its parameters."""
+        if overrides:
+            self.overrides.setdefault(name, {}).update(overrides)
+        document = {f'/**/{n}': {'ros__parameters': values} for n, values in self.overrides.items()}
+        self.overrides_file.write_text(yaml.safe_dump(document, sort_keys=True))
+        log = open(self.run_dir / 'logs' / f'{log_name or name}.log', 'w')
+        self.processes[name] = subprocess.Popen(
+            self.command(name, module), env=self.env, stdout=log, stderr=subprocess.STDOUT,
+            start_new_session=True, preexec_fn=_lower_priority if name == 'recorder' else None)
+        return self.processes[name]
 
     def failed(self) -> list[str]:
         """Nodes that exited although they should still run."""

@@ -6,9 +6,10 @@ x_hat_{k+1} is published stamped t_k + time_step. If u_k is still missing two me
 later, the last control is held (as the plant does) and counted; if z_k is still missing when
 the clock is two steps ahead, the filter predicts without it (sensor dropout).
 
-Start-up: the first measurement initialises the filter from the parameters, or, when an earlier
-estimator left estimates on the `estimate` topic (hot swap), from the newest of them; the
-measurements and controls since then (the topics' history) are replayed to catch up.
+Start-up: the first measurement initialises the filter from the parameters. When the filter
+joins a running loop (hot swap), it starts instead from the newest estimate another estimator
+still offers on `estimate` (replaying the measurements and controls since then), or, after a
+crash took that history with it, from a least-squares fit over the sensor's history.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from snn_estimator import make_estimator
+from snn_estimator.simulation import batch_initial_state
 
 from . import qos
 from .conversions import (MessageError, accel_to_control, odometry_to_state, point_to_measurement,
@@ -59,6 +61,8 @@ class EstimatorNode(Node):
         self._axes = tuple(int(a) for a in p['measured_axes'])
         model = cw_model(p, form=p['cw_model'], measured_axes=self._axes)
         self._estimator = make_estimator(p['filter_type'], estimator_config(p), model)
+        self._estimator.step(np.zeros(len(self._axes)), np.zeros(3), p['time_step'])  # load the
+        self._estimator.reset()  # compiled kernel now, not in the first step of the loop
         self._measurement_r = self._estimator.settings.r_hat / p['measurement_noise_scale']
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
@@ -205,7 +209,10 @@ class EstimatorNode(Node):
             return
         mode = self._p['initialization']
         previous = self._previous
-        if previous is not None and mode != 'parameters' and previous[0] <= max(self._pending):
+        waited = time.monotonic() - self._started
+        history_complete = waited >= self._p['warm_start_wait']  # the topics' history has come in
+        if previous is not None and mode != 'parameters' and history_complete \
+                and previous[0] <= max(self._pending):
             stamp_ns, x, covariance = previous
             self._estimator.reset()
             try:
@@ -221,12 +228,43 @@ class EstimatorNode(Node):
                                    f"'{qos.ESTIMATE}'; replaying {len(self._pending)} measurements")
             self._process()
             return
-        waited = time.monotonic() - self._started
-        if mode == 'last_estimate' or (mode == 'auto' and waited < self._p['warm_start_wait']):
+        if mode == 'last_estimate' or (mode == 'auto' and not history_complete):
             return  # an earlier estimate may still be on its way
+        if mode == 'auto' and len(self._pending) >= self._p['warm_start_min_samples'] and self._batch_start():
+            return
         self._estimator.reset()
         self._begin(min(self._pending), publish=True)
         self._process()
+
+    def _batch_start(self) -> bool:
+        """Hot swap after a crash: the sensor's history is here but no earlier estimate. Fit the
+        state by least squares over the history (controls from the controller's history) and
+        start at the newest measurement, which the next step uses."""
+        stamps = sorted(self._pending)
+        controls, held = [], np.zeros(3)
+        for stamp_ns in stamps:
+            held = self._control_for(stamp_ns) if self._control_for(stamp_ns) is not None else held
+            controls.append(held)
+        try:
+            x, covariance = batch_initial_state(
+                self._estimator.model, np.asarray(stamps) * 1e-9, [self._pending[t] for t in stamps],
+                controls, self._measurement_r)
+            self._estimator.reset()
+            self._estimator.set_state(x, covariance if self._estimator.has_covariance else None)
+        except (ValueError, np.linalg.LinAlgError) as error:
+            self.get_logger().warning(f'no least-squares start from the history ({error}); '
+                                      'starting from the parameters')
+            return False
+        for stamp_ns in stamps[:-1]:
+            del self._pending[stamp_ns]
+        self._used += len(stamps) - 1
+        self._events['batch_starts'] += 1
+        self._begin(stamps[-1], publish=True)
+        self.get_logger().info(
+            f'started from a least-squares fit of {len(stamps) - 1} measurements '
+            f'({stamps[0] * 1e-9:.1f}-{stamps[-2] * 1e-9:.1f} s) at t = {stamps[-1] * 1e-9:.3f} s')
+        self._process()
+        return True
 
     def _warm_start_covariance(self, blocks: np.ndarray) -> np.ndarray | None:
         """The received covariance blocks, or P0 where they are not positive definite."""

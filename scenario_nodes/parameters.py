@@ -158,6 +158,8 @@ ESTIMATOR = MODEL + (
          choices=('auto', 'parameters', 'last_estimate')),
     Spec('warm_start_wait', 0.5, 'auto initialization: wall-clock s after start-up to wait for an '
          'earlier estimate', low=0.0),
+    Spec('warm_start_min_samples', 20, 'auto initialization: with no earlier estimate but at least '
+         'this many measurements in the history, start from a least-squares fit of them', low=2),
     Spec('max_input_age', 1.0, 'Inputs older than this behind the simulated clock are rejected, s',
          read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'A measurement this far before the estimate time means the '

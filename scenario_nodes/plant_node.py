@@ -26,6 +26,8 @@ from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import PLANT, cw_model, declare
 from .runtime import run_node
 
+#: Steps at the start during which the lockstep plant waits for controls without a timeout.
+STARTUP_STEPS = 10
 #: Wall-clock seconds the lockstep plant waits for the very first control before warning again.
 STARTUP_NOTICE_PERIOD = 5.0
 #: Wall-clock seconds the plant stays up after its last step so subscribers receive it.
@@ -55,6 +57,7 @@ class PlantNode(Node):
         self._started_wall = None
         self._finished_wall = None
         self._held = None
+        self._early: dict[int, np.ndarray] = {}
         self.done = False
         self.exit_code = 0
 
@@ -105,6 +108,10 @@ class PlantNode(Node):
                 self._advance(u)
         elif stamp_ns < self._t_ns:
             self._reject('stale', f'control stamped {stamp_ns * 1e-9:.3f} s, plant at {self._t_ns * 1e-9:.3f} s')
+        else:  # ahead of the plant (it paused or held a control): use it at its step
+            self._early[stamp_ns] = u
+            for old in [t for t in self._early if t < self._t_ns]:
+                del self._early[old]
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
@@ -123,10 +130,10 @@ class PlantNode(Node):
                 self._waiting_since = time.monotonic()
             return
         waited = time.monotonic() - self._waiting_since
-        if self._step == 0 and self._controls_received == 0:
+        if self._step < STARTUP_STEPS:  # processes still warming up: no timeouts yet
             if waited > STARTUP_NOTICE_PERIOD:
-                self.get_logger().info("waiting for the first control on 'control' "
-                                       '(is the lqr_controller running?)')
+                self.get_logger().info(f"waiting for the control of t = {self._t_ns * 1e-9:.1f} s on "
+                                       "'control' (are the other nodes running?)")
                 self._waiting_since = time.monotonic()
             return
         if waited > self._p['control_timeout']:
@@ -142,15 +149,22 @@ class PlantNode(Node):
 
     # ---------------------------------------------------------------- stepping
     def _advance(self, u: np.ndarray) -> None:
-        if self._started_wall is None:
-            self._started_wall = time.monotonic()
-        self._control = u
-        self._plant.step(u, self._dt)
-        self._step += 1
-        self._t_ns += self._dt_ns
-        self._publish_sample()
-        if self._total_steps is not None and self._step >= self._total_steps:
-            self._finish()
+        """Step with ``u``; then go on at once with controls that came early for later steps."""
+        while True:
+            if self._started_wall is None:
+                self._started_wall = time.monotonic()
+            self._control = u
+            self._plant.step(u, self._dt)
+            self._step += 1
+            self._t_ns += self._dt_ns
+            self._publish_sample()
+            if self._total_steps is not None and self._step >= self._total_steps:
+                self._finish()
+                return
+            early = [t for t in self._early if abs(t - self._t_ns) * 2 < self._dt_ns]
+            if not (early and self._lockstep and not self._p['paused']):
+                return
+            u = self._early.pop(early[0])
 
     def _publish_sample(self) -> None:
         if self._clock_pub is not None:

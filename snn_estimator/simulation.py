@@ -320,3 +320,43 @@ __all__ = [
     'GaussianStream', 'Plant', 'PositionSensor', 'Scenario', 'SimulationResult', 'lqr_control',
     'lqr_gain', 'matrix_sqrt', 'rendezvous_scenario', 'simulate', 'twin_of', 'van_der_pol_scenario',
 ]
+
+
+def batch_initial_state(model: StateSpaceModel, stamps, measurements, controls,
+                        measurement_covariance) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares state from a window of measurements (initial state determination).
+
+    ``stamps`` (K,) in seconds, ``measurements`` (K, m) taken at them, ``controls`` (K, m_u) held
+    from each stamp to the next. Fits the state at the first stamp through the exact linear
+    dynamics and returns it propagated to the *last* stamp as a prior, i.e. using the first
+    K - 1 measurements only, with its covariance (process noise neglected). The last
+    measurement is left for the filter's next step. Linear models only.
+    """
+    if not model.is_linear:
+        raise ValueError('a batch initial state needs a linear model')
+    stamps = np.asarray(stamps, dtype=float)
+    z = np.asarray(measurements, dtype=float)
+    u = np.asarray(controls, dtype=float)
+    n, c = model.n_state, model.measurement_matrix
+    if stamps.size < 2 or z.shape[0] != stamps.size or u.shape[0] != stamps.size:
+        raise ValueError('need at least two stamps with one measurement and one control each')
+    weight = np.linalg.inv(np.asarray(measurement_covariance, dtype=float))
+    transition, offset = np.eye(n), np.zeros(n)
+    normal, rhs = np.zeros((n, n)), np.zeros(n)
+    for k in range(stamps.size):
+        if k:
+            step = float(stamps[k] - stamps[k - 1])
+            if step <= 0.0:
+                raise ValueError('stamps must increase')
+            phi, gamma = model.discrete_matrices(round(step, 9))
+            transition, offset = phi @ transition, phi @ offset + gamma @ u[k - 1]
+        if k == stamps.size - 1:
+            break
+        rows = c @ transition
+        normal += rows.T @ weight @ rows
+        rhs += rows.T @ weight @ (z[k] - c @ offset)
+    covariance = np.linalg.inv(normal)
+    first = covariance @ rhs
+    last = transition @ first + offset
+    propagated = transition @ covariance @ transition.T
+    return last, 0.5 * (propagated + propagated.T)

@@ -278,11 +278,12 @@ def test_plant_rejects_bad_controls_and_pauses():
         assert len(harness.received[qos.TRUTH]) == 1
         assert all(r.successful for r in harness.set_parameters('cw_plant', paused=True))
         harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), start, 'lvlh'))
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), start + DT, 'lvlh'))  # early
         executor.spin_once(timeout_sec=0.3)
         assert len(harness.received[qos.TRUTH]) == 1  # paused: no step
         harness.set_parameters('cw_plant', paused=False)
-        assert spin_until(executor, lambda: len(harness.received[qos.TRUTH]) == 2)
-        assert stamp_to_ns(harness.received[qos.TRUTH][1].header.stamp) == start + DT
+        assert spin_until(executor, lambda: len(harness.received[qos.TRUTH]) == 3)  # held + early
+        assert stamp_to_ns(harness.received[qos.TRUTH][2].header.stamp) == start + 2 * DT
 
 
 floats = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
@@ -340,3 +341,29 @@ def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequen
             assert all(math.isfinite(v) for v in (msg.accel.linear.x, msg.accel.linear.y, msg.accel.linear.z))
         assert np.all(np.isfinite(node.estimator.x_hat))
         assert controller.gain.shape == (3, 6)
+
+
+def test_a_second_estimator_warm_starts_from_the_running_ones_estimates():
+    """Make-before-break swap: the new estimator takes the newest estimate the running one
+    offers on `estimate`, replays what came since, and continues from there."""
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        first = make(EstimatorNode, context, executor, nodes, 'estimator', warm_start_wait=0.0,
+                     nis_window=0)  # the constant test measurements are not a consistent track
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
+        for k in range(20):
+            harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), k * DT, 'lvlh'))
+            harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), k * DT, 'lvlh'))
+            harness.wait_estimates(k + 2)
+        newest = harness.estimates()[-1]
+        assert first.estimator.steps == 20, (first.estimator.steps, first.values())
+        second = make(EstimatorNode, context, executor, nodes, 'estimator', filter_type='ekf',
+                      warm_start_wait=5.0, nis_window=0)
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 20 * DT, 'lvlh'))
+        assert spin_until(executor, lambda: second._t_ns is not None, timeout=10.0)
+        assert second.values()['warm_starts'] == 1 and second._init_ns == newest[0] == 20 * DT
+        np.testing.assert_allclose(second.estimator.x_hat, newest[1], atol=1e-9)  # not stepped yet
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 20 * DT, 'lvlh'))
+        assert spin_until(executor, lambda: second.estimator.steps == 1 and first.estimator.steps == 21), (
+            second.estimator.steps, first.estimator.steps, second.values())
+        assert np.abs(second.estimator.x_hat - first.estimator.x_hat).max() < 0.5

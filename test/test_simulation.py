@@ -120,3 +120,26 @@ def test_van_der_pol_filters_converge_from_the_wrong_initial_state():
         result = simulate(scenario, kind, runs=3)
         initial = np.abs(result.error[:, 0]).mean()
         assert np.all(result.rmse() < 0.3 * initial), kind
+
+
+def test_batch_initial_state_recovers_the_state_from_positions_and_controls():
+    from snn_estimator.simulation import batch_initial_state
+    model = ClohessyWiltshire()
+    plant = Plant(model, [10.0, -4.0, 2.0, -0.3, 0.1, 0.05], np.zeros((6, 6)))
+    stamps, zs, us = [], [], []
+    rng = np.random.default_rng(2)
+    for k in range(30):
+        u = rng.normal(0.0, 0.01, 3)
+        stamps.append(0.1 * k)
+        zs.append(plant.x[0, :3].copy())
+        us.append(u)
+        if k < 29:
+            plant.step(u, 0.1)
+    x, p = batch_initial_state(model, stamps, zs, us, 1e-4 * np.eye(3))
+    np.testing.assert_allclose(x, plant.x[0], rtol=1e-7, atol=1e-9)  # noise-free: exact
+    assert np.all(np.linalg.eigvalsh(p) > 0) and p[3, 3] < 1e-3
+    noisy = np.array(zs) + rng.normal(0.0, 0.1, (30, 3))
+    x_noisy, p_noisy = batch_initial_state(model, stamps, noisy, us, 1e-2 * np.eye(3))
+    assert np.all(np.abs(x_noisy - plant.x[0]) < 4 * np.sqrt(np.diag(p_noisy)) + 1e-9)
+    with pytest.raises(ValueError):
+        batch_initial_state(model, [0.0], zs[:1], us[:1], np.eye(3))

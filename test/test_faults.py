@@ -1,0 +1,148 @@
+"""Faults over the real multi-process loop: estimator hot swap and neuron loss at runtime."""
+
+import signal
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+
+import rclpy  # noqa: E402
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
+
+from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
+from scenario_nodes.demo import NODES, Pipeline, pipeline_env  # noqa: E402
+from scenario_nodes.paths import config_file  # noqa: E402
+
+pytestmark = pytest.mark.slow
+MODULES = dict(NODES)
+
+
+class Monitor:
+    """A node in the test process that follows /clock and sets parameters of the pipeline."""
+
+    def __init__(self):
+        self.context = Context()
+        rclpy.init(context=self.context)
+        self.node = Node('fault_monitor', context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.now = 0.0
+        self.node.create_subscription(Clock, '/clock', self._on_clock, qos.CLOCK_QOS)
+
+    def _on_clock(self, msg):
+        self.now = msg.clock.sec + msg.clock.nanosec * 1e-9
+
+    def wait_clock(self, seconds, timeout=120.0):
+        deadline = time.monotonic() + timeout
+        while self.now < seconds:
+            assert time.monotonic() < deadline, f'clock stuck at {self.now} s'
+            self.executor.spin_once(timeout_sec=0.005)
+
+    def set(self, node_name, **values):
+        client = self.node.create_client(SetParameters, f'/{node_name}/set_parameters')
+        deadline = time.monotonic() + 30
+        while not client.service_is_ready():
+            assert time.monotonic() < deadline
+            self.executor.spin_once(timeout_sec=0.05)
+        request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
+                                                    for k, v in values.items()])
+        future = client.call_async(request)
+        while not future.done():
+            self.executor.spin_once(timeout_sec=0.05)
+        results = future.result().results
+        assert all(r.successful for r in results), [r.reason for r in results]
+
+    def close(self):
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+
+
+def run_with(tmp_path, name, overrides, during):
+    """Run the 360 s lockstep loop, calling ``during(pipeline, monitor)``; returns the bag data."""
+    run_dir = tmp_path / name
+    run_dir.mkdir()
+    overrides = {**overrides, 'recorder': {'output': str(run_dir / 'bag')}}
+    overrides.setdefault('cw_plant', {}).update({'exit_when_done': True, 'control_timeout': 0.2})
+    pipeline = Pipeline(run_dir, config_file(), overrides, pipeline_env())
+    monitor = Monitor()
+    try:
+        pipeline.start()
+        during(pipeline, monitor)
+        plant = pipeline.processes['cw_plant']
+        deadline = time.monotonic() + 240
+        while plant.poll() is None:
+            assert time.monotonic() < deadline, 'the run did not finish'
+            monitor.executor.spin_once(timeout_sec=0.05)
+        time.sleep(0.3)
+    finally:
+        monitor.close()
+        pipeline.stop_all()
+    return read_bag(run_dir / 'bag'), run_dir
+
+
+def test_estimator_hot_swap_safe_mode_and_recovery(tmp_path):
+    """snn_emsif is killed at t = 100 s; the controller holds zero thrust; snn_ekf starts at
+    t = 110 s (the plant paused while its process comes up), starts from a least-squares fit of
+    the sensor's history, and the loop converges."""
+    def during(pipeline, monitor):
+        monitor.wait_clock(100.0)
+        pipeline.processes['estimator'].send_signal(signal.SIGKILL)
+        pipeline.processes['estimator'].wait(10)
+        monitor.wait_clock(110.0)
+        monitor.set('cw_plant', paused=True)
+        log = pipeline.run_dir / 'logs' / 'estimator_swap.log'
+        pipeline.start_node('estimator', MODULES['estimator'], {'filter_type': 'snn_ekf'}, 'estimator_swap')
+        deadline = time.monotonic() + 60
+        while 'snn_ekf:' not in (log.read_text() if log.exists() else ''):
+            assert time.monotonic() < deadline, 'the new estimator did not start'
+            time.sleep(0.1)
+        time.sleep(1.0)
+        monitor.set('cw_plant', paused=False)
+
+    data, run_dir = run_with(tmp_path, 'swap', {}, during)
+    summary = summarize(data)
+    controller = data.last_diagnostics('lqr_controller')
+    estimator = data.last_diagnostics('estimator')
+    swap_log = (run_dir / 'logs' / 'estimator_swap.log').read_text()
+    print(f"hot swap: final range {summary['final_range_m']:.4f} m, safe-mode steps "
+          f"{controller.get('safe_mode_steps')}, control timeouts {summary['control_timeouts']}")
+    assert summary['steps'] == 3600
+    assert summary['final_range_m'] < 0.5
+    assert int(controller['safe_mode_steps']) > 0 and controller['safe_mode'] == 'False'
+    # the killed process took its estimate history with it: the new one fits the sensor history
+    assert estimator['filter'] == 'snn_ekf' and estimator.get('batch_starts') == '1'
+    assert 'started from a least-squares fit of' in swap_log
+    for array in (data.truth, data.estimate, data.control, data.estimate_variance):
+        assert np.all(np.isfinite(array))
+    after = data.estimate_t > 150.0
+    assert np.abs(data.estimate[after, :3]).max() < 50.0
+
+
+def test_half_the_neurons_silenced_at_100_s_over_ros(tmp_path):
+    """silenced_fraction 0.5 set through the parameter service at t = 100 s; RMSE over the last
+    60 s stays within 2x of the intact run (the offline run with the same seeds)."""
+    def during(pipeline, monitor):
+        monitor.wait_clock(100.0)
+        monitor.set('estimator', silenced_fraction=0.5)
+
+    data, _ = run_with(tmp_path, 'silenced', {'cw_plant': {'control_timeout': 1.0}}, during)
+    summary = summarize(data)
+    intact = simulate(rendezvous_scenario(), 'snn_emsif')
+    damaged = np.array([summary['rmse_last_60s'][s] for s in ('x', 'y', 'z', 'vx', 'vy', 'vz')])
+    ratio = damaged / intact.rmse()
+    print('RMSE ratio, half the neurons silenced / intact:', np.round(ratio, 3))
+    assert np.all(ratio < 2.0)
+    assert summary['final_range_m'] < 0.1
+    estimator = data.last_diagnostics('estimator')
+    assert estimator['silenced_neurons'] == '100'
+    silenced_after = data.spikes[data.estimate_t[:len(data.spikes)] > 101.0]
+    assert (silenced_after > 0).sum(axis=0).astype(bool).sum() <= 100  # only survivors fire
