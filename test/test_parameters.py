@@ -83,3 +83,11 @@ def test_yaml_estimator_parameters_build_the_core_default_configuration():
     np.testing.assert_allclose(config.state_scale, core.state_scale)
     np.testing.assert_allclose(config.initial_covariance, core.initial_covariance)
     np.testing.assert_allclose(config.initial_state, EstimatorConfig().initial_state)
+
+
+def test_readme_parameter_tables_are_current():
+    from scenario_nodes.parameters import markdown
+    readme = (CONFIG.parent / 'README.md').read_text()
+    begin = readme.index('<!-- parameters:begin')
+    block = readme[readme.index('\n', begin) + 1:readme.index('<!-- parameters:end -->')]
+    assert block.strip() == markdown().strip(), 'run: python -m scenario_nodes.parameters and paste into README'
