@@ -10,7 +10,7 @@ import numpy as np
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.clock import JumpThreshold
+from rclpy.clock import Clock, ClockType, JumpThreshold
 from rclpy.duration import Duration
 from rclpy.node import Node
 
@@ -48,14 +48,15 @@ class ControllerNode(Node):
         self._rejected = Rejections()
         self._last_stamp_ns = None
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
-        self._pub = self.create_publisher(AccelStamped, qos.CONTROL, qos.PIPELINE_QOS)
+        self._pub = self.create_publisher(AccelStamped, qos.CONTROL, qos.PUBLISHER_QOS)
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'])
-        self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.PIPELINE_QOS)
+        self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.SUBSCRIBER_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
             post_callback=self._on_time_jump)
-        self.create_timer(p['time_step'], self._on_clock_tick)  # simulated time: safe mode
+        self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._safe_timer = None  # a simulated-time timer, only while in safe mode
         self._log_gain()
 
     @property
@@ -98,24 +99,35 @@ class ControllerNode(Node):
             return
         self._last_stamp_ns = self._last_estimate_ns = stamp_ns
         if self._safe:
-            self._safe = False
-            self.get_logger().info(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s: leaving safe mode')
+            self._leave_safe_mode(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s')
         self._publish_control(lqr_control(self._gain, x_hat), stamp_ns)
 
-    def _on_clock_tick(self) -> None:
-        """Simulated-time timer: zero thrust while the estimate is stale."""
+    def _on_watchdog(self) -> None:
+        """Wall-clock check: a stale estimate switches safe mode on."""
         now = self.get_clock().now().nanoseconds
-        if now <= 0 or self._last_estimate_ns is None:
+        if self._safe or now <= 0 or self._last_estimate_ns is None:
             return
         if now - self._last_estimate_ns > seconds_to_ns(self._p['estimate_timeout']):
-            if not self._safe:
-                self._safe = True
-                self.get_logger().error(
-                    f"no estimate since t = {self._last_estimate_ns * 1e-9:.3f} s: safe mode, zero thrust")
-            if self._last_stamp_ns is None or now > self._last_stamp_ns:
-                self._safe_steps += 1
-                self._last_stamp_ns = now
-                self._publish_control(np.zeros(3), now)
+            self._safe = True
+            self.get_logger().error(
+                f"no estimate since t = {self._last_estimate_ns * 1e-9:.3f} s: safe mode, zero thrust")
+            self._safe_timer = self.create_timer(self._p['time_step'], self._on_safe_step)
+            self._on_safe_step()
+
+    def _on_safe_step(self) -> None:
+        """Simulated-time timer while in safe mode: zero thrust for every new step."""
+        now = self.get_clock().now().nanoseconds
+        if self._safe and (self._last_stamp_ns is None or now > self._last_stamp_ns):
+            self._safe_steps += 1
+            self._last_stamp_ns = now
+            self._publish_control(np.zeros(3), now)
+
+    def _leave_safe_mode(self, why: str) -> None:
+        self._safe = False
+        if self._safe_timer is not None:
+            self.destroy_timer(self._safe_timer)
+            self._safe_timer = None
+        self.get_logger().info(f'{why}: leaving safe mode')
 
     def _publish_control(self, u: np.ndarray, stamp_ns: int) -> None:
         self._pub.publish(control_to_accel(u, stamp_ns, self._p['frame_id']))
@@ -127,7 +139,8 @@ class ControllerNode(Node):
         if jump.delta.nanoseconds < 0:
             self.get_logger().warning('the clock jumped back: starting over')
             self._last_stamp_ns = self._last_estimate_ns = None
-            self._safe = False
+            if self._safe:
+                self._leave_safe_mode('clock reset')
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """Gains change between two estimates, after the new ones were checked."""

@@ -42,7 +42,7 @@ class DiagnosticsPublisher:
         self._name = name
         self._period_ns = int(round(period * 1e9))
         self._last_ns = None
-        self._publisher = node.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.PIPELINE_QOS)
+        self._publisher = node.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.PUBLISHER_QOS)
 
     def due(self, stamp_ns: int) -> bool:
         """True for the first message, then once per period (every time for period 0)."""

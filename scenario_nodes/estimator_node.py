@@ -88,24 +88,26 @@ class EstimatorNode(Node):
         self._step_times: list[float] = []
         self._published = 0
 
-        self._estimate_pub = self.create_publisher(Odometry, qos.ESTIMATE, qos.PIPELINE_QOS)
-        self._count_pub = self.create_publisher(UInt32, qos.SPIKE_COUNT, qos.PIPELINE_QOS)
-        self._spikes_pub = (self.create_publisher(UInt32MultiArray, qos.SPIKES, qos.PIPELINE_QOS)
+        self._estimate_pub = self.create_publisher(Odometry, qos.ESTIMATE, qos.PUBLISHER_QOS)
+        self._count_pub = self.create_publisher(UInt32, qos.SPIKE_COUNT, qos.PUBLISHER_QOS)
+        self._spikes_pub = (self.create_publisher(UInt32MultiArray, qos.SPIKES, qos.PUBLISHER_QOS)
                             if p['publish_spikes'] else None)
         self._diagnostics = DiagnosticsPublisher(self, 'estimator', p['diagnostics_period'])
-        self.create_subscription(PointStamped, qos.MEASUREMENT, self._on_measurement, qos.PIPELINE_QOS)
-        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.PIPELINE_QOS)
-        self.create_subscription(Odometry, qos.SET_STATE, self._on_set_state, qos.PIPELINE_QOS)
+        self.create_subscription(PointStamped, qos.MEASUREMENT, self._on_measurement, qos.HISTORY_QOS)
+        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.HISTORY_QOS)
+        self.create_subscription(Odometry, qos.SET_STATE, self._on_set_state, qos.SUBSCRIBER_QOS)
         self._previous_sub = (self.create_subscription(Odometry, qos.ESTIMATE, self._on_previous_estimate,
-                                                       qos.PIPELINE_QOS)
+                                                       qos.HISTORY_QOS)
                               if p['initialization'] != 'parameters' else None)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
             post_callback=self._on_time_jump)
-        self.create_timer(self._dt, self._on_clock_tick)  # simulated time: dropouts
-        self.create_timer(0.1, self._try_initialise, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        # Wall-clock watchdogs (not per simulated step: they would cost a callback every step)
+        self.create_timer(0.05, self._on_watchdog, clock=steady)
+        self._init_timer = self.create_timer(0.1, self._try_initialise, clock=steady)
         est = self._estimator
         self.get_logger().info(
             f"{p['filter_type']}: " + (
@@ -279,6 +281,7 @@ class EstimatorNode(Node):
 
     def _begin(self, stamp_ns: int, publish: bool) -> None:
         self._t_ns = self._init_ns = stamp_ns
+        self._init_timer.cancel()
         self._controls = {t: u for t, u in self._controls.items() if t >= stamp_ns}
         if self._previous_sub is not None:
             self.destroy_subscription(self._previous_sub)
@@ -292,6 +295,7 @@ class EstimatorNode(Node):
         self.get_logger().warning(f'{why}: restarting the filter from its initial state')
         self._estimator.reset()
         self._t_ns = self._init_ns = self._last_measurement_ns = None
+        self._init_timer.reset()
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()
         self._previous = None
@@ -369,9 +373,9 @@ class EstimatorNode(Node):
         self._events[f'reinitialisations.{reason}'] += 1
         self.get_logger().error(f'filter re-initialised from the measurement: {why}')
 
-    def _on_clock_tick(self) -> None:
-        """Simulated-time timer: when the clock is two steps past the estimate and no
-        measurement came (sensor dropout), predict up to the clock."""
+    def _on_watchdog(self) -> None:
+        """When the simulated clock is two steps past the estimate and no measurement came
+        (sensor dropout), predict up to the clock."""
         if self._t_ns is None or self._pending:
             return
         now = self._now_ns()

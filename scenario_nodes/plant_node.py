@@ -61,11 +61,11 @@ class PlantNode(Node):
         self.done = False
         self.exit_code = 0
 
-        self._truth_pub = self.create_publisher(Odometry, qos.TRUTH, qos.PIPELINE_QOS)
+        self._truth_pub = self.create_publisher(Odometry, qos.TRUTH, qos.PUBLISHER_QOS)
         self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
                            if p['publish_clock'] else None)
         self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'])
-        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.PIPELINE_QOS)
+        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.SUBSCRIBER_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self._lockstep:

@@ -105,7 +105,7 @@ class RecorderNode(Node):
                 if base == 'clock':
                     self._record(name, type_name, qos.CLOCK_QOS, qos.CLOCK_QOS)
                 else:
-                    self._record(name, type_name, qos.RECORDER_QOS, qos.PIPELINE_QOS)
+                    self._record(name, type_name, qos.RECORDER_QOS, qos.PUBLISHER_QOS)
             else:
                 self._waiting[name] = topic
         if self._waiting:
@@ -142,7 +142,7 @@ class RecorderNode(Node):
                 if publishers:
                     self._record(name, types[name][0], adapted_qos(publishers), publishers[0].qos_profile)
                 else:
-                    self._record(name, types[name][0], qos.RECORDER_QOS, qos.PIPELINE_QOS)
+                    self._record(name, types[name][0], qos.RECORDER_QOS, qos.PUBLISHER_QOS)
                 del self._waiting[name]
                 self.get_logger().info(f'found {name} ({types[name][0]}): recording')
         if not self._waiting:

@@ -29,9 +29,9 @@ class SensorNode(Node):
         self._published = 0
         self._rejected = Rejections()
         self._last_stamp_ns = None
-        self._pub = self.create_publisher(PointStamped, qos.MEASUREMENT, qos.PIPELINE_QOS)
+        self._pub = self.create_publisher(PointStamped, qos.MEASUREMENT, qos.PUBLISHER_QOS)
         self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'])
-        self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.PIPELINE_QOS)
+        self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.SUBSCRIBER_QOS)
         self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
 
     def _on_truth(self, msg: Odometry) -> None:

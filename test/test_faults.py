@@ -144,5 +144,5 @@ def test_half_the_neurons_silenced_at_100_s_over_ros(tmp_path):
     assert summary['final_range_m'] < 0.1
     estimator = data.last_diagnostics('estimator')
     assert estimator['silenced_neurons'] == '100'
-    silenced_after = data.spikes[data.estimate_t[:len(data.spikes)] > 101.0]
-    assert (silenced_after > 0).sum(axis=0).astype(bool).sum() <= 100  # only survivors fire
+    late = data.spikes[data.estimate_t[:len(data.spikes)] > 200.0]  # well after the change
+    assert (late > 0).any(axis=0).sum() <= 100  # only the survivors fire

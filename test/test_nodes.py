@@ -41,8 +41,8 @@ class Probe:
                  qos.DIAGNOSTICS: DiagnosticArray}
         self.publishers = {}
         for topic, kind in types.items():
-            self.node.create_subscription(kind, topic, self.received[topic].append, qos.PIPELINE_QOS)
-            self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PIPELINE_QOS)
+            self.node.create_subscription(kind, topic, self.received[topic].append, qos.HISTORY_QOS)
+            self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PUBLISHER_QOS)
 
     def publish(self, topic, msg):
         self.publishers[topic].publish(msg)

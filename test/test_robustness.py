@@ -40,7 +40,7 @@ class Harness(Probe):
         super().__init__(context, executor, nodes)
         self.executor = executor
         self.clock_pub = self.node.create_publisher(Clock, '/clock', qos.CLOCK_QOS)
-        self.publishers[qos.SET_STATE] = self.node.create_publisher(Odometry, qos.SET_STATE, qos.PIPELINE_QOS)
+        self.publishers[qos.SET_STATE] = self.node.create_publisher(Odometry, qos.SET_STATE, qos.PUBLISHER_QOS)
 
     def clock(self, stamp_ns):
         self.clock_pub.publish(Clock(clock=ns_to_stamp(stamp_ns)))
@@ -246,7 +246,8 @@ def test_controller_bad_inputs_safe_mode_and_gain_changes():
         for k in range(16, 30):
             harness.clock(k * DT)
             executor.spin_once(timeout_sec=0.05)
-        assert spin_until(executor, lambda: controller._safe)
+        assert spin_until(executor, lambda: controller._safe and
+                          harness.received[qos.CONTROL][-1].accel.linear.x == 0.0)
         zero = harness.received[qos.CONTROL][-1]
         assert [zero.accel.linear.x, zero.accel.linear.y, zero.accel.linear.z] == [0.0, 0.0, 0.0]
         assert stamp_to_ns(zero.header.stamp) > 15 * DT
