@@ -62,7 +62,8 @@ VDP_CASES = {
     'vdp_measurement_noise': {'measurement_noise_scale': 10.0},  # R_hat = 10 R
 }
 EXPERIMENTS = ('vdp_nominal', 'vdp_process_noise', 'vdp_measurement_noise', 'vdp_neurons',
-               'rendezvous', 'rendezvous_printed_cw', 'runtime')
+               'rendezvous', 'rendezvous_printed_cw', 'spike_rules', 'runtime')
+SPIKE_RULE_RUNS = 20
 
 
 class Progress:
@@ -190,6 +191,24 @@ def experiment_rendezvous(name: str, runs: int, out: Path, progress: Progress) -
     return {'experiment': name, 'runs': runs, 'filters': records, 'paper': paper}
 
 
+def experiment_spike_rules(runs: int, out: Path, progress: Progress) -> dict:
+    """SNN-EMSIF on the rendezvous with each spike rule, scaled and literal network (not in the
+    paper, which does not say how simultaneous threshold crossings are resolved)."""
+    runs = min(runs, SPIKE_RULE_RUNS)
+    records = {}
+    for preset in ('default', 'as_published'):
+        scenario = rendezvous_scenario(preset)
+        for rule in ('greedy', 'one_per_step', 'all_above'):
+            key = rule if preset == 'default' else f'{rule}@as_published'
+            progress.start(f'spike_rules: {key}', scenario.steps)
+            config = scenario.estimator.replace(spike_rule=rule)
+            result = simulate(scenario, 'snn_emsif', runs=runs, config=config, on_step=progress.update)
+            progress.update(scenario.steps)
+            records[key] = summarise(result, CW_STATES)
+    return {'experiment': 'spike_rules', 'runs': runs, 'filters': records,
+            'paper': {'note': 'not in the paper'}}
+
+
 def time_steps(estimator, zs, us, dt) -> float:
     """Median wall time of one ``step`` in microseconds over a recorded input sequence."""
     samples = np.empty(len(zs))
@@ -234,6 +253,8 @@ def run(name: str, runs: int, out: Path, progress: Progress) -> dict:
         return experiment_rendezvous(name, runs, out, progress)
     if name == 'runtime':
         return experiment_runtime(runs, out, progress)
+    if name == 'spike_rules':
+        return experiment_spike_rules(runs, out, progress)
     raise ValueError(f'unknown experiment {name!r}; choose from {", ".join(EXPERIMENTS)}')
 
 
