@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import signal
 import sys
-import time
 from typing import Callable
 
 import rclpy
@@ -91,7 +90,3 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
-
-
-def wall_time() -> float:
-    return time.monotonic()

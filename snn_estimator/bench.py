@@ -68,13 +68,13 @@ def main(argv=None) -> int:
         for neurons in NEURON_COUNTS:
             config = scenario.estimator.replace(neuron_count=neurons)
 
-            def fresh(config=config):
+            def fresh(config=config, kind=kind):
                 return make_estimator(kind, config, scenario.model)
 
             time_steps(fresh(), zs[:100], us[:100], dt)  # compile, warm caches
             compiled = best_median(fresh, zs, us, dt)
             dense_class = DenseSpikingFilter if spiking else DenseFilter
-            dense = best_median(lambda: dense_class(fresh()), zs[:args.dense_steps],
+            dense = best_median(lambda dense_class=dense_class: dense_class(fresh()), zs[:args.dense_steps],
                                 us[:args.dense_steps], dt, passes=1)
             results.setdefault(kind, {})[str(neurons)] = {
                 'us_per_step': round(compiled, 2), 'dense_reference_us_per_step': round(dense, 2)}

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .estimators import make_estimator
-from .simulation import Scenario, SimulationResult, rendezvous_scenario, simulate, van_der_pol_scenario
+from .simulation import SimulationResult, rendezvous_scenario, simulate, van_der_pol_scenario
 
 VDP_STATES = ('x1', 'x2')
 CW_STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')

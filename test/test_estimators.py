@@ -6,7 +6,7 @@ import scipy.linalg
 
 from snn_estimator import (EstimatorConfig, FILTER_KINDS, TWIN_OF, make_estimator,
                            rendezvous_scenario, simulate, van_der_pol_scenario)
-from snn_estimator.models import ClohessyWiltshire, VanDerPol
+from snn_estimator.models import VanDerPol
 from snn_estimator.reference import DenseSpikingFilter
 from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
 

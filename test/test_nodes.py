@@ -166,7 +166,7 @@ def test_lockstep_plant_waits_for_the_control_and_times_out_to_the_last_one():
         assert len(probe.received[qos.TRUTH]) == 1  # no first control: it waits (no timeout)
         for k in range(10):  # the start-up steps: no timeouts while the processes warm up
             probe.publish(qos.CONTROL, control_to_accel(np.array([0.01, 0.0, 0.0]), k * 100_000_000, 'lvlh'))
-            assert spin_until(executor, lambda: len(probe.received[qos.TRUTH]) == k + 2)
+            assert spin_until(executor, lambda k=k: len(probe.received[qos.TRUTH]) == k + 2)
         assert stamp_to_ns(probe.received[qos.TRUTH][1].header.stamp) == 100_000_000
         assert plant._timeouts == 0
         # now no control for step 10: after 0.2 s the plant holds u and goes on
