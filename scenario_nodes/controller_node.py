@@ -87,7 +87,10 @@ class ControllerNode(Node):
             self._reject(error.reason, str(error), stamp_ns)
             return
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
-            if stamp_ns < self._last_stamp_ns - seconds_to_ns(self._p['time_jump_threshold']):
+            # a time base restart shows as a clock jump when there is a clock; without one, as
+            # estimates far in the past
+            if self.get_clock().now().nanoseconds <= 0 and \
+                    stamp_ns < self._last_stamp_ns - seconds_to_ns(self._p['time_jump_threshold']):
                 self.get_logger().warning('estimate time went back: starting over')
                 self._last_stamp_ns = None
             else:

@@ -43,6 +43,7 @@ RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_no
            'membrane_noise', 'silenced_neurons', 'silenced_fraction', 'nis_threshold', 'nis_window',
            'max_input_age'}
 CONTROL_MEMORY = 2000  # controls kept for replay after a hot swap
+WARM_START_PATIENCE = 5.0  # wall s a joining estimator waits for the controls of its window
 
 
 def _check_leak(leak_rate: float, dt: float) -> None:
@@ -141,7 +142,10 @@ class EstimatorNode(Node):
         except MessageError as error:
             self._reject(error.reason, f'{where}: {error}')
             return
-        if self._t_ns is not None and stamp_ns < self._t_ns - seconds_to_ns(self._p['time_jump_threshold']):
+        # Without a running clock, stamps far in the past mean the time base restarted (with a
+        # clock, its own jump callback says so, and old stamps are only late history).
+        if (self._t_ns is not None and self._now_ns() <= 0
+                and stamp_ns < self._t_ns - seconds_to_ns(self._p['time_jump_threshold'])):
             self._restart(f'measurement time went back from {self._t_ns * 1e-9:.3f} s to '
                           f'{stamp_ns * 1e-9:.3f} s', 'time_jumps')
         if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
@@ -232,20 +236,27 @@ class EstimatorNode(Node):
             return
         if mode == 'last_estimate' or (mode == 'auto' and not history_complete):
             return  # an earlier estimate may still be on its way
-        if mode == 'auto' and len(self._pending) >= self._p['warm_start_min_samples'] and self._batch_start():
-            return
+        if mode == 'auto' and len(self._pending) >= self._p['warm_start_min_samples']:
+            if self._batch_start(waited):
+                return
+            if waited < WARM_START_PATIENCE:
+                return  # the controls of the window are still on their way
         self._estimator.reset()
         self._begin(min(self._pending), publish=True)
         self._process()
 
-    def _batch_start(self) -> bool:
+    def _batch_start(self, waited: float) -> bool:
         """Hot swap after a crash: the sensor's history is here but no earlier estimate. Fit the
-        state by least squares over the history (controls from the controller's history) and
-        start at the newest measurement, which the next step uses."""
-        stamps = sorted(self._pending)
+        state by least squares over the newest ``warm_start_min_samples`` measurements (controls
+        from the controller's history) and start at the newest, which the next step uses.
+        False while controls of the window are missing (up to WARM_START_PATIENCE s)."""
+        stamps = sorted(self._pending)[-self._p['warm_start_min_samples']:]
+        known = [self._control_for(stamp_ns) for stamp_ns in stamps[:-1]]
+        if any(u is None for u in known) and waited < WARM_START_PATIENCE:
+            return False
         controls, held = [], np.zeros(3)
-        for stamp_ns in stamps:
-            held = self._control_for(stamp_ns) if self._control_for(stamp_ns) is not None else held
+        for u in known + [None]:
+            held = u if u is not None else held
             controls.append(held)
         try:
             x, covariance = batch_initial_state(
@@ -257,6 +268,7 @@ class EstimatorNode(Node):
             self.get_logger().warning(f'no least-squares start from the history ({error}); '
                                       'starting from the parameters')
             return False
+        self._drop({t for t in self._pending if t < stamps[0]}, 'older than the least-squares window')
         for stamp_ns in stamps[:-1]:
             del self._pending[stamp_ns]
         self._used += len(stamps) - 1

@@ -111,8 +111,8 @@ CONTROLLER = MODEL + (
          'thrust)', read_only=False, low=1e-9),
     Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock are rejected, s',
          read_only=False, low=1e-9),
-    Spec('time_jump_threshold', 1.0, 'An estimate this far before the last one means the clock '
-         'went back: start over, s', low=0.0),
+    Spec('time_jump_threshold', 1.0, 'Without a running /clock, an estimate this far before the '
+         'last one means the time base restarted: start over, s', low=0.0),
 )
 
 ESTIMATOR = MODEL + (
@@ -159,11 +159,12 @@ ESTIMATOR = MODEL + (
     Spec('warm_start_wait', 0.5, 'auto initialization: wall-clock s after start-up to wait for an '
          'earlier estimate', low=0.0),
     Spec('warm_start_min_samples', 20, 'auto initialization: with no earlier estimate but at least '
-         'this many measurements in the history, start from a least-squares fit of them', low=2),
+         'this many measurements in the history, start from a least-squares fit of the newest '
+         'this many', low=2),
     Spec('max_input_age', 1.0, 'Inputs older than this behind the simulated clock are rejected, s',
          read_only=False, low=1e-9),
-    Spec('time_jump_threshold', 1.0, 'A measurement this far before the estimate time means the '
-         'clock went back (simulation restart, bag loop): the filter restarts, s', low=0.0),
+    Spec('time_jump_threshold', 1.0, 'Without a running /clock, a measurement this far before the '
+         'estimate time means the time base restarted (bag loop): the filter restarts, s', low=0.0),
     Spec('nis_threshold', 25.0, 'Normalised innovation squared above which a step counts as '
          'inconsistent (chi-square, 3 dof: p = 1.5e-5)', read_only=False, low=1e-9),
     Spec('nis_window', 10, 'Inconsistent steps in a row that trigger a re-initialisation from the '
