@@ -116,13 +116,30 @@ def test_estimator_rejects_measurements_too_old_for_the_clock(estimator_rig):
     assert node.estimator.steps == 1
 
 
-def test_estimator_rejects_controls_from_before_its_initialisation(estimator_rig):
+def test_estimator_rejects_controls_with_a_wrong_frame(estimator_rig):
     harness, node = estimator_rig
-    harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'map'))
+    harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), DT, 'map'))
     harness.wait_value('estimator', 'controls_rejected.wrong_frame', 1)
-    estimator_stamp = node._init_ns
-    assert estimator_stamp == 0
     step(harness, DT, 3)
+    assert node.estimator.steps == 2
+
+
+def test_estimator_rejects_inputs_from_before_its_initialisation():
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0,
+                    warm_start_wait=0.0)
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 10 * DT, 'lvlh'))
+        harness.wait_estimates(1)
+        assert node._init_ns == 10 * DT
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 5 * DT, 'lvlh'))
+        harness.wait_value('estimator', 'controls_rejected.before_init', 1)
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 5 * DT, 'lvlh'))
+        harness.wait_value('estimator', 'measurements_rejected.stale', 1)
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 10 * DT, 'lvlh'))
+        harness.wait_estimates(2)
+        assert node.estimator.steps == 1
 
 
 def test_a_backwards_time_jump_restarts_the_filter(estimator_rig):
