@@ -71,6 +71,7 @@ class Progress:
 
     def __init__(self, quiet: bool = False):
         self.quiet = quiet
+        self.interactive = sys.stderr.isatty()  # a log file gets one line per item instead
         self.label = ''
         self.total = 1
         self._last = -1
@@ -83,6 +84,11 @@ class Progress:
         if self.quiet:
             return
         percent = int(100 * done / self.total)
+        if not self.interactive:
+            if percent >= 100 and self._last < 100:
+                self._last = 100
+                sys.stderr.write(f'  {self.label}: done\n')
+            return
         if percent != self._last:
             self._last = percent
             bar = '#' * (percent // 4)
