@@ -11,9 +11,11 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import time
 from typing import Callable
 
 import rclpy
+from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
@@ -37,6 +39,17 @@ class StopFlag:
     def install(self):
         signal.signal(signal.SIGINT, self)
         signal.signal(signal.SIGTERM, self)
+
+
+def flush(node, timeout: float = 2.0) -> None:
+    """Wait until every subscriber acknowledged what the node published: a reliable sample
+    still unacknowledged when the process exits would be lost (e.g. to a lagging recorder)."""
+    deadline = time.monotonic() + timeout
+    for publisher in node.publishers:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        publisher.wait_for_all_acked(Duration(nanoseconds=int(remaining * 1e9)))
 
 
 def make_executor():
@@ -87,6 +100,8 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
             close = getattr(node, 'close', None)
             if close is not None:
                 close()
+            if rclpy.ok():
+                flush(node)
             node.destroy_node()
         rclpy.try_shutdown()
     return code
