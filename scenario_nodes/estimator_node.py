@@ -44,6 +44,7 @@ RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_no
            'max_input_age'}
 CONTROL_MEMORY = 2000  # controls kept for replay after a hot swap
 WARM_START_PATIENCE = 5.0  # wall s a joining estimator waits for the controls of its window
+DROPOUT_WAIT = 0.25  # wall s without any measurement before predicting up to the clock
 
 
 def _check_leak(leak_rate: float, dt: float) -> None:
@@ -69,13 +70,15 @@ class EstimatorNode(Node):
         self._dt_ns = seconds_to_ns(self._dt)
         _check_leak(p['leak_rate'], self._dt)
         self._frame, self._child = p['frame_id'], p['child_frame_id']
-        self._started = time.monotonic()
+        self._first_arrival: float | None = None  # wall time of the first measurement
         self._pending: dict[int, np.ndarray] = {}
         self._controls: dict[int, np.ndarray] = {}
         self._previous: tuple[int, np.ndarray, np.ndarray] | None = None  # newest foreign estimate
         self._t_ns: int | None = None
         self._init_ns: int | None = None
         self._last_measurement_ns: int | None = None
+        self._newest_ns: int | None = None  # newest measurement stamp accepted
+        self._last_arrival = time.monotonic()  # wall time of the last accepted measurement
         self._held_control = np.zeros(3)
         self._rejected = Rejections()          # measurements
         self._control_rejected = Rejections()
@@ -126,9 +129,10 @@ class EstimatorNode(Node):
         return self.get_clock().now().nanoseconds
 
     def _too_old(self, stamp_ns: int) -> bool:
-        """Older than max_input_age behind the simulated clock (when there is a clock)."""
-        now = self._now_ns()
-        return now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age'])
+        """More than max_input_age behind the newest measurement received: a straggler. (Not
+        relative to the clock: a filter that is behind must still take its queued inputs.)"""
+        newest = self._newest_ns
+        return newest is not None and stamp_ns < newest - seconds_to_ns(self._p['max_input_age'])
 
     def _on_measurement(self, msg: PointStamped) -> None:
         self._measurements += 1
@@ -151,6 +155,10 @@ class EstimatorNode(Node):
         if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
             self._reject('duplicate', f'second {where}')
             return
+        if self._t_ns is not None and self._too_old(stamp_ns):  # (history may come out of order)
+            self._reject('too_old', f"{where} is more than {self._p['max_input_age']} s older than "
+                         f'the newest measurement ({self._newest_ns * 1e-9:.3f} s)')
+            return
         if self._t_ns is not None and stamp_ns < self._t_ns:
             self._reject('stale', f'{where} is older than the estimate at {self._t_ns * 1e-9:.3f} s')
             return
@@ -158,9 +166,8 @@ class EstimatorNode(Node):
             self._reject('misaligned', f'{where} does not fall on the estimate time '
                          f'{self._t_ns * 1e-9:.3f} s plus steps of {self._dt} s (time_step?)')
             return
-        if self._t_ns is not None and self._too_old(stamp_ns):
-            self._reject('too_old', f"{where} is more than {self._p['max_input_age']} s behind the clock")
-            return
+        self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
+        self._last_arrival = time.monotonic()
         self._pending[stamp_ns] = z
         if self._t_ns is None:
             self._try_initialise()
@@ -215,8 +222,11 @@ class EstimatorNode(Node):
             return
         mode = self._p['initialization']
         previous = self._previous
-        waited = time.monotonic() - self._started
-        history_complete = waited >= self._p['warm_start_wait']  # the topics' history has come in
+        if self._first_arrival is None:
+            self._first_arrival = time.monotonic()
+        # the topics' history (if any) comes in right after the first measurement
+        waited = time.monotonic() - self._first_arrival
+        history_complete = waited >= self._p['warm_start_wait']
         if previous is not None and mode != 'parameters' and history_complete \
                 and previous[0] <= max(self._pending):
             stamp_ns, x, covariance = previous
@@ -243,6 +253,9 @@ class EstimatorNode(Node):
                 return  # the controls of the window are still on their way
         self._estimator.reset()
         self._begin(min(self._pending), publish=True)
+        self._events['cold_starts'] += 1
+        self.get_logger().info(f'started from the parameters at t = {self._init_ns * 1e-9:.3f} s '
+                               f'({len(self._pending)} measurements queued)')
         self._process()
 
     def _batch_start(self, waited: float) -> bool:
@@ -265,8 +278,7 @@ class EstimatorNode(Node):
             self._estimator.reset()
             self._estimator.set_state(x, covariance if self._estimator.has_covariance else None)
         except (ValueError, np.linalg.LinAlgError) as error:
-            self.get_logger().warning(f'no least-squares start from the history ({error}); '
-                                      'starting from the parameters')
+            self.get_logger().warning(f'no least-squares start from the history: {error}')
             return False
         self._drop({t for t in self._pending if t < stamps[0]}, 'older than the least-squares window')
         for stamp_ns in stamps[:-1]:
@@ -306,7 +318,8 @@ class EstimatorNode(Node):
         self._events[event] += 1
         self.get_logger().warning(f'{why}: restarting the filter from its initial state')
         self._estimator.reset()
-        self._t_ns = self._init_ns = self._last_measurement_ns = None
+        self._t_ns = self._init_ns = self._last_measurement_ns = self._newest_ns = None
+        self._first_arrival = None
         self._init_timer.reset()
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()
@@ -388,8 +401,8 @@ class EstimatorNode(Node):
     def _on_watchdog(self) -> None:
         """When the simulated clock is two steps past the estimate and no measurement came
         (sensor dropout), predict up to the clock."""
-        if self._t_ns is None or self._pending:
-            return
+        if self._t_ns is None or self._pending or time.monotonic() - self._last_arrival < DROPOUT_WAIT:
+            return  # measurements may still be queued: not a dropout yet
         now = self._now_ns()
         if now >= self._t_ns + 2 * self._dt_ns:
             while self._t_ns + self._dt_ns <= now:

@@ -156,13 +156,13 @@ ESTIMATOR = MODEL + (
          'earlier estimator left on `estimate` (hot swap) and replay the inputs since then; '
          'auto: the latter when one arrives within warm_start_wait',
          choices=('auto', 'parameters', 'last_estimate')),
-    Spec('warm_start_wait', 0.5, 'auto initialization: wall-clock s after start-up to wait for an '
-         'earlier estimate', low=0.0),
+    Spec('warm_start_wait', 0.5, 'auto initialization: wall-clock s after the first measurement to '
+         'wait for the topics\' history (an earlier estimate, more measurements)', low=0.0),
     Spec('warm_start_min_samples', 20, 'auto initialization: with no earlier estimate but at least '
          'this many measurements in the history, start from a least-squares fit of the newest '
          'this many', low=2),
-    Spec('max_input_age', 1.0, 'Inputs older than this behind the simulated clock are rejected, s',
-         read_only=False, low=1e-9),
+    Spec('max_input_age', 1.0, 'Measurements older than this behind the newest one received '
+         '(stragglers) are rejected, s', read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, a measurement this far before the '
          'estimate time means the time base restarted (bag loop): the filter restarts, s', low=0.0),
     Spec('nis_threshold', 25.0, 'Normalised innovation squared above which a step counts as '
