@@ -91,13 +91,26 @@ def tracking_figure(tracks: Sequence[Track], states: Sequence[str], path: Path, 
 
 
 def _zoom_error_axis(ax, tracks, row):
-    """Limit the error axis to the settled part so the steady-state error stays readable."""
+    """Limit the error axis to the settled part so the steady-state error stays readable. The
+    settled +-3 sigma bound is kept in view when it is within a few times the error; a larger
+    one is written on the panel instead of being cut off silently."""
     errors = np.concatenate([np.abs(t.truth[:, row] - t.estimate[:, row])[len(t.time) // 10:]
                              for t in tracks])
-    if errors.size and np.all(np.isfinite(errors)):
-        top = np.percentile(errors, 99.5) * 1.8
-        if top > 0:
-            ax.set_ylim(-top, top)
+    if not (errors.size and np.all(np.isfinite(errors))):
+        return
+    top = np.percentile(errors, 99.5) * 1.8
+    if top <= 0:
+        return
+    bounds = [3.0 * np.median(t.sigma[len(t.time) // 2:, row]) for t in tracks if t.sigma is not None]
+    bounds = [b for b in bounds if np.isfinite(b) and b > 0]
+    if bounds:
+        widest = max(bounds)
+        if widest <= 4.0 * top:
+            top = max(top, 1.15 * widest)
+        else:
+            ax.text(0.99, 0.04, f'settled +-3 sigma = +-{widest:.2g} (off scale)', transform=ax.transAxes,
+                    ha='right', va='bottom', fontsize=7, color='dimgrey')
+    ax.set_ylim(-top, top)
 
 
 def rmse_figure(series: dict, time: np.ndarray, states: Sequence[str], path: Path, title: str,
