@@ -30,8 +30,6 @@ from .runtime import run_node
 STARTUP_STEPS = 10
 #: Wall-clock seconds the lockstep plant waits for the very first control before warning again.
 STARTUP_NOTICE_PERIOD = 5.0
-#: Wall-clock seconds the plant stays up after its last step so subscribers receive it.
-LINGER_AFTER_DONE = 0.5
 
 
 class PlantNode(Node):
@@ -96,7 +94,7 @@ class PlantNode(Node):
                          f'at {self._start_ns * 1e-9:.3f} s')
             return
         self._controls_received += 1
-        if self.done:
+        if self._finished:
             return
         if not self._lockstep:
             self._control = u
@@ -125,7 +123,7 @@ class PlantNode(Node):
         return SetParametersResult(successful=True)
 
     def _on_watchdog(self) -> None:
-        if self._waiting_since is None or self.done or self._p['paused']:
+        if self._waiting_since is None or self._finished or self._p['paused']:
             if self._p['paused'] and self._waiting_since is not None:
                 self._waiting_since = time.monotonic()
             return
@@ -144,7 +142,7 @@ class PlantNode(Node):
             self._advance(self._control)
 
     def _on_tick(self) -> None:
-        if not self.done and not self._p['paused']:
+        if not self._finished and not self._p['paused']:
             self._advance(self._control)
 
     # ---------------------------------------------------------------- stepping
@@ -186,12 +184,13 @@ class PlantNode(Node):
             f"done: {values['steps']} steps, {values['sim_time']:.1f} s simulated in "
             f"{values['wall_time']:.2f} s (x{values['real_time_factor']:.0f}), "
             f"{self._timeouts} control timeouts, final range {values['range']:.4f} m")
-        if self._p['exit_when_done']:
-            self._linger = self.create_timer(LINGER_AFTER_DONE, self._on_linger_end,
-                                             clock=Clock(clock_type=ClockType.STEADY_TIME))
+        # run_node flushes the publishers before the process ends, so subscribers get the end
+        self.done = self._p['exit_when_done']
 
-    def _on_linger_end(self) -> None:
-        self.done = True
+    @property
+    def _finished(self) -> bool:
+        """The last step is done: no more steps, whatever the mode."""
+        return self._finished_wall is not None
 
     # ---------------------------------------------------------------- reporting
     def _reject(self, reason: str, detail: str) -> None:
@@ -208,7 +207,7 @@ class PlantNode(Node):
             'real_time_factor': sim / wall if wall > 0 else 0.0,
             'control_timeouts': self._timeouts, 'controls_received': self._controls_received,
             'truth_published': self._truth_published,
-            'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished_wall is not None,
+            'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished,
         }
         values.update(self._rejected.as_values('controls'))
         return values

@@ -316,6 +316,18 @@ def test_plant_rejects_bad_controls_and_pauses():
         assert stamp_to_ns(harness.received[qos.TRUTH][2].header.stamp) == start + 2 * DT
 
 
+
+def test_a_realtime_plant_stops_after_its_duration():
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', mode='realtime',
+                     real_time_factor=20.0, duration=0.5)  # 5 steps of 0.1 s in 25 ms
+        assert spin_until(executor, lambda: plant._values()['done'])
+        for _ in range(10):  # 0.5 s more of wall time: the ticker has fired ~100 more times
+            executor.spin_once(timeout_sec=0.05)
+        assert plant._values()['steps'] == 5
+        assert len(harness.received[qos.TRUTH]) == 6  # the initial state and five steps
+
 floats = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
                    st.floats(-1e3, 1e3))
 messages = st.tuples(st.sampled_from(['measurement', 'control', 'set_state', 'clock', 'param']),
