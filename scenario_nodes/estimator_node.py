@@ -168,6 +168,8 @@ class EstimatorNode(Node):
             return
         self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
         self._last_arrival = time.monotonic()
+        if self._first_arrival is None:
+            self._first_arrival = self._last_arrival
         self._pending[stamp_ns] = z
         if self._t_ns is None:
             self._try_initialise()
@@ -222,8 +224,6 @@ class EstimatorNode(Node):
             return
         mode = self._p['initialization']
         previous = self._previous
-        if self._first_arrival is None:
-            self._first_arrival = time.monotonic()
         # the topics' history (if any) comes in right after the first measurement
         waited = time.monotonic() - self._first_arrival
         history_complete = waited >= self._p['warm_start_wait']

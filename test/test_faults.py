@@ -20,6 +20,7 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
+from scenario_nodes.conversions import stamp_to_ns  # noqa: E402
 from scenario_nodes.demo import NODES, Pipeline, pipeline_env  # noqa: E402
 from scenario_nodes.paths import config_file  # noqa: E402
 
@@ -42,10 +43,10 @@ class Monitor:
         self.node.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.SUBSCRIBER_QOS)
 
     def _on_clock(self, msg):
-        self.now = msg.clock.sec + msg.clock.nanosec * 1e-9
+        self.now = stamp_to_ns(msg.clock) * 1e-9
 
     def _on_estimate(self, msg):
-        self.newest_estimate = max(self.newest_estimate, msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+        self.newest_estimate = max(self.newest_estimate, stamp_to_ns(msg.header.stamp) * 1e-9)
 
     def wait_estimate_after(self, seconds, timeout=60.0):
         deadline = time.monotonic() + timeout
