@@ -18,7 +18,7 @@ from snn_estimator.simulation import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix
 
 from . import qos
-from .conversions import MessageError, control_to_accel, odometry_to_state, seconds_to_ns, stamp_to_ns
+from .conversions import MessageError, decode_odometry, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
 from .runtime import run_node
@@ -50,7 +50,7 @@ class ControllerNode(Node):
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
         self._pub = self.create_publisher(AccelStamped, qos.CONTROL, qos.PUBLISHER_QOS)
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'])
-        self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.SUBSCRIBER_QOS)
+        self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.SUBSCRIBER_QOS, raw=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = self.get_clock().create_jump_callback(
             JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
@@ -75,14 +75,19 @@ class ControllerNode(Node):
         self.get_logger().warning(f'rejected estimate ({detail})', throttle_duration_sec=5.0)
         self._publish_diagnostics(max(stamp_ns, self._last_stamp_ns or 0))
 
-    def _on_estimate(self, msg: Odometry) -> None:
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        if msg.header.frame_id != self._p['frame_id']:
-            self._reject('wrong_frame', f"frame '{msg.header.frame_id}', expected '{self._p['frame_id']}'",
+    def _on_estimate(self, data: bytes) -> None:
+        try:
+            estimate = decode_odometry(data)
+        except MessageError as error:
+            self._reject(error.reason, str(error), 0)
+            return
+        stamp_ns = estimate.stamp_ns
+        if estimate.frame_id != self._p['frame_id']:
+            self._reject('wrong_frame', f"frame '{estimate.frame_id}', expected '{self._p['frame_id']}'",
                          stamp_ns)
             return
         try:
-            x_hat, _ = odometry_to_state(msg)
+            x_hat, _ = state_of(estimate)
         except MessageError as error:
             self._reject(error.reason, str(error), stamp_ns)
             return
@@ -133,7 +138,7 @@ class ControllerNode(Node):
         self.get_logger().info(f'{why}: leaving safe mode')
 
     def _publish_control(self, u: np.ndarray, stamp_ns: int) -> None:
-        self._pub.publish(control_to_accel(u, stamp_ns, self._p['frame_id']))
+        self._pub.publish(encode_accel(u, stamp_ns, self._p['frame_id']))
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)

@@ -8,19 +8,28 @@ Conventions (documented in README, "Topics"):
   the position-velocity cross terms have no place in Odometry and are not published.
 * a partial position measurement <-> geometry_msgs/PointStamped with NaN on unmeasured axes;
 * the control (specific force, m/s^2) <-> geometry_msgs/AccelStamped accel.linear.
+
+Wire format. The loop's topics are read and written as serialized CDR bytes (``raw=True``
+subscriptions, ``publish(bytes)``) by the ``encode_*``/``decode_*`` functions below: building
+and walking rclpy message objects cost more CPU per step than everything else a node does
+(README, "Performance"). The bytes are the standard types' CDR, so ``ros2 topic echo``, bags and
+any other node read them as usual. The message-object helpers (``state_to_odometry`` and the
+like, for tests, tools and users' own nodes) go through the same codec, so there is one mapping.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+import struct
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import AccelStamped, PointStamped
 from nav_msgs.msg import Odometry
-from std_msgs.msg import MultiArrayDimension, UInt32, UInt32MultiArray
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import UInt32, UInt32MultiArray
 
 NS = 1_000_000_000
 
@@ -46,6 +55,109 @@ def seconds_to_ns(seconds: float) -> int:
     return int(round(seconds * NS))
 
 
+# ---------------------------------------------------------------- wire format (CDR)
+#: Encapsulation header of plain CDR, little-endian: what rmw_fastrtps and rmw_cyclonedds write
+#: for ROS 2 types. Anything else (big-endian, XCDR2) is decoded through rclpy instead.
+CDR_LE = b'\x00\x01\x00\x00'
+_STAMP_AND_LENGTH = struct.Struct('<iII')  # header.stamp.sec, .nanosec, frame_id length
+_U32 = struct.Struct('<I')
+# Odometry after its child_frame_id: 85 doubles, in this order
+_POSITION, _POSE_COVARIANCE, _LINEAR, _TWIST_COVARIANCE = slice(0, 3), slice(7, 43), slice(43, 46), slice(49, 85)
+_ORIENTATION_W = 6
+_ODOMETRY_DOUBLES = 85
+
+
+class OdometryRecord(NamedTuple):
+    """The fields of a nav_msgs/Odometry the pipeline uses; ``state`` as received (may be NaN)."""
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    state: np.ndarray       # [x, y, z, vx, vy, vz]
+    covariance: np.ndarray  # 6x6 with the two published blocks, zeros elsewhere
+
+
+class StampedVector(NamedTuple):
+    """A stamped 3-vector: PointStamped.point or AccelStamped.accel.linear, as received."""
+    stamp_ns: int
+    frame_id: str
+    vector: np.ndarray
+
+
+def _body_offset(offset: int, alignment: int) -> int:
+    """``offset`` (from the start of the bytes) moved up to ``alignment``; CDR aligns relative to
+    the end of the 4-byte encapsulation header."""
+    return offset + (-(offset - 4) % alignment)
+
+
+def _write_string(out: bytearray, text: str) -> None:
+    encoded = text.encode() + b'\0'
+    out += bytes(-(len(out) - 4) % 4)
+    out += _U32.pack(len(encoded))
+    out += encoded
+
+
+def _read_string(data: bytes, offset: int) -> tuple[str, int]:
+    offset = _body_offset(offset, 4)
+    (length,) = _U32.unpack_from(data, offset)
+    end = offset + 4 + length
+    if length == 0 or end > len(data):
+        raise MessageError('malformed', f'string of {length} bytes at offset {offset} in {len(data)} bytes')
+    return data[offset + 4:end - 1].decode(), end
+
+
+def _header(stamp_ns: int, frame_id: str) -> bytearray:
+    sec, nanosec = divmod(int(stamp_ns), NS)
+    encoded = frame_id.encode() + b'\0'
+    out = bytearray(CDR_LE)
+    out += _STAMP_AND_LENGTH.pack(sec, nanosec, len(encoded))
+    out += encoded
+    return out
+
+
+def _read_header(data: bytes) -> tuple[int, str, int]:
+    """(stamp in ns, frame_id, offset after the header)."""
+    sec, nanosec, length = _STAMP_AND_LENGTH.unpack_from(data, 4)
+    end = 16 + length
+    if length == 0 or end > len(data):
+        raise MessageError('malformed', f'frame_id of {length} bytes in {len(data)} bytes')
+    return sec * NS + nanosec, data[16:end - 1].decode(), end
+
+
+def _doubles(out: bytearray, values: np.ndarray) -> bytes:
+    out += bytes(-(len(out) - 4) % 8)
+    out += np.ascontiguousarray(values, dtype='<f8').tobytes()
+    return bytes(out)
+
+
+def _through_rclpy(data: bytes, message_type) -> bytes:
+    """Re-serialized by rclpy (as little-endian CDR on this machine); MessageError if it
+    cannot read the bytes. (rclpy raises its own error types, hence the broad except.)"""
+    try:
+        return serialize_message(deserialize_message(data, message_type))
+    except Exception as error:  # noqa: BLE001 - converted into the one error callers handle
+        raise MessageError('malformed', f'rclpy cannot read {len(data)} bytes as '
+                           f'{message_type.__name__}: {error}') from None
+
+
+def _decoding(decode):
+    """Wrap a little-endian CDR decoder: other encodings go through rclpy (slow but general),
+    truncated or garbled bytes raise MessageError('malformed')."""
+    def wrapper(data: bytes, *args):
+        try:
+            if data[:4] != CDR_LE:
+                data = _through_rclpy(data, decode.message_type)
+                if data[:4] != CDR_LE:
+                    raise MessageError('malformed', f'unsupported CDR encapsulation {data[:4].hex()}')
+            return decode(data, *args)
+        except (struct.error, ValueError, UnicodeDecodeError) as error:
+            if isinstance(error, MessageError):
+                raise
+            raise MessageError('malformed', f'cannot decode {len(data)} bytes as '
+                               f'{decode.message_type.__name__}: {error}') from None
+    wrapper.__name__, wrapper.__doc__ = decode.__name__, decode.__doc__
+    return wrapper
+
+
 def _padded(block: np.ndarray) -> np.ndarray:
     """A 3x3 block in the top-left of a flat 6x6 ROS covariance."""
     full = np.zeros((6, 6))
@@ -53,83 +165,152 @@ def _padded(block: np.ndarray) -> np.ndarray:
     return full.ravel()
 
 
-def state_to_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
-                      frame_id: str, child_frame_id: str) -> Odometry:
-    """Odometry of a 6-state ``x``; ``covariance`` None publishes zeros (not computed)."""
-    msg = Odometry()
-    msg.header.stamp = ns_to_stamp(stamp_ns)
-    msg.header.frame_id = frame_id
-    msg.child_frame_id = child_frame_id
-    position, velocity = msg.pose.pose.position, msg.twist.twist.linear
-    position.x, position.y, position.z = float(x[0]), float(x[1]), float(x[2])
-    velocity.x, velocity.y, velocity.z = float(x[3]), float(x[4]), float(x[5])
-    msg.pose.pose.orientation.w = 1.0
+def encode_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
+                    frame_id: str, child_frame_id: str) -> bytes:
+    """CDR of the Odometry of a 6-state ``x``; ``covariance`` None publishes zeros (not computed)."""
+    out = _header(stamp_ns, frame_id)
+    _write_string(out, child_frame_id)
+    values = np.zeros(_ODOMETRY_DOUBLES)
+    values[_POSITION] = x[:3]
+    values[_ORIENTATION_W] = 1.0
+    values[_LINEAR] = x[3:6]
     if covariance is not None:
-        msg.pose.covariance = _padded(covariance[:3, :3])
-        msg.twist.covariance = _padded(covariance[3:, 3:])
-    return msg
+        values[_POSE_COVARIANCE] = _padded(covariance[:3, :3])
+        values[_TWIST_COVARIANCE] = _padded(covariance[3:, 3:])
+    return _doubles(out, values)
 
 
-def odometry_to_state(msg: Odometry) -> tuple[np.ndarray, np.ndarray]:
-    """(x, covariance with the two published blocks); raises MessageError if not finite."""
-    p, v = msg.pose.pose.position, msg.twist.twist.linear
-    x = np.array([p.x, p.y, p.z, v.x, v.y, v.z], dtype=float)
-    if not np.all(np.isfinite(x)):
-        raise MessageError('non_finite', f'state has NaN/Inf: {x.tolist()}')
+def _decode_odometry(data: bytes) -> OdometryRecord:
+    stamp_ns, frame_id, offset = _read_header(data)
+    child, offset = _read_string(data, offset)
+    values = np.frombuffer(data, '<f8', _ODOMETRY_DOUBLES, _body_offset(offset, 8))
     covariance = np.zeros((6, 6))
-    covariance[:3, :3] = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3]
-    covariance[3:, 3:] = np.asarray(msg.twist.covariance, dtype=float).reshape(6, 6)[:3, :3]
-    return x, covariance
+    covariance[:3, :3] = values[_POSE_COVARIANCE].reshape(6, 6)[:3, :3]
+    covariance[3:, 3:] = values[_TWIST_COVARIANCE].reshape(6, 6)[:3, :3]
+    state = np.concatenate((values[_POSITION], values[_LINEAR]))
+    return OdometryRecord(stamp_ns, frame_id, child, state, covariance)
 
 
-def measurement_to_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int,
-                         frame_id: str) -> PointStamped:
-    """PointStamped with the measured axes filled in and NaN elsewhere."""
-    values = [math.nan, math.nan, math.nan]
-    for value, axis in zip(z, measured_axes):
-        values[axis] = float(value)
-    msg = PointStamped()
-    msg.header.stamp = ns_to_stamp(stamp_ns)
-    msg.header.frame_id = frame_id
-    msg.point.x, msg.point.y, msg.point.z = values
-    return msg
+_decode_odometry.message_type = Odometry
+decode_odometry = _decoding(_decode_odometry)
 
 
-def point_to_measurement(msg: PointStamped, measured_axes: Sequence[int]) -> np.ndarray:
-    """The measured axes of a PointStamped; raises MessageError if one of them is not finite."""
-    values = (msg.point.x, msg.point.y, msg.point.z)
-    z = np.array([values[axis] for axis in measured_axes], dtype=float)
+def encode_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of a PointStamped with the measured axes filled in and NaN elsewhere."""
+    values = np.full(3, math.nan)
+    values[list(measured_axes)] = z
+    return _doubles(_header(stamp_ns, frame_id), values)
+
+
+def _decode_stamped_vector(data: bytes) -> StampedVector:
+    stamp_ns, frame_id, offset = _read_header(data)
+    vector = np.frombuffer(data, '<f8', 3, _body_offset(offset, 8)).copy()
+    return StampedVector(stamp_ns, frame_id, vector)
+
+
+def _decode_point(data: bytes) -> StampedVector:
+    return _decode_stamped_vector(data)
+
+
+_decode_point.message_type = PointStamped
+decode_point = _decoding(_decode_point)
+
+
+def encode_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of an AccelStamped: ``u`` in accel.linear, zero angular acceleration."""
+    values = np.zeros(6)
+    values[:3] = u
+    return _doubles(_header(stamp_ns, frame_id), values)
+
+
+def _decode_accel(data: bytes) -> StampedVector:
+    return _decode_stamped_vector(data)  # accel.linear comes first
+
+
+_decode_accel.message_type = AccelStamped
+decode_accel = _decoding(_decode_accel)
+
+
+def encode_uint32(value: int) -> bytes:
+    """CDR of a std_msgs/UInt32."""
+    return CDR_LE + _U32.pack(int(value))
+
+
+def encode_spikes(spikes: np.ndarray) -> bytes:
+    """CDR of a UInt32MultiArray of per-neuron spike counts of one step (one dimension, label
+    'neuron')."""
+    counts = np.asarray(spikes).astype('<u4', copy=False).ravel()
+    out = bytearray(CDR_LE)
+    out += _U32.pack(1)  # layout.dim: one dimension
+    _write_string(out, 'neuron')
+    out += bytes(-(len(out) - 4) % 4)
+    out += struct.pack('<III', counts.size, counts.size, 0)  # size, stride, layout.data_offset
+    out += _U32.pack(counts.size)
+    out += counts.tobytes()
+    return bytes(out)
+
+
+# ---------------------------------------------------------------- records -> arrays, checked
+def state_of(record: OdometryRecord) -> tuple[np.ndarray, np.ndarray]:
+    """(x, covariance blocks); raises MessageError if the state is not finite."""
+    if not np.all(np.isfinite(record.state)):
+        raise MessageError('non_finite', f'state has NaN/Inf: {record.state.tolist()}')
+    return record.state, record.covariance
+
+
+def measurement_of(record: StampedVector, measured_axes: Sequence[int]) -> np.ndarray:
+    """The measured axes; raises MessageError if one of them is not finite."""
+    z = record.vector[list(measured_axes)]
     if not np.all(np.isfinite(z)):
         raise MessageError('non_finite', f'measured axes {list(measured_axes)} hold {z.tolist()}')
     return z
 
 
+def control_of(record: StampedVector) -> np.ndarray:
+    """The control; raises MessageError if it is not finite."""
+    if not np.all(np.isfinite(record.vector)):
+        raise MessageError('non_finite', f'control has NaN/Inf: {record.vector.tolist()}')
+    return record.vector
+
+
+# ---------------------------------------------------------------- message objects (same codec)
+def state_to_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
+                      frame_id: str, child_frame_id: str) -> Odometry:
+    """Odometry of a 6-state ``x``; ``covariance`` None publishes zeros (not computed)."""
+    return deserialize_message(encode_odometry(x, covariance, stamp_ns, frame_id, child_frame_id), Odometry)
+
+
+def odometry_to_state(msg: Odometry) -> tuple[np.ndarray, np.ndarray]:
+    """(x, covariance with the two published blocks); raises MessageError if not finite."""
+    return state_of(decode_odometry(serialize_message(msg)))
+
+
+def measurement_to_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int,
+                         frame_id: str) -> PointStamped:
+    """PointStamped with the measured axes filled in and NaN elsewhere."""
+    return deserialize_message(encode_point(z, measured_axes, stamp_ns, frame_id), PointStamped)
+
+
+def point_to_measurement(msg: PointStamped, measured_axes: Sequence[int]) -> np.ndarray:
+    """The measured axes of a PointStamped; raises MessageError if one of them is not finite."""
+    return measurement_of(decode_point(serialize_message(msg)), measured_axes)
+
+
 def control_to_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> AccelStamped:
-    msg = AccelStamped()
-    msg.header.stamp = ns_to_stamp(stamp_ns)
-    msg.header.frame_id = frame_id
-    msg.accel.linear.x, msg.accel.linear.y, msg.accel.linear.z = (float(v) for v in u)
-    return msg
+    return deserialize_message(encode_accel(u, stamp_ns, frame_id), AccelStamped)
 
 
 def accel_to_control(msg: AccelStamped) -> np.ndarray:
-    linear = msg.accel.linear
-    u = np.array([linear.x, linear.y, linear.z], dtype=float)
-    if not np.all(np.isfinite(u)):
-        raise MessageError('non_finite', f'control has NaN/Inf: {u.tolist()}')
-    return u
+    return control_of(decode_accel(serialize_message(msg)))
 
 
 def spike_count_message(count: int) -> UInt32:
-    return UInt32(data=int(count))
+    return deserialize_message(encode_uint32(count), UInt32)
 
 
 def spikes_message(spikes: np.ndarray) -> UInt32MultiArray:
     """Per-neuron spike counts of one step (label 'neuron')."""
-    msg = UInt32MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label='neuron', size=int(spikes.size), stride=int(spikes.size))]
-    msg.data = np.asarray(spikes, dtype=np.uint32)
-    return msg
+    return deserialize_message(encode_spikes(spikes), UInt32MultiArray)
 
 
 def diagnostic_status(name: str, hardware_id: str, level: bytes, message: str,

@@ -31,9 +31,9 @@ from snn_estimator import make_estimator
 from snn_estimator.simulation import batch_initial_state
 
 from . import qos
-from .conversions import (MessageError, accel_to_control, odometry_to_state, point_to_measurement,
-                          seconds_to_ns, spike_count_message, spikes_message, stamp_to_ns,
-                          state_to_odometry)
+from .conversions import (MessageError, control_of, decode_accel, decode_odometry, decode_point,
+                          encode_odometry, encode_spikes, encode_uint32, measurement_of, seconds_to_ns,
+                          state_of)
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import ESTIMATOR, cw_model, declare, estimator_config, silenced_set
 from .runtime import run_node
@@ -97,11 +97,12 @@ class EstimatorNode(Node):
         self._spikes_pub = (self.create_publisher(UInt32MultiArray, qos.SPIKES, qos.PUBLISHER_QOS)
                             if p['publish_spikes'] else None)
         self._diagnostics = DiagnosticsPublisher(self, 'estimator', p['diagnostics_period'])
-        self.create_subscription(PointStamped, qos.MEASUREMENT, self._on_measurement, qos.HISTORY_QOS)
-        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.HISTORY_QOS)
-        self.create_subscription(Odometry, qos.SET_STATE, self._on_set_state, qos.SUBSCRIBER_QOS)
+        self.create_subscription(PointStamped, qos.MEASUREMENT, self._on_measurement, qos.HISTORY_QOS,
+                                 raw=True)
+        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.HISTORY_QOS, raw=True)
+        self.create_subscription(Odometry, qos.SET_STATE, self._on_set_state, qos.SUBSCRIBER_QOS, raw=True)
         self._previous_sub = (self.create_subscription(Odometry, qos.ESTIMATE, self._on_previous_estimate,
-                                                       qos.HISTORY_QOS)
+                                                       qos.HISTORY_QOS, raw=True)
                               if p['initialization'] != 'parameters' else None)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.add_on_set_parameters_callback(self._on_set_parameters)
@@ -134,15 +135,20 @@ class EstimatorNode(Node):
         newest = self._newest_ns
         return newest is not None and stamp_ns < newest - seconds_to_ns(self._p['max_input_age'])
 
-    def _on_measurement(self, msg: PointStamped) -> None:
+    def _on_measurement(self, data: bytes) -> None:
         self._measurements += 1
-        stamp_ns = stamp_to_ns(msg.header.stamp)
+        try:
+            measurement = decode_point(data)
+        except MessageError as error:
+            self._reject(error.reason, f'measurement: {error}')
+            return
+        stamp_ns = measurement.stamp_ns
         where = f'measurement at {stamp_ns * 1e-9:.3f} s'
-        if msg.header.frame_id != self._frame:
-            self._reject('wrong_frame', f"{where} in frame '{msg.header.frame_id}', expected '{self._frame}'")
+        if measurement.frame_id != self._frame:
+            self._reject('wrong_frame', f"{where} in frame '{measurement.frame_id}', expected '{self._frame}'")
             return
         try:
-            z = point_to_measurement(msg, self._axes)
+            z = measurement_of(measurement, self._axes)
         except MessageError as error:
             self._reject(error.reason, f'{where}: {error}')
             return
@@ -176,16 +182,18 @@ class EstimatorNode(Node):
         else:
             self._process()
 
-    def _on_control(self, msg: AccelStamped) -> None:
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        if msg.header.frame_id != self._frame:
-            self._reject_control('wrong_frame', f"control in frame '{msg.header.frame_id}'")
-            return
+    def _on_control(self, data: bytes) -> None:
         try:
-            u = accel_to_control(msg)
+            control = decode_accel(data)
+            frame_ok = control.frame_id == self._frame
+            u = control_of(control) if frame_ok else None
         except MessageError as error:
             self._reject_control(error.reason, str(error))
             return
+        if not frame_ok:
+            self._reject_control('wrong_frame', f"control in frame '{control.frame_id}'")
+            return
+        stamp_ns = control.stamp_ns
         if self._init_ns is not None and stamp_ns < self._init_ns:
             self._reject_control('before_init', f'control at {stamp_ns * 1e-9:.3f} s predates the '
                                  f'initialisation at {self._init_ns * 1e-9:.3f} s')
@@ -196,15 +204,16 @@ class EstimatorNode(Node):
         if self._t_ns is not None:
             self._process()
 
-    def _on_previous_estimate(self, msg: Odometry) -> None:
+    def _on_previous_estimate(self, data: bytes) -> None:
         """Estimates on our own output topic published before we initialised (hot swap)."""
         if self._t_ns is not None:
             return
         try:
-            x, covariance = odometry_to_state(msg)
+            previous = decode_odometry(data)
+            x, covariance = state_of(previous)
         except MessageError:
             return
-        stamp_ns = stamp_to_ns(msg.header.stamp)
+        stamp_ns = previous.stamp_ns
         if self._previous is None or stamp_ns > self._previous[0]:
             self._previous = (stamp_ns, x, covariance)
         self._try_initialise()
@@ -410,11 +419,10 @@ class EstimatorNode(Node):
 
     def _publish(self, stamp_ns: int) -> None:
         est = self._estimator
-        self._estimate_pub.publish(state_to_odometry(est.x_hat, est.P, stamp_ns, self._frame, self._child))
-        self._count_pub.publish(spike_count_message(est.spike_count))
+        self._estimate_pub.publish(encode_odometry(est.x_hat, est.P, stamp_ns, self._frame, self._child))
+        self._count_pub.publish(encode_uint32(est.spike_count))
         if self._spikes_pub is not None:
-            spikes = est.spikes if est.spiking else np.zeros(0, dtype=np.uint32)
-            self._spikes_pub.publish(spikes_message(spikes))
+            self._spikes_pub.publish(encode_spikes(est.spikes if est.spiking else ()))
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
@@ -426,9 +434,9 @@ class EstimatorNode(Node):
         response.message = 'filter reset: the next measurement initialises it from initial_state, P0'
         return response
 
-    def _on_set_state(self, msg: Odometry) -> None:
+    def _on_set_state(self, data: bytes) -> None:
         try:
-            x, covariance = odometry_to_state(msg)
+            x, covariance = state_of(decode_odometry(data))
             self._estimator.set_state(x, self._warm_start_covariance(covariance))
         except ValueError as error:  # MessageError included
             self._events['set_state_rejected'] += 1

@@ -20,8 +20,7 @@ from rosgraph_msgs.msg import Clock as ClockMessage
 from snn_estimator.simulation import Plant
 
 from . import qos
-from .conversions import (MessageError, accel_to_control, ns_to_stamp, seconds_to_ns, stamp_to_ns,
-                          state_to_odometry)
+from .conversions import MessageError, control_of, decode_accel, encode_odometry, ns_to_stamp, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import PLANT, cw_model, declare
 from .runtime import run_node
@@ -63,7 +62,7 @@ class PlantNode(Node):
         self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
                            if p['publish_clock'] else None)
         self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'])
-        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.SUBSCRIBER_QOS)
+        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.SUBSCRIBER_QOS, raw=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self._lockstep:
@@ -78,17 +77,19 @@ class PlantNode(Node):
         self._publish_sample()
 
     # ---------------------------------------------------------------- events
-    def _on_control(self, msg: AccelStamped) -> None:
-        if msg.header.frame_id != self._p['frame_id']:
-            self._reject('wrong_frame', f"control in frame '{msg.header.frame_id}', expected "
-                         f"'{self._p['frame_id']}'")
-            return
+    def _on_control(self, data: bytes) -> None:
         try:
-            u = accel_to_control(msg)
+            control = decode_accel(data)
+            frame_ok = control.frame_id == self._p['frame_id']
+            u = control_of(control) if frame_ok else None
         except MessageError as error:
             self._reject(error.reason, str(error))
             return
-        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if not frame_ok:
+            self._reject('wrong_frame', f"control in frame '{control.frame_id}', expected "
+                         f"'{self._p['frame_id']}'")
+            return
+        stamp_ns = control.stamp_ns
         if stamp_ns < self._start_ns:
             self._reject('before_init', f'control stamped {stamp_ns * 1e-9:.3f} s, before the start '
                          f'at {self._start_ns * 1e-9:.3f} s')
@@ -168,7 +169,7 @@ class PlantNode(Node):
         if self._clock_pub is not None:
             self._clock_pub.publish(ClockMessage(clock=ns_to_stamp(self._t_ns)))
         x = self._plant.x[0]
-        self._truth_pub.publish(state_to_odometry(
+        self._truth_pub.publish(encode_odometry(
             x, None, self._t_ns, self._p['frame_id'], self._p['child_frame_id']))
         self._truth_published += 1
         self._waiting_since = time.monotonic()

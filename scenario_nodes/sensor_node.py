@@ -9,7 +9,7 @@ from rclpy.node import Node
 from snn_estimator.simulation import PositionSensor
 
 from . import qos
-from .conversions import MessageError, measurement_to_point, odometry_to_state, stamp_to_ns
+from .conversions import MessageError, decode_odometry, encode_point, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, cw_model, declare
 from .runtime import run_node
@@ -31,17 +31,18 @@ class SensorNode(Node):
         self._last_stamp_ns = None
         self._pub = self.create_publisher(PointStamped, qos.MEASUREMENT, qos.PUBLISHER_QOS)
         self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'])
-        self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.SUBSCRIBER_QOS)
+        self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.SUBSCRIBER_QOS, raw=True)
         self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
 
-    def _on_truth(self, msg: Odometry) -> None:
-        stamp_ns = stamp_to_ns(msg.header.stamp)
+    def _on_truth(self, data: bytes) -> None:
         try:
-            x, _ = odometry_to_state(msg)
+            truth = decode_odometry(data)
+            x, _ = state_of(truth)
         except MessageError as error:
             self._rejected[error.reason] += 1
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)
             return
+        stamp_ns = truth.stamp_ns
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             self._rejected['not_newer'] += 1
             self.get_logger().warning('truth stamp did not advance; not measured twice',
@@ -49,7 +50,7 @@ class SensorNode(Node):
             return
         self._last_stamp_ns = stamp_ns
         z = self._sensor.measure(x)[0]
-        self._pub.publish(measurement_to_point(z, self._axes, stamp_ns, self._p['frame_id']))
+        self._pub.publish(encode_point(z, self._axes, stamp_ns, self._p['frame_id']))
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)

@@ -1,6 +1,7 @@
 """Message conversions: round trips, NaN conventions and refusals."""
 
 import math
+import struct
 
 import numpy as np
 import pytest
@@ -64,3 +65,91 @@ def test_spikes_and_diagnostics_messages():
     status = diagnostic_status('estimator', '/estimator', DiagnosticStatus.WARN, 'x', {'a': 1, 'b': 0.5})
     assert status.level == DiagnosticStatus.WARN
     assert diagnostic_values(status) == {'a': '1', 'b': '0.5'}
+
+
+# ---------------------------------------------------------------- the wire codec against rclpy's
+from geometry_msgs.msg import AccelStamped, PointStamped  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from std_msgs.msg import UInt32, UInt32MultiArray  # noqa: E402
+
+from scenario_nodes.conversions import (decode_accel, decode_odometry, decode_point,  # noqa: E402
+                                        encode_accel, encode_odometry, encode_point, encode_spikes,
+                                        encode_uint32)
+
+FRAMES = ['', 'a', 'ab', 'abc', 'lvlh', 'lvlh5', 'chaser', 'target_7', 'ünïcode']  # every alignment
+
+
+@pytest.mark.parametrize('frame', FRAMES)
+@pytest.mark.parametrize('child', FRAMES[:5])
+def test_our_odometry_bytes_are_what_rclpy_reads_and_we_read_rclpys(frame, child):
+    rng = np.random.default_rng(len(frame) * 10 + len(child))
+    x = rng.normal(size=6) * 100
+    a = rng.normal(size=(6, 6))
+    covariance = a @ a.T
+    stamp_ns = int(rng.integers(0, 2**40))
+    msg = deserialize_message(encode_odometry(x, covariance, stamp_ns, frame, child), Odometry)
+    assert stamp_to_ns(msg.header.stamp) == stamp_ns
+    assert (msg.header.frame_id, msg.child_frame_id) == (frame, child)
+    p, v, q = msg.pose.pose.position, msg.twist.twist.linear, msg.pose.pose.orientation
+    assert [p.x, p.y, p.z, v.x, v.y, v.z] == x.tolist()
+    assert (q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 1.0)
+    pose_cov = np.asarray(msg.pose.covariance).reshape(6, 6)
+    twist_cov = np.asarray(msg.twist.covariance).reshape(6, 6)
+    np.testing.assert_array_equal(pose_cov[:3, :3], covariance[:3, :3])
+    np.testing.assert_array_equal(twist_cov[:3, :3], covariance[3:, 3:])
+    assert not pose_cov[3:].any() and not pose_cov[:, 3:].any()
+    msg.twist.twist.angular.z = 7.0  # fields we ignore must not shift what we read
+    msg.pose.pose.orientation.x = 0.5
+    record = decode_odometry(serialize_message(msg))
+    assert (record.stamp_ns, record.frame_id, record.child_frame_id) == (stamp_ns, frame, child)
+    np.testing.assert_array_equal(record.state, x)
+    np.testing.assert_array_equal(record.covariance[:3, :3], covariance[:3, :3])
+    np.testing.assert_array_equal(record.covariance[3:, 3:], covariance[3:, 3:])
+
+
+@pytest.mark.parametrize('frame', FRAMES)
+def test_point_and_accel_bytes_agree_with_rclpy(frame):
+    point = deserialize_message(encode_point(np.array([1.5, -2.5]), (0, 2), 123, frame), PointStamped)
+    assert (point.point.x, point.point.z, point.header.frame_id) == (1.5, -2.5, frame)
+    assert math.isnan(point.point.y) and stamp_to_ns(point.header.stamp) == 123
+    point.point.y = 4.0
+    record = decode_point(serialize_message(point))
+    assert record.vector.tolist() == [1.5, 4.0, -2.5] and record.frame_id == frame
+    accel = deserialize_message(encode_accel(np.array([1e-3, -2e-3, 3e-3]), 4_000_000_001, frame),
+                                AccelStamped)
+    assert [accel.accel.linear.x, accel.accel.linear.y, accel.accel.linear.z] == [1e-3, -2e-3, 3e-3]
+    assert accel.accel.angular.x == 0.0 and stamp_to_ns(accel.header.stamp) == 4_000_000_001
+    accel.accel.angular.y = 9.0
+    record = decode_accel(serialize_message(accel))
+    assert record.vector.tolist() == [1e-3, -2e-3, 3e-3] and record.stamp_ns == 4_000_000_001
+
+
+@pytest.mark.parametrize('size', [0, 1, 2, 5, 200])
+def test_spike_bytes_agree_with_rclpy(size):
+    spikes = np.arange(size) % 4
+    msg = deserialize_message(encode_spikes(spikes), UInt32MultiArray)
+    assert list(msg.data) == spikes.tolist()
+    assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [('neuron', size, size)]
+    assert deserialize_message(encode_uint32(4_000_000_000), UInt32).data == 4_000_000_000
+
+
+def test_truncated_or_garbled_bytes_are_refused_with_a_reason():
+    good = encode_odometry(np.ones(6), None, 5, 'lvlh', 'chaser')
+    for bad in (good[:3], good[:20], good[:-8], good[:4] + b'\xff' * 12 + good[16:]):
+        with pytest.raises(MessageError) as error:
+            decode_odometry(bad)
+        assert error.value.reason == 'malformed'
+    with pytest.raises(MessageError):
+        decode_point(encode_point(np.zeros(3), (0, 1, 2), 0, 'lvlh')[:30])
+
+
+def test_big_endian_cdr_is_read_through_rclpy():
+    """Another middleware may send big-endian CDR: decoded the slow, general way."""
+    body = struct.pack('>iII', 2, 5, 5) + b'lvlh\0' + bytes(7) + struct.pack('>3d', 1.0, 2.0, 3.0)
+    try:
+        deserialize_message(b'\x00\x00\x00\x00' + body, PointStamped)
+    except Exception:  # this rmw's deserializer does not take big-endian CDR: nothing to test
+        pytest.skip('rclpy cannot deserialize big-endian CDR here')
+    record = decode_point(b'\x00\x00\x00\x00' + body)
+    assert record.stamp_ns == 2_000_000_005 and record.frame_id == 'lvlh'
+    assert record.vector.tolist() == [1.0, 2.0, 3.0]
