@@ -218,7 +218,8 @@ class Estimator:
     def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
         """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons)."""
         self._require_network()
-        target = np.asarray(x_hat, dtype=float) / self._scale
+        with np.errstate(over='ignore', invalid='ignore'):  # overflow is checked and refused below
+            target = np.asarray(x_hat, dtype=float) / self._scale
         if not np.all(np.isfinite(target)):
             raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: not finite on the network '
                              f'scale S = {self._scale.tolist()}')
@@ -227,8 +228,9 @@ class Estimator:
         rates = np.zeros(decoder.shape[1])
         if np.any(alive):
             rates[alive], _ = nnls(decoder[:, alive], target, maxiter=50 * decoder.shape[1])
-        decoded = decoder @ rates
-        potentials = decoder.T @ (target - decoded)
+        with np.errstate(over='ignore', invalid='ignore'):
+            decoded = decoder @ rates
+            potentials = decoder.T @ (target - decoded)
         if not (np.all(np.isfinite(decoded)) and np.all(np.isfinite(potentials))):
             raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: the network overflows')
         self._r[run] = rates

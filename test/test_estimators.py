@@ -1,5 +1,7 @@
 """Filters and the spiking network against the paper's formulas and independent computations."""
 
+import warnings
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -281,6 +283,18 @@ def test_reset_and_set_state_re_encode_the_network():
     estimator.reset()
     np.testing.assert_allclose(estimator.x_hat, EstimatorConfig().initial_state, atol=1e-9)
     assert estimator.total_spikes == 0
+
+
+def test_a_state_the_network_cannot_represent_is_refused_quietly_and_changes_nothing():
+    """x_hat / S overflows for 1e305 m on the 1e-4 velocity scale: a ValueError, no numpy
+    RuntimeWarning on the way, and the previous estimate kept."""
+    estimator = make_estimator('snn_emsif')
+    before = estimator.x_hat.copy()
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        with pytest.raises(ValueError, match='cannot encode'):
+            estimator.set_state(np.array([0.0, 0.0, 0.0, 1e305, 0.0, 0.0]))
+    np.testing.assert_array_equal(estimator.x_hat, before)
 
 
 # ---------------------------------------------------------------- bad configuration
