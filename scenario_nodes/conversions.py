@@ -19,6 +19,7 @@ like, for tests, tools and users' own nodes) go through the same codec, so there
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from typing import Mapping, NamedTuple, Sequence
@@ -139,23 +140,25 @@ def _through_rclpy(data: bytes, message_type) -> bytes:
                            f'{message_type.__name__}: {error}') from None
 
 
-def _decoding(decode):
-    """Wrap a little-endian CDR decoder: other encodings go through rclpy (slow but general),
-    truncated or garbled bytes raise MessageError('malformed')."""
-    def wrapper(data: bytes, *args):
-        try:
-            if data[:4] != CDR_LE:
-                data = _through_rclpy(data, decode.message_type)
+def _decoder(message_type):
+    """Decorate a little-endian CDR decoder of ``message_type``: other encodings go through
+    rclpy first (slow but general); truncated or garbled bytes raise MessageError('malformed')."""
+    def decorate(decode):
+        @functools.wraps(decode)
+        def wrapper(data: bytes):
+            try:
                 if data[:4] != CDR_LE:
-                    raise MessageError('malformed', f'unsupported CDR encapsulation {data[:4].hex()}')
-            return decode(data, *args)
-        except (struct.error, ValueError, UnicodeDecodeError) as error:
-            if isinstance(error, MessageError):
+                    data = _through_rclpy(data, message_type)
+                    if data[:4] != CDR_LE:
+                        raise MessageError('malformed', f'unsupported CDR encapsulation {data[:4].hex()}')
+                return decode(data)
+            except MessageError:
                 raise
-            raise MessageError('malformed', f'cannot decode {len(data)} bytes as '
-                               f'{decode.message_type.__name__}: {error}') from None
-    wrapper.__name__, wrapper.__doc__ = decode.__name__, decode.__doc__
-    return wrapper
+            except (struct.error, ValueError, UnicodeDecodeError) as error:
+                raise MessageError('malformed', f'cannot decode {len(data)} bytes as '
+                                   f'{message_type.__name__}: {error}') from None
+        return wrapper
+    return decorate
 
 
 def _padded(block: np.ndarray) -> np.ndarray:
@@ -180,7 +183,9 @@ def encode_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
     return _doubles(out, values)
 
 
-def _decode_odometry(data: bytes) -> OdometryRecord:
+@_decoder(Odometry)
+def decode_odometry(data: bytes) -> OdometryRecord:
+    """The stamp, frames, state and covariance blocks of an Odometry's CDR."""
     stamp_ns, frame_id, offset = _read_header(data)
     child, offset = _read_string(data, offset)
     values = np.frombuffer(data, '<f8', _ODOMETRY_DOUBLES, _body_offset(offset, 8))
@@ -191,10 +196,6 @@ def _decode_odometry(data: bytes) -> OdometryRecord:
     return OdometryRecord(stamp_ns, frame_id, child, state, covariance)
 
 
-_decode_odometry.message_type = Odometry
-decode_odometry = _decoding(_decode_odometry)
-
-
 def encode_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int, frame_id: str) -> bytes:
     """CDR of a PointStamped with the measured axes filled in and NaN elsewhere."""
     values = np.full(3, math.nan)
@@ -202,18 +203,17 @@ def encode_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int, fra
     return _doubles(_header(stamp_ns, frame_id), values)
 
 
-def _decode_stamped_vector(data: bytes) -> StampedVector:
+def _stamped_vector(data: bytes) -> StampedVector:
+    """A Header followed by (at least) three doubles."""
     stamp_ns, frame_id, offset = _read_header(data)
     vector = np.frombuffer(data, '<f8', 3, _body_offset(offset, 8)).copy()
     return StampedVector(stamp_ns, frame_id, vector)
 
 
-def _decode_point(data: bytes) -> StampedVector:
-    return _decode_stamped_vector(data)
-
-
-_decode_point.message_type = PointStamped
-decode_point = _decoding(_decode_point)
+@_decoder(PointStamped)
+def decode_point(data: bytes) -> StampedVector:
+    """The stamp, frame and point of a PointStamped's CDR."""
+    return _stamped_vector(data)
 
 
 def encode_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
@@ -223,12 +223,10 @@ def encode_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
     return _doubles(_header(stamp_ns, frame_id), values)
 
 
-def _decode_accel(data: bytes) -> StampedVector:
-    return _decode_stamped_vector(data)  # accel.linear comes first
-
-
-_decode_accel.message_type = AccelStamped
-decode_accel = _decoding(_decode_accel)
+@_decoder(AccelStamped)
+def decode_accel(data: bytes) -> StampedVector:
+    """The stamp, frame and accel.linear (it comes before angular) of an AccelStamped's CDR."""
+    return _stamped_vector(data)
 
 
 def encode_uint32(value: int) -> bytes:
