@@ -87,7 +87,7 @@ class ControllerNode(Node):
                          stamp_ns)
             return
         try:
-            x_hat, _ = state_of(estimate)
+            x_hat = state_of(estimate)
         except MessageError as error:
             self._reject(error.reason, str(error), stamp_ns)
             return

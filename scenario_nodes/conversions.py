@@ -30,7 +30,7 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import AccelStamped, PointStamped
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
-from std_msgs.msg import UInt32, UInt32MultiArray
+from std_msgs.msg import UInt32MultiArray
 
 NS = 1_000_000_000
 
@@ -69,12 +69,26 @@ _ODOMETRY_DOUBLES = 85
 
 
 class OdometryRecord(NamedTuple):
-    """The fields of a nav_msgs/Odometry the pipeline uses; ``state`` as received (may be NaN)."""
+    """A received nav_msgs/Odometry: header, child frame and its 85 doubles (a read-only view
+    of the bytes). ``state`` and ``covariance`` are built when asked for: most readers need only
+    the state."""
     stamp_ns: int
     frame_id: str
     child_frame_id: str
-    state: np.ndarray       # [x, y, z, vx, vy, vz]
-    covariance: np.ndarray  # 6x6 with the two published blocks, zeros elsewhere
+    values: np.ndarray
+
+    @property
+    def state(self) -> np.ndarray:
+        """[x, y, z, vx, vy, vz] as received (may be NaN)."""
+        return np.concatenate((self.values[_POSITION], self.values[_LINEAR]))
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """6x6 with the two published blocks, zeros elsewhere."""
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = self.values[_POSE_COVARIANCE].reshape(6, 6)[:3, :3]
+        covariance[3:, 3:] = self.values[_TWIST_COVARIANCE].reshape(6, 6)[:3, :3]
+        return covariance
 
 
 class StampedVector(NamedTuple):
@@ -90,9 +104,15 @@ def _body_offset(offset: int, alignment: int) -> int:
     return offset + (-(offset - 4) % alignment)
 
 
+def _pad(out: bytearray, alignment: int) -> None:
+    """Zero bytes up to ``alignment`` (counted, like every CDR offset, after the
+    encapsulation header)."""
+    out += bytes(-(len(out) - 4) % alignment)
+
+
 def _write_string(out: bytearray, text: str) -> None:
     encoded = text.encode() + b'\0'
-    out += bytes(-(len(out) - 4) % 4)
+    _pad(out, 4)
     out += _U32.pack(len(encoded))
     out += encoded
 
@@ -125,7 +145,7 @@ def _read_header(data: bytes) -> tuple[int, str, int]:
 
 
 def _doubles(out: bytearray, values: np.ndarray) -> bytes:
-    out += bytes(-(len(out) - 4) % 8)
+    _pad(out, 8)
     out += np.ascontiguousarray(values, dtype='<f8').tobytes()
     return bytes(out)
 
@@ -189,11 +209,7 @@ def decode_odometry(data: bytes) -> OdometryRecord:
     stamp_ns, frame_id, offset = _read_header(data)
     child, offset = _read_string(data, offset)
     values = np.frombuffer(data, '<f8', _ODOMETRY_DOUBLES, _body_offset(offset, 8))
-    covariance = np.zeros((6, 6))
-    covariance[:3, :3] = values[_POSE_COVARIANCE].reshape(6, 6)[:3, :3]
-    covariance[3:, 3:] = values[_TWIST_COVARIANCE].reshape(6, 6)[:3, :3]
-    state = np.concatenate((values[_POSITION], values[_LINEAR]))
-    return OdometryRecord(stamp_ns, frame_id, child, state, covariance)
+    return OdometryRecord(stamp_ns, frame_id, child, values)
 
 
 def encode_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int, frame_id: str) -> bytes:
@@ -241,7 +257,7 @@ def encode_spikes(spikes: np.ndarray) -> bytes:
     out = bytearray(CDR_LE)
     out += _U32.pack(1)  # layout.dim: one dimension
     _write_string(out, 'neuron')
-    out += bytes(-(len(out) - 4) % 4)
+    _pad(out, 4)
     out += struct.pack('<III', counts.size, counts.size, 0)  # size, stride, layout.data_offset
     out += _U32.pack(counts.size)
     out += counts.tobytes()
@@ -249,11 +265,12 @@ def encode_spikes(spikes: np.ndarray) -> bytes:
 
 
 # ---------------------------------------------------------------- records -> arrays, checked
-def state_of(record: OdometryRecord) -> tuple[np.ndarray, np.ndarray]:
-    """(x, covariance blocks); raises MessageError if the state is not finite."""
-    if not np.all(np.isfinite(record.state)):
-        raise MessageError('non_finite', f'state has NaN/Inf: {record.state.tolist()}')
-    return record.state, record.covariance
+def state_of(record: OdometryRecord) -> np.ndarray:
+    """The state; raises MessageError if it is not finite."""
+    state = record.state
+    if not np.all(np.isfinite(state)):
+        raise MessageError('non_finite', f'state has NaN/Inf: {state.tolist()}')
+    return state
 
 
 def measurement_of(record: StampedVector, measured_axes: Sequence[int]) -> np.ndarray:
@@ -280,7 +297,8 @@ def state_to_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: in
 
 def odometry_to_state(msg: Odometry) -> tuple[np.ndarray, np.ndarray]:
     """(x, covariance with the two published blocks); raises MessageError if not finite."""
-    return state_of(decode_odometry(serialize_message(msg)))
+    record = decode_odometry(serialize_message(msg))
+    return state_of(record), record.covariance
 
 
 def measurement_to_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int,
@@ -300,10 +318,6 @@ def control_to_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> AccelStampe
 
 def accel_to_control(msg: AccelStamped) -> np.ndarray:
     return control_of(decode_accel(serialize_message(msg)))
-
-
-def spike_count_message(count: int) -> UInt32:
-    return deserialize_message(encode_uint32(count), UInt32)
 
 
 def spikes_message(spikes: np.ndarray) -> UInt32MultiArray:

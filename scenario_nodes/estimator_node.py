@@ -185,13 +185,16 @@ class EstimatorNode(Node):
     def _on_control(self, data: bytes) -> None:
         try:
             control = decode_accel(data)
-            frame_ok = control.frame_id == self._frame
-            u = control_of(control) if frame_ok else None
         except MessageError as error:
             self._reject_control(error.reason, str(error))
             return
-        if not frame_ok:
+        if control.frame_id != self._frame:
             self._reject_control('wrong_frame', f"control in frame '{control.frame_id}'")
+            return
+        try:
+            u = control_of(control)
+        except MessageError as error:
+            self._reject_control(error.reason, str(error))
             return
         stamp_ns = control.stamp_ns
         if self._init_ns is not None and stamp_ns < self._init_ns:
@@ -210,12 +213,12 @@ class EstimatorNode(Node):
             return
         try:
             previous = decode_odometry(data)
-            x, covariance = state_of(previous)
+            x = state_of(previous)
         except MessageError:
             return
         stamp_ns = previous.stamp_ns
         if self._previous is None or stamp_ns > self._previous[0]:
-            self._previous = (stamp_ns, x, covariance)
+            self._previous = (stamp_ns, x, previous.covariance)
         self._try_initialise()
 
     def _control_for(self, stamp_ns: int) -> np.ndarray | None:
@@ -436,8 +439,9 @@ class EstimatorNode(Node):
 
     def _on_set_state(self, data: bytes) -> None:
         try:
-            x, covariance = state_of(decode_odometry(data))
-            self._estimator.set_state(x, self._warm_start_covariance(covariance))
+            state = decode_odometry(data)
+            x = state_of(state)
+            self._estimator.set_state(x, self._warm_start_covariance(state.covariance))
         except ValueError as error:  # MessageError included
             self._events['set_state_rejected'] += 1
             self.get_logger().warning(f'rejected set_state: {error}', throttle_duration_sec=5.0)

@@ -80,14 +80,17 @@ class PlantNode(Node):
     def _on_control(self, data: bytes) -> None:
         try:
             control = decode_accel(data)
-            frame_ok = control.frame_id == self._p['frame_id']
-            u = control_of(control) if frame_ok else None
         except MessageError as error:
             self._reject(error.reason, str(error))
             return
-        if not frame_ok:
+        if control.frame_id != self._p['frame_id']:
             self._reject('wrong_frame', f"control in frame '{control.frame_id}', expected "
                          f"'{self._p['frame_id']}'")
+            return
+        try:
+            u = control_of(control)
+        except MessageError as error:
+            self._reject(error.reason, str(error))
             return
         stamp_ns = control.stamp_ns
         if stamp_ns < self._start_ns:

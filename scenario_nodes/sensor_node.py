@@ -37,7 +37,7 @@ class SensorNode(Node):
     def _on_truth(self, data: bytes) -> None:
         try:
             truth = decode_odometry(data)
-            x, _ = state_of(truth)
+            x = state_of(truth)
         except MessageError as error:
             self._rejected[error.reason] += 1
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)

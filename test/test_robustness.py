@@ -4,7 +4,6 @@ Inputs are sent over ROS to nodes built in-process (isolated contexts); each rej
 checked in `diagnostics` together with the next good input being processed.
 """
 
-
 import numpy as np
 import pytest
 
@@ -316,7 +315,6 @@ def test_plant_rejects_bad_controls_and_pauses():
         assert stamp_to_ns(harness.received[qos.TRUTH][2].header.stamp) == start + 2 * DT
 
 
-
 def test_a_realtime_plant_stops_after_its_duration():
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
@@ -327,6 +325,7 @@ def test_a_realtime_plant_stops_after_its_duration():
             executor.spin_once(timeout_sec=0.05)
         assert plant._values()['steps'] == 5
         assert len(harness.received[qos.TRUTH]) == 6  # the initial state and five steps
+
 
 floats = st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
                    st.floats(-1e3, 1e3))
