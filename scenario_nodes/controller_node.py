@@ -21,7 +21,7 @@ from . import qos
 from .conversions import MessageError, decode_odometry, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
-from .runtime import run_node
+from .runtime import clock_ns, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
@@ -94,14 +94,14 @@ class ControllerNode(Node):
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             # a time base restart shows as a clock jump when there is a clock; without one, as
             # estimates far in the past
-            if self.get_clock().now().nanoseconds <= 0 and \
+            if clock_ns(self) <= 0 and \
                     stamp_ns < self._last_stamp_ns - seconds_to_ns(self._p['time_jump_threshold']):
                 self.get_logger().warning('estimate time went back: starting over')
                 self._last_stamp_ns = None
             else:
                 self._reject('not_newer', f'stamp {stamp_ns * 1e-9:.3f} s did not advance', stamp_ns)
                 return
-        now = self.get_clock().now().nanoseconds
+        now = clock_ns(self)
         if now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age']):
             self._reject('too_old', f"{(now - stamp_ns) * 1e-9:.3f} s behind the clock", stamp_ns)
             return
@@ -112,7 +112,7 @@ class ControllerNode(Node):
 
     def _on_watchdog(self) -> None:
         """Wall-clock check: a stale estimate switches safe mode on."""
-        now = self.get_clock().now().nanoseconds
+        now = clock_ns(self)
         if self._safe or now <= 0 or self._last_estimate_ns is None:
             return
         if now - self._last_estimate_ns > seconds_to_ns(self._p['estimate_timeout']):
@@ -124,7 +124,7 @@ class ControllerNode(Node):
 
     def _on_safe_step(self) -> None:
         """Simulated-time timer while in safe mode: zero thrust for every new step."""
-        now = self.get_clock().now().nanoseconds
+        now = clock_ns(self)
         if self._safe and (self._last_stamp_ns is None or now > self._last_stamp_ns):
             self._safe_steps += 1
             self._last_stamp_ns = now

@@ -62,6 +62,7 @@ def seconds_to_ns(seconds: float) -> int:
 CDR_LE = b'\x00\x01\x00\x00'
 _STAMP_AND_LENGTH = struct.Struct('<iII')  # header.stamp.sec, .nanosec, frame_id length
 _U32 = struct.Struct('<I')
+_STAMP = struct.Struct('<iI')  # builtin_interfaces/Time: sec, nanosec
 # Odometry after its child_frame_id: 85 doubles, in this order
 _POSITION, _POSE_COVARIANCE, _LINEAR, _TWIST_COVARIANCE = slice(0, 3), slice(7, 43), slice(43, 46), slice(49, 85)
 _ORIENTATION_W = 6
@@ -243,6 +244,12 @@ def encode_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
 def decode_accel(data: bytes) -> StampedVector:
     """The stamp, frame and accel.linear (it comes before angular) of an AccelStamped's CDR."""
     return _stamped_vector(data)
+
+
+def encode_clock(stamp_ns: int) -> bytes:
+    """CDR of a rosgraph_msgs/Clock (what the plant publishes on /clock every step)."""
+    sec, nanosec = divmod(int(stamp_ns), NS)
+    return CDR_LE + _STAMP.pack(sec, nanosec)
 
 
 def encode_uint32(value: int) -> bytes:

@@ -36,7 +36,7 @@ from .conversions import (MessageError, control_of, decode_accel, decode_odometr
                           state_of)
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import ESTIMATOR, cw_model, declare, estimator_config, silenced_set
-from .runtime import run_node
+from .runtime import clock_ns, run_node
 
 #: Parameters applied between steps through the parameter services; everything else is read-only.
 RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
@@ -127,7 +127,7 @@ class EstimatorNode(Node):
 
     # ---------------------------------------------------------------- inputs
     def _now_ns(self) -> int:
-        return self.get_clock().now().nanoseconds
+        return clock_ns(self)
 
     def _too_old(self, stamp_ns: int) -> bool:
         """More than max_input_age behind the newest measurement received: a straggler. (Not

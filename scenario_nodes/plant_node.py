@@ -20,7 +20,7 @@ from rosgraph_msgs.msg import Clock as ClockMessage
 from snn_estimator.simulation import Plant
 
 from . import qos
-from .conversions import MessageError, control_of, decode_accel, encode_odometry, ns_to_stamp, seconds_to_ns
+from .conversions import MessageError, control_of, decode_accel, encode_clock, encode_odometry, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import PLANT, cw_model, declare
 from .runtime import run_node
@@ -170,7 +170,7 @@ class PlantNode(Node):
 
     def _publish_sample(self) -> None:
         if self._clock_pub is not None:
-            self._clock_pub.publish(ClockMessage(clock=ns_to_stamp(self._t_ns)))
+            self._clock_pub.publish(encode_clock(self._t_ns))
         x = self._plant.x[0]
         self._truth_pub.publish(encode_odometry(
             x, None, self._t_ns, self._p['frame_id'], self._p['child_frame_id']))

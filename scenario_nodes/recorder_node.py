@@ -23,7 +23,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from . import qos
 from .parameters import Spec, declare
-from .runtime import run_node
+from .runtime import clock_ns, run_node
 
 KNOWN_TYPES = {
     qos.TRUTH: 'nav_msgs/msg/Odometry',
@@ -129,7 +129,7 @@ class RecorderNode(Node):
     def _write(self, connection, topic: str, raw: bytes) -> None:
         if self._closed:
             return
-        stamp = max(self.get_clock().now().nanoseconds, self._last_stamp)
+        stamp = max(clock_ns(self), self._last_stamp)
         self._last_stamp = stamp
         self._writer.write(connection, stamp, raw)
         self.counts[topic] += 1

@@ -70,11 +70,12 @@ def test_spikes_and_diagnostics_messages():
 # ---------------------------------------------------------------- the wire codec against rclpy's
 from geometry_msgs.msg import AccelStamped, PointStamped  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
+from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_msgs.msg import UInt32, UInt32MultiArray  # noqa: E402
 
-from scenario_nodes.conversions import (decode_accel, decode_odometry, decode_point,  # noqa: E402
-                                        encode_accel, encode_odometry, encode_point, encode_spikes,
-                                        encode_uint32)
+from scenario_nodes.conversions import (NS, decode_accel, decode_odometry, decode_point,  # noqa: E402
+                                        encode_accel, encode_clock, encode_odometry, encode_point,
+                                        encode_spikes, encode_uint32)
 
 FRAMES = ['', 'a', 'ab', 'abc', 'lvlh', 'lvlh5', 'chaser', 'target_7', 'ünïcode']  # every alignment
 
@@ -131,6 +132,13 @@ def test_spike_bytes_agree_with_rclpy(size):
     assert list(msg.data) == spikes.tolist()
     assert [(d.label, d.size, d.stride) for d in msg.layout.dim] == [('neuron', size, size)]
     assert deserialize_message(encode_uint32(4_000_000_000), UInt32).data == 4_000_000_000
+
+
+@pytest.mark.parametrize('stamp_ns', [0, 1, 999_999_999, 1_000_000_000, 360_100_000_000, 2**31 * NS - 1])
+def test_clock_bytes_agree_with_rclpy(stamp_ns):
+    msg = deserialize_message(encode_clock(stamp_ns), Clock)
+    assert (msg.clock.sec, msg.clock.nanosec) == divmod(stamp_ns, NS)
+    assert encode_clock(stamp_ns) == serialize_message(Clock(clock=ns_to_stamp(stamp_ns)))
 
 
 def test_truncated_or_garbled_bytes_are_refused_with_a_reason():
