@@ -3,6 +3,7 @@
 #   make test                                              all tests
 #   make experiments [RUNS=100]                            the paper's experiments -> results/
 #   make bench                                             us per estimator step -> results/bench.json
+#   make bench-loop [ESTIMATOR=..] [RUNS=5]                ROS loop: real-time factor, CPU per node
 #   make report RUN=runs/<name>                            figures + report.md from a recorded run
 PYTHON ?= python3
 VENV ?= .venv
@@ -14,7 +15,7 @@ RUNS ?= 100
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test demo experiments bench report clean
+.PHONY: venv test demo experiments bench bench-loop report clean
 
 venv: $(STAMP)
 
@@ -37,6 +38,10 @@ experiments: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/snn_bench --out results/bench.json
+
+# RUNS means Monte-Carlo runs (default 100) for experiments; the loop bench takes 5 unless given
+bench-loop: $(STAMP)
+	$(BIN)/snn_loop_bench --estimator $(ESTIMATOR) --runs $(if $(filter command line,$(origin RUNS)),$(RUNS),5)
 
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)

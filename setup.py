@@ -16,6 +16,7 @@ EXECUTABLES = {
     'snn_demo': 'scenario_nodes.demo:main',
     'snn_experiments': 'snn_estimator.experiments:main',
     'snn_bench': 'snn_estimator.bench:main',
+    'snn_loop_bench': 'scenario_nodes.loop_bench:main',
 }
 
 data_files = [

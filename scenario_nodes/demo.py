@@ -125,9 +125,10 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
                  params_file: Path | None = None, duration: float | None = None,
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
-                 storage: str = 'mcap', namespace: str = '') -> dict:
+                 storage: str = 'mcap', namespace: str = '', on_start=None) -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag'}. Raises RuntimeError
-    when a node dies or the run does not finish in time (logs are in <run_dir>/logs)."""
+    when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
+    ``on_start(pipeline)``, if given, is called once the node processes are started."""
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
     plant = {'mode': mode, 'exit_when_done': True}
@@ -145,6 +146,8 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)
     started = time.monotonic()
     pipeline.start()
+    if on_start is not None:
+        on_start(pipeline)
     try:
         plant = pipeline.processes['cw_plant']
         while plant.poll() is None:

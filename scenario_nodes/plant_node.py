@@ -53,6 +53,7 @@ class PlantNode(Node):
         self._waiting_since = None
         self._started_wall = None
         self._finished_wall = None
+        self._finished_unix = 0.0
         self._held = None
         self._early: dict[int, np.ndarray] = {}
         self.done = False
@@ -181,6 +182,7 @@ class PlantNode(Node):
 
     def _finish(self) -> None:
         self._finished_wall = time.monotonic()
+        self._finished_unix = time.time()  # when stepping ended, for tools outside the process
         self._waiting_since = None
         self._publish_diagnostics()
         values = self._values()
@@ -212,6 +214,7 @@ class PlantNode(Node):
             'control_timeouts': self._timeouts, 'controls_received': self._controls_received,
             'truth_published': self._truth_published,
             'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished,
+            'finished_unix_time': self._finished_unix,
         }
         values.update(self._rejected.as_values('controls'))
         return values

@@ -1,0 +1,78 @@
+"""snn_loop_bench: the CPU window arithmetic against hand-computed values, and one short run
+through the real pipeline (figures present and consistent; speed itself is not asserted)."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip('rclpy')
+
+from scenario_nodes import loop_bench  # noqa: E402
+from scenario_nodes.loop_bench import CpuSampler, process_cpu_seconds  # noqa: E402
+
+
+class _Pipeline:
+    processes = {}
+
+
+def _sampler(samples):
+    sampler = CpuSampler(_Pipeline())
+    sampler.samples = samples
+    return sampler
+
+
+def test_cpu_per_step_uses_only_the_middle_of_the_stepping_interval():
+    # stepping from t = 10 to 20 s (1000 steps, 100 per second); the estimator burns 0.2 s of
+    # CPU per wall second while stepping, 5 s at start-up (outside the window)
+    samples = [(t, {'estimator': 5.0 * (t >= 1) + 0.2 * max(0.0, min(t, 20) - 10)})
+               for t in [0.5 * k for k in range(0, 45)]]
+    cpu = _sampler(samples).cpu_per_step(stepping_end=20.0, stepping_wall_s=10.0, steps=1000)
+    # window 12..18 s: 1.2 s of CPU over 600 steps = 2 ms per step
+    assert cpu == {'estimator': pytest.approx(2.0)}
+
+
+def test_cpu_per_step_is_none_without_enough_samples_or_an_end():
+    samples = [(10.0, {'estimator': 1.0}), (20.0, {'estimator': 2.0})]
+    assert _sampler(samples).cpu_per_step(20.0, 10.0, 1000) is None  # 2 samples, none inside
+    more = [(10.0 + 0.5 * k, {'estimator': 1.0 + 0.1 * k}) for k in range(21)]
+    assert _sampler(more).cpu_per_step(20.0, 10.0, 1000) is not None
+    assert _sampler(more).cpu_per_step(0.0, 10.0, 1000) is None  # the plant did not finish
+    assert _sampler(more).cpu_per_step(20.0, 0.0, 1000) is None
+
+
+def test_process_cpu_seconds_reads_a_live_process_and_none_for_a_gone_one():
+    if not os.path.exists('/proc/self/stat'):
+        pytest.skip('no /proc')
+    before = process_cpu_seconds(os.getpid())
+    sum(i * i for i in range(2_000_000))  # burn some CPU
+    assert process_cpu_seconds(os.getpid()) > before
+    finished = subprocess.run([sys.executable, '-c', 'import os; print(os.getpid())'],
+                              capture_output=True, text=True, check=True)
+    assert process_cpu_seconds(int(finished.stdout)) is None
+
+
+def test_bad_arguments_are_refused():
+    with pytest.raises(SystemExit) as error:
+        loop_bench.main(['--runs', '0'])
+    assert error.value.code == 2
+
+
+@pytest.mark.slow
+def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
+    out = tmp_path / 'loop.json'
+    assert loop_bench.main(['--runs', '1', '--duration', '60', '--estimator', 'ekf', '--out', str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert 'run 1: real-time factor' in printed and 'median' in printed
+    run = json.loads(out.read_text())['runs'][0]
+    assert run['steps'] == 600 and run['real_time_factor'] > 0
+    assert math.isfinite(run['final_range_m'])
+    if os.path.exists('/proc/self/stat'):
+        cpu = run['cpu_ms_per_step']
+        assert set(cpu) == {'recorder', 'lqr_controller', 'estimator', 'position_sensor', 'cw_plant'}
+        # every node works each step; no node can use more than all CPUs for the whole step
+        wall_ms_per_step = 1e3 * run['wall_time_s'] / run['steps']
+        assert all(0 < ms < 1.5 * os.cpu_count() * wall_ms_per_step for ms in cpu.values())
