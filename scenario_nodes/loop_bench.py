@@ -49,13 +49,13 @@ class CpuSampler:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def __enter__(self):
+    def start(self) -> None:
         self._thread.start()
-        return self
 
-    def __exit__(self, *exc):
+    def stop(self) -> None:
         self._stop.set()
-        self._thread.join()
+        if self._thread.is_alive():
+            self._thread.join()
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -96,13 +96,14 @@ def bench_run(run_dir: Path, estimator: str, duration: float) -> dict:
     samplers = []
 
     def watch(pipeline: Pipeline) -> None:
-        samplers.append(CpuSampler(pipeline).__enter__())
+        samplers.append(CpuSampler(pipeline))
+        samplers[-1].start()
 
     try:
         result = run_pipeline(run_dir, estimator, 'lockstep', duration=duration, on_start=watch)
     finally:
         for sampler in samplers:
-            sampler.__exit__(None, None, None)
+            sampler.stop()
     run = read_bag(result['bag'])
     summary = summarize(run)
     stepping_end = float(run.last_diagnostics('cw_plant').get('finished_unix_time', 0.0))
