@@ -131,7 +131,8 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
     ``on_start(pipeline)``, if given, is called once the node processes are started."""
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
-    plant = {'mode': mode, 'exit_when_done': True}
+    # the recorder must have matched the truth (with the sensor) before the first step
+    plant = {'mode': mode, 'exit_when_done': True, 'min_truth_subscribers': 2}
     if duration is not None:
         plant['duration'] = float(duration)
     if real_time_factor is not None:

@@ -86,6 +86,9 @@ PLANT = MODEL + (
     Spec('start_time', 0.0, 'Simulated time of the first sample, s', low=0.0),
     Spec('publish_clock', True, 'Publish /clock (the plant owns simulated time)'),
     Spec('exit_when_done', False, 'Exit the process after the last step (used by the demo)'),
+    Spec('min_truth_subscribers', 0, "Publish the first state only once this many subscriptions "
+         "match 'truth' (the demo: 2, sensor and recorder), so that a short run cannot end before a "
+         'slow recorder has even matched it', low=0),
     Spec('paused', False, 'Hold simulated time (no steps, no /clock) until set false again',
          read_only=False),
 )

@@ -75,6 +75,27 @@ class PlantNode(Node):
         self.get_logger().info(
             f"{p['mode']} CW truth, dt {self._dt} s, n = {self._plant.model.mean_motion:.4e} rad/s, "
             f"{'until stopped' if self._total_steps is None else f'{self._total_steps} steps'}")
+        self._ready = False
+        self._ready_since = time.monotonic()
+        self._readiness = None
+        self._check_ready()
+        if not self._ready:
+            self._readiness = self.create_timer(0.02, self._check_ready, clock=steady)
+
+    def _check_ready(self) -> None:
+        """Publish the first state once ``min_truth_subscribers`` subscriptions match 'truth'."""
+        if self._ready:
+            return
+        matched = self._truth_pub.get_subscription_count()
+        if matched < self._p['min_truth_subscribers']:
+            if time.monotonic() - self._ready_since > STARTUP_NOTICE_PERIOD:
+                self.get_logger().info(f"waiting for {self._p['min_truth_subscribers']} subscriptions on "
+                                       f"'{qos.TRUTH}' ({matched} so far) before the first step")
+                self._ready_since = time.monotonic()
+            return
+        self._ready = True
+        if self._readiness is not None:
+            self.destroy_timer(self._readiness)
         self._publish_sample()
 
     # ---------------------------------------------------------------- events
@@ -147,7 +168,7 @@ class PlantNode(Node):
             self._advance(self._control)
 
     def _on_tick(self) -> None:
-        if not self._finished and not self._p['paused']:
+        if self._ready and not self._finished and not self._p['paused']:
             self._advance(self._control)
 
     # ---------------------------------------------------------------- stepping

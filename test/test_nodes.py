@@ -174,6 +174,25 @@ def test_lockstep_plant_waits_for_the_control_and_times_out_to_the_last_one():
         assert plant._timeouts >= 1
 
 
+def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_truth():
+    with ros_context() as (context, executor, nodes):
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', min_truth_subscribers=2, duration=0.0)
+        executor.spin_once(timeout_sec=0.3)
+        assert plant._truth_published == 0  # nobody listens yet
+        probe = Probe(context, executor, nodes)
+        assert spin_until(executor, lambda: plant._truth_pub.get_subscription_count() == 1)
+        for _ in range(10):
+            executor.spin_once(timeout_sec=0.03)
+        assert plant._truth_published == 0  # one of two: still waiting
+        from rclpy.node import Node
+        second = Node('second_listener', context=context)
+        executor.add_node(second)
+        nodes.append(second)
+        second.create_subscription(Odometry, qos.TRUTH, lambda msg: None, qos.SUBSCRIBER_QOS)
+        assert spin_until(executor, lambda: probe.received[qos.TRUTH])
+        assert plant._truth_published == 1 and stamp_to_ns(probe.received[qos.TRUTH][0].header.stamp) == 0
+
+
 @pytest.mark.parametrize('node_class, name, changes, message', [
     (EstimatorNode, 'estimator', {'neuron_count': 0}, 'neuron_count'),
     (EstimatorNode, 'estimator', {'leak_rate': -1.0}, 'leak_rate'),
