@@ -91,10 +91,13 @@ def test_a_bag_cut_off_by_sigterm_mid_run_still_opens(tmp_path):
         'recorder': {'output': str(run_dir / 'bag')}}, pipeline_env())
     pipeline.start()
     try:
+        # mid-run: 3 s after the loop started (the estimator's first step; on a loaded machine
+        # that can be seconds after the recorder opened the bag)
+        estimator_log = run_dir / 'logs' / 'estimator.log'
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not (run_dir / 'bag').exists():
+        while time.monotonic() < deadline and 'started from' not in estimator_log.read_text():
             time.sleep(0.1)
-        time.sleep(3.0)  # mid-run
+        time.sleep(3.0)
         recorder = pipeline.processes['recorder']
         recorder.send_signal(signal.SIGTERM)
         assert recorder.wait(30) == 0
