@@ -44,6 +44,8 @@ class Pipeline:
         self.env = env
         self.processes: dict[str, subprocess.Popen] = {}
         self.nodes = [n for n in NODES if record or n[0] != 'recorder']
+        if record:  # the first state waits until the sensor and the recorder match 'truth'
+            overrides.setdefault('cw_plant', {}).setdefault('min_truth_subscribers', 2)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
     def command(self, name: str, module: str) -> list[str]:
@@ -131,8 +133,7 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
     ``on_start(pipeline)``, if given, is called once the node processes are started."""
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
-    # the recorder must have matched the truth (with the sensor) before the first step
-    plant = {'mode': mode, 'exit_when_done': True, 'min_truth_subscribers': 2}
+    plant = {'mode': mode, 'exit_when_done': True}
     if duration is not None:
         plant['duration'] = float(duration)
     if real_time_factor is not None:

@@ -84,8 +84,7 @@ def run_with(tmp_path, name, overrides, during):
     run_dir = tmp_path / name
     run_dir.mkdir()
     overrides = {**overrides, 'recorder': {'output': str(run_dir / 'bag')}}
-    overrides.setdefault('cw_plant', {}).update({'exit_when_done': True, 'control_timeout': 0.2,
-                                                 'min_truth_subscribers': 2})
+    overrides.setdefault('cw_plant', {}).update({'exit_when_done': True, 'control_timeout': 0.2})
     pipeline = Pipeline(run_dir, config_file(), overrides, pipeline_env())
     monitor = Monitor()
     try:
