@@ -10,8 +10,7 @@ import numpy as np
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.clock import Clock, ClockType, JumpThreshold
-from rclpy.duration import Duration
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from snn_estimator.simulation import lqr_control, lqr_gain
@@ -20,8 +19,8 @@ from snn_estimator.validation import as_matrix
 from . import qos
 from .conversions import MessageError, decode_odometry, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import CONTROLLER, cw_model, declare
-from .runtime import clock_ns, run_node
+from .parameters import CONTROLLER, cw_model, declare, input_lead_limit_s
+from .runtime import clock_ns, on_clock_jump_back, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
@@ -52,9 +51,7 @@ class ControllerNode(Node):
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'])
         self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.SUBSCRIBER_QOS, raw=True)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._jump = self.get_clock().create_jump_callback(
-            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
-            post_callback=self._on_time_jump)
+        self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._safe_timer = None  # a simulated-time timer, only while in safe mode
         self._log_gain()
@@ -105,6 +102,10 @@ class ControllerNode(Node):
         if now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age']):
             self._reject('too_old', f"{(now - stamp_ns) * 1e-9:.3f} s behind the clock", stamp_ns)
             return
+        if now > 0 and stamp_ns > now + seconds_to_ns(input_lead_limit_s(self._p)):
+            # accepted, it would make every real estimate 'not_newer' and blind the watchdog
+            self._reject('future', f"{(stamp_ns - now) * 1e-9:.3f} s ahead of the clock", now)
+            return
         self._last_stamp_ns = self._last_estimate_ns = stamp_ns
         if self._safe:
             self._leave_safe_mode(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s')
@@ -143,12 +144,11 @@ class ControllerNode(Node):
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
 
-    def _on_time_jump(self, jump) -> None:
-        if jump.delta.nanoseconds < 0:
-            self.get_logger().warning('the clock jumped back: starting over')
-            self._last_stamp_ns = self._last_estimate_ns = None
-            if self._safe:
-                self._leave_safe_mode('clock reset')
+    def _on_time_jump(self, seconds: float) -> None:
+        self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
+        self._last_stamp_ns = self._last_estimate_ns = None
+        if self._safe:
+            self._leave_safe_mode('clock reset')
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """Gains change between two estimates, after the new ones were checked."""

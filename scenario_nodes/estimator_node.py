@@ -21,8 +21,7 @@ import numpy as np
 from geometry_msgs.msg import AccelStamped, PointStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
-from rclpy.clock import Clock, ClockType, JumpThreshold
-from rclpy.duration import Duration
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
@@ -35,8 +34,8 @@ from .conversions import (MessageError, control_of, decode_accel, decode_odometr
                           encode_odometry, encode_spikes, encode_uint32, measurement_of, seconds_to_ns,
                           state_of)
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import ESTIMATOR, cw_model, declare, estimator_config, silenced_set
-from .runtime import clock_ns, run_node
+from .parameters import ESTIMATOR, cw_model, declare, estimator_config, input_lead_limit_s, silenced_set
+from .runtime import clock_ns, on_clock_jump_back, run_node
 
 #: Parameters applied between steps through the parameter services; everything else is read-only.
 RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
@@ -106,9 +105,7 @@ class EstimatorNode(Node):
                               if p['initialization'] != 'parameters' else None)
         self.create_service(Trigger, '~/reset', self._on_reset)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self._jump = self.get_clock().create_jump_callback(
-            JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
-            post_callback=self._on_time_jump)
+        self._jump = on_clock_jump_back(self, self._on_time_jump)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         # Wall-clock watchdogs (not per simulated step: they would cost a callback every step)
         self.create_timer(0.05, self._on_watchdog, clock=steady)
@@ -171,6 +168,11 @@ class EstimatorNode(Node):
         if self._t_ns is not None and (stamp_ns - self._t_ns) % self._dt_ns:
             self._reject('misaligned', f'{where} does not fall on the estimate time '
                          f'{self._t_ns * 1e-9:.3f} s plus steps of {self._dt} s (time_step?)')
+            return
+        now = self._now_ns()
+        if now > 0 and stamp_ns > now + seconds_to_ns(input_lead_limit_s(self._p)):
+            # queued, it would make every real measurement 'too_old' and stall the watchdog
+            self._reject('future', f'{where} is {(stamp_ns - now) * 1e-9:.3f} s ahead of the clock')
             return
         self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
         self._last_arrival = time.monotonic()
@@ -450,9 +452,8 @@ class EstimatorNode(Node):
         self._events['set_state'] += 1
         self.get_logger().info(f'state set to {np.array2string(x, precision=4)}')
 
-    def _on_time_jump(self, jump) -> None:
-        if jump.delta.nanoseconds < 0:
-            self._restart(f'the clock jumped back by {-jump.delta.nanoseconds * 1e-9:.3f} s', 'time_jumps')
+    def _on_time_jump(self, seconds: float) -> None:
+        self._restart(f'the clock jumped back by {seconds:.3f} s', 'time_jumps')
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """Validate all changes together and apply them between two steps, or none of them."""

@@ -99,6 +99,8 @@ SENSOR = MODEL + (
     Spec('measurement_noise', [1e-2], 'R, covariance of the position noise per sample, m^2 '
          '(Table 6: 1e-2 I3)'),
     Spec('seed', 0, 'Seed of the measurement noise (stream 2 of the seed)', low=0),
+    Spec('time_jump_threshold', 1.0, 'Without a running /clock, a truth this far before the last '
+         'one means the time base restarted: start over, s', low=0.0),
 )
 
 CONTROLLER = MODEL + (
@@ -112,8 +114,8 @@ CONTROLLER = MODEL + (
          choices=('standard', 'as_published')),
     Spec('estimate_timeout', 0.5, 'Simulated s without a usable estimate before safe mode (zero '
          'thrust)', read_only=False, low=1e-9),
-    Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock are rejected, s',
-         read_only=False, low=1e-9),
+    Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock, or stamped '
+         'more than this plus two time steps ahead of it, are rejected, s', read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, an estimate this far before the '
          'last one means the time base restarted: start over, s', low=0.0),
 )
@@ -165,7 +167,8 @@ ESTIMATOR = MODEL + (
          'this many measurements in the history, start from a least-squares fit of the newest '
          'this many', low=2),
     Spec('max_input_age', 1.0, 'Measurements older than this behind the newest one received '
-         '(stragglers) are rejected, s', read_only=False, low=1e-9),
+         '(stragglers), or stamped more than this plus two time steps ahead of the simulated '
+         'clock, are rejected, s', read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, a measurement this far before the '
          'estimate time means the time base restarted (bag loop): the filter restarts, s', low=0.0),
     Spec('nis_threshold', 25.0, 'Normalised innovation squared above which a step counts as '
@@ -219,6 +222,13 @@ def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
         raise ValueError(f'silenced_fraction must be in [0, 1], got {fraction}')
     order = np.random.default_rng([int(seed), 4]).permutation(neurons)
     return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})
+
+
+def input_lead_limit_s(values: dict) -> float:
+    """How far ahead of the simulated clock an input may be stamped before it is rejected:
+    ``max_input_age`` plus two steps (an estimate is stamped one step ahead of the clock, and
+    /clock may arrive after the message it precedes)."""
+    return values['max_input_age'] + 2 * values['time_step']
 
 
 def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):

@@ -15,6 +15,7 @@ import time
 from typing import Callable
 
 import rclpy
+from rclpy.clock import JumpThreshold
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -65,6 +66,17 @@ def clock_ns(node) -> int:
     clock = node.get_clock()
     with clock.handle:
         return clock.handle.get_now().nanoseconds
+
+
+def on_clock_jump_back(node, callback: Callable[[float], None]):
+    """Call ``callback(seconds)`` after the node's clock jumped back (a restarted plant, a bag
+    played in a loop). Keep the returned handle as long as the node: dropping it unregisters."""
+    def after_jump(jump) -> None:
+        if jump.delta.nanoseconds < 0:
+            callback(-jump.delta.nanoseconds * 1e-9)
+    return node.get_clock().create_jump_callback(
+        JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
+        post_callback=after_jump)
 
 
 def make_executor():

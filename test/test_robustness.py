@@ -24,6 +24,7 @@ from scenario_nodes.conversions import (control_to_accel, decode_accel, encode_p
                                         odometry_to_state, stamp_to_ns, state_to_odometry)
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
+from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 
 from ros_helpers import make, ros_context, spin_until  # noqa: E402
 from test_nodes import Probe  # noqa: E402
@@ -125,6 +126,22 @@ def test_an_estimator_behind_the_clock_still_takes_its_queued_measurements(estim
     for k in range(2, 6):
         step(harness, k * DT, k + 2)
     assert node.values()['measurements_rejected'] == 0 and node.values()['dropout_steps'] == 0
+
+
+def test_a_measurement_stamped_far_ahead_of_the_clock_is_rejected_and_does_not_block_the_rest(
+        estimator_rig):
+    harness, node = estimator_rig
+    # max_input_age 1 s + 2 steps: 1.2 s is the most a measurement may lead the clock
+    harness.clock(DT)
+    assert spin_until(harness.executor, lambda: node.get_clock().now().nanoseconds == DT)
+    harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 1000 * DT, 'lvlh'))
+    harness.wait_value('estimator', 'measurements_rejected.future', 1)
+    for k in range(1, 6):
+        harness.clock(k * DT)
+        step(harness, k * DT, k + 2)
+    assert node.estimator.steps == 6
+    values = node.values()
+    assert values['measurements_rejected'] == 1 and values['dropout_steps'] == 0
 
 
 def test_estimator_rejects_controls_with_a_wrong_frame(estimator_rig):
@@ -249,47 +266,102 @@ def test_runtime_parameters_apply_atomically_or_are_refused_with_a_reason(estima
     assert np.all(node.estimator.spikes[list(node.estimator.silenced)] == 0)
 
 
-def test_controller_bad_inputs_safe_mode_and_gain_changes():
+@pytest.fixture
+def controller_rig():
+    """A controller with a harness, its subscription matched."""
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
         controller = make(ControllerNode, context, executor, nodes, 'lqr_controller', diagnostics_period=0.0)
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.ESTIMATE) > 0)
-        x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
-        for bad, reason in [(state_to_odometry(np.full(6, np.nan), None, DT, 'lvlh', 'c'), 'non_finite'),
-                            (state_to_odometry(x, None, DT, 'map', 'c'), 'wrong_frame')]:
-            harness.publish(qos.ESTIMATE, bad)
-            harness.wait_value('lqr_controller', f'estimates_rejected.{reason}', 1)
-        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: len(harness.received[qos.CONTROL]) == 1)
-        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
-        harness.wait_value('lqr_controller', 'estimates_rejected.not_newer', 1)
-        # an estimate newer than the last but more than max_input_age behind the clock
-        assert harness.set_parameters('lqr_controller', estimate_timeout=100.0)[0].successful
-        harness.clock(15 * DT)
-        assert spin_until(executor, lambda: controller.get_clock().now().nanoseconds == 15 * DT)
-        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 2 * DT, 'lvlh', 'c'))
-        harness.wait_value('lqr_controller', 'estimates_rejected.too_old', 1)
-        # the clock runs on without estimates: safe mode, zero thrust at every step
-        assert harness.set_parameters('lqr_controller', estimate_timeout=0.5)[0].successful
-        for k in range(16, 30):
-            harness.clock(k * DT)
-            executor.spin_once(timeout_sec=0.05)
-        assert spin_until(executor, lambda: controller._safe and
-                          harness.received[qos.CONTROL][-1].accel.linear.x == 0.0)
-        zero = harness.received[qos.CONTROL][-1]
-        assert [zero.accel.linear.x, zero.accel.linear.y, zero.accel.linear.z] == [0.0, 0.0, 0.0]
-        assert stamp_to_ns(zero.header.stamp) > 15 * DT
-        harness.wait_value('lqr_controller', 'safe_mode', True)
-        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 30 * DT, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: not controller._safe and stamp_to_ns(
-            harness.received[qos.CONTROL][-1].header.stamp) == 30 * DT)
-        back = harness.received[qos.CONTROL][-1]
-        assert stamp_to_ns(back.header.stamp) == 30 * DT and back.accel.linear.x != 0.0
-        gain = controller.gain
-        assert all(r.successful for r in harness.set_parameters('lqr_controller', lqr_input_weight=[1e3]))
-        assert not np.allclose(controller.gain, gain)
-        refused = harness.set_parameters('lqr_controller', lqr_input_weight=[-1.0])[0]
-        assert not refused.successful and 'lqr_input_weight' in refused.reason
+        yield harness, controller
+
+
+def test_controller_bad_inputs_safe_mode_and_gain_changes(controller_rig):
+    harness, controller = controller_rig
+    executor = harness.executor
+    x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+    for bad, reason in [(state_to_odometry(np.full(6, np.nan), None, DT, 'lvlh', 'c'), 'non_finite'),
+                        (state_to_odometry(x, None, DT, 'map', 'c'), 'wrong_frame')]:
+        harness.publish(qos.ESTIMATE, bad)
+        harness.wait_value('lqr_controller', f'estimates_rejected.{reason}', 1)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
+    assert spin_until(executor, lambda: len(harness.received[qos.CONTROL]) == 1)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
+    harness.wait_value('lqr_controller', 'estimates_rejected.not_newer', 1)
+    # an estimate newer than the last but more than max_input_age behind the clock
+    assert harness.set_parameters('lqr_controller', estimate_timeout=100.0)[0].successful
+    harness.clock(15 * DT)
+    assert spin_until(executor, lambda: controller.get_clock().now().nanoseconds == 15 * DT)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 2 * DT, 'lvlh', 'c'))
+    harness.wait_value('lqr_controller', 'estimates_rejected.too_old', 1)
+    # the clock runs on without estimates: safe mode, zero thrust at every step
+    assert harness.set_parameters('lqr_controller', estimate_timeout=0.5)[0].successful
+    for k in range(16, 30):
+        harness.clock(k * DT)
+        executor.spin_once(timeout_sec=0.05)
+    assert spin_until(executor, lambda: controller._safe and
+                      harness.received[qos.CONTROL][-1].accel.linear.x == 0.0)
+    zero = harness.received[qos.CONTROL][-1]
+    assert [zero.accel.linear.x, zero.accel.linear.y, zero.accel.linear.z] == [0.0, 0.0, 0.0]
+    assert stamp_to_ns(zero.header.stamp) > 15 * DT
+    harness.wait_value('lqr_controller', 'safe_mode', True)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 30 * DT, 'lvlh', 'c'))
+    assert spin_until(executor, lambda: not controller._safe and stamp_to_ns(
+        harness.received[qos.CONTROL][-1].header.stamp) == 30 * DT)
+    back = harness.received[qos.CONTROL][-1]
+    assert stamp_to_ns(back.header.stamp) == 30 * DT and back.accel.linear.x != 0.0
+    gain = controller.gain
+    assert all(r.successful for r in harness.set_parameters('lqr_controller', lqr_input_weight=[1e3]))
+    assert not np.allclose(controller.gain, gain)
+    refused = harness.set_parameters('lqr_controller', lqr_input_weight=[-1.0])[0]
+    assert not refused.successful and 'lqr_input_weight' in refused.reason
+
+
+def test_controller_rejects_an_estimate_far_ahead_of_the_clock_and_keeps_its_watchdog(controller_rig):
+    harness, controller = controller_rig
+    executor = harness.executor
+    x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+    harness.clock(DT)
+    assert spin_until(executor, lambda: controller.get_clock().now().nanoseconds == DT)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 2 * DT, 'lvlh', 'c'))  # one step ahead: fine
+    assert spin_until(executor, lambda: len(harness.received[qos.CONTROL]) == 1)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 10_000 * DT, 'lvlh', 'c'))
+    harness.wait_value('lqr_controller', 'estimates_rejected.future', 1)
+    for k in range(2, 6):  # the real estimates still get controls
+        harness.clock(k * DT)
+        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, (k + 1) * DT, 'lvlh', 'c'))
+        assert spin_until(executor, lambda k=k: len(harness.received[qos.CONTROL]) == k)
+    for k in range(6, 20):  # and when they stop, the watchdog still sees it
+        harness.clock(k * DT)
+        executor.spin_once(timeout_sec=0.05)
+    assert spin_until(executor, lambda: controller._safe)
+
+
+def test_sensor_starts_over_when_the_clock_or_the_truth_time_goes_back():
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        sensor = make(SensorNode, context, executor, nodes, 'position_sensor', diagnostics_period=0.0)
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.TRUTH) > 0)
+        truth = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+
+        def measured(stamps):
+            return [stamp_to_ns(m.header.stamp) for m in harness.received[qos.MEASUREMENT]] == stamps
+
+        # without a clock: truth 2 s back is a restart, truth at the same time a duplicate
+        for stamp in (50 * DT, 51 * DT, 51 * DT, 30 * DT):
+            harness.publish(qos.TRUTH, state_to_odometry(truth, None, stamp, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT]))
+        harness.wait_value('position_sensor', 'truth_rejected.not_newer', 1)
+        # with a clock: a small step back in the truth is only a duplicate...
+        harness.clock(30 * DT)
+        harness.publish(qos.TRUTH, state_to_odometry(truth, None, 29 * DT, 'lvlh', 'c'))
+        # ...but the clock going back (a restarted plant) starts the sensor over
+        assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 30 * DT)
+        harness.clock(0)
+        assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 0)
+        harness.publish(qos.TRUTH, state_to_odometry(truth, None, 0, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT, 0]))
+        harness.wait_value('position_sensor', 'truth_rejected.not_newer', 2)  # 29 s was not measured
 
 
 def test_plant_rejects_bad_controls_and_pauses():
