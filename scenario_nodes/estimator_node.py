@@ -89,7 +89,7 @@ class EstimatorNode(Node):
         self._used = 0
         self._dropped = 0
         self._step_times: list[float] = []
-        self._published = 0
+        self._published = self._spikes_published = 0
 
         self._estimate_pub = self.create_publisher(Odometry, qos.ESTIMATE, qos.PUBLISHER_QOS)
         self._count_pub = self.create_publisher(UInt32, qos.SPIKE_COUNT, qos.PUBLISHER_QOS)
@@ -428,6 +428,7 @@ class EstimatorNode(Node):
         self._count_pub.publish(encode_uint32(est.spike_count))
         if self._spikes_pub is not None:
             self._spikes_pub.publish(encode_spikes(est.spikes if est.spiking else ()))
+            self._spikes_published += 1
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
@@ -499,7 +500,8 @@ class EstimatorNode(Node):
         times = np.asarray(self._step_times[-1000:]) * 1e6
         values = {
             'filter': est.kind, 'neurons': est.neuron_count, 'steps': steps,
-            'estimates_published': self._published, 'measurements_received': self._measurements,
+            'estimates_published': self._published, 'spikes_published': self._spikes_published,
+            'measurements_received': self._measurements,
             'measurements_used': self._used, 'measurements_dropped': self._dropped,
             'measurements_pending': len(self._pending),
             'spikes_total': est.total_spikes,

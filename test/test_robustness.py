@@ -144,6 +144,24 @@ def test_a_measurement_stamped_far_ahead_of_the_clock_is_rejected_and_does_not_b
     assert values['measurements_rejected'] == 1 and values['dropout_steps'] == 0
 
 
+def test_estimator_counts_the_spike_messages_it_publishes_apart_from_the_estimates():
+    """The recorder's completeness check compares the bag with these counts."""
+    for publish_spikes, spike_messages in ((True, 2), (False, 0)):
+        with ros_context() as (context, executor, nodes):
+            harness = Harness(context, executor, nodes)
+            node = make(EstimatorNode, context, executor, nodes, 'estimator', warm_start_wait=0.0,
+                        publish_spikes=publish_spikes)
+            assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
+            harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
+            harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
+            harness.wait_estimates(2)
+            assert spin_until(executor, lambda: len(harness.received[qos.SPIKES]) >= spike_messages)
+            executor.spin_once(timeout_sec=0.2)
+            assert len(harness.received[qos.SPIKES]) == spike_messages
+            assert node.values()['estimates_published'] == 2
+            assert node.values()['spikes_published'] == spike_messages
+
+
 def test_estimator_rejects_controls_with_a_wrong_frame(estimator_rig):
     harness, node = estimator_rig
     harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), DT, 'map'))
