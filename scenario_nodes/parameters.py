@@ -83,7 +83,8 @@ PLANT = MODEL + (
          low=1e-3, high=1e6),
     Spec('control_timeout', 1.0, 'lockstep: wall-clock s to wait for the control of a step '
          'before holding the last control (counted as a control timeout)', low=1e-3),
-    Spec('start_time', 0.0, 'Simulated time of the first sample, s', low=0.0),
+    Spec('start_time', 0.0, 'Simulated time of the first sample, s (below 2^31 s: a ROS time '
+         'stamp counts whole seconds in an int32)', low=0.0, high=2.0 ** 31 - 3600.0),
     Spec('publish_clock', True, 'Publish /clock (the plant owns simulated time)'),
     Spec('exit_when_done', False, 'Exit the process after the last step (used by the demo)'),
     Spec('min_truth_subscribers', 0, "Publish the first state only once this many subscriptions "

@@ -214,6 +214,12 @@ class PlantNode(Node):
         # run_node flushes the publishers before the process ends, so subscribers get the end
         self.done = self._p['exit_when_done']
 
+    def close(self) -> None:
+        """Stopped before the last step (SIGINT/SIGTERM): the totals so far go on record too
+        (run_node then waits for the subscribers to acknowledge them)."""
+        if not self._finished:
+            self._publish_diagnostics()
+
     @property
     def _finished(self) -> bool:
         """The last step is done: no more steps, whatever the mode."""

@@ -174,6 +174,19 @@ def test_lockstep_plant_waits_for_the_control_and_times_out_to_the_last_one():
         assert plant._timeouts >= 1
 
 
+def test_a_plant_stopped_before_its_last_step_publishes_its_totals_so_far():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', duration=100.0)
+        assert spin_until(executor, lambda: probe.received[qos.TRUTH])
+        for k in range(3):
+            probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), k * 100_000_000, 'lvlh'))
+            assert spin_until(executor, lambda k=k: len(probe.received[qos.TRUTH]) == k + 2)
+        plant.close()  # what run_node does on SIGINT/SIGTERM
+        assert spin_until(executor, lambda: probe.diagnostics('cw_plant').get('truth_published') == '4')
+        assert probe.diagnostics('cw_plant')['steps'] == '3'
+
+
 def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_truth():
     with ros_context() as (context, executor, nodes):
         plant = make(PlantNode, context, executor, nodes, 'cw_plant', min_truth_subscribers=2, duration=0.0)
@@ -201,6 +214,7 @@ def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_tr
     (EstimatorNode, 'estimator', {'initial_covariance': [1.0, 1.0, 1.0, 1.0, 1.0, -1.0]}, 'positive definite'),
     (EstimatorNode, 'estimator', {'filter_type': 'ukf'}, 'filter_type'),
     (PlantNode, 'cw_plant', {'mode': 'fast'}, 'mode'),
+    (PlantNode, 'cw_plant', {'start_time': 3e9}, 'start_time'),  # beyond a ROS stamp's int32 s
     (SensorNode, 'position_sensor', {'measurement_noise': [1.0, 2.0]}, 'measurement_noise'),
     (ControllerNode, 'lqr_controller', {'lqr_input_weight': [0.0]}, 'lqr_input_weight'),
 ])
