@@ -11,6 +11,7 @@ from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
+from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 PACKAGE = 'snn_rendezvous'
@@ -48,6 +49,9 @@ def generate_launch_description():
         node('estimator', {'filter_type': LaunchConfiguration('estimator')}),
         node('position_sensor'),
         node('cw_plant', {'mode': LaunchConfiguration('mode'),
-                          'real_time_factor': LaunchConfiguration('real_time_factor')}),
+                          # typed: launch would pass real_time_factor:=10 as an integer,
+                          # which a DOUBLE parameter refuses
+                          'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'),
+                                                             value_type=float)}),
         node('recorder', condition=IfCondition(LaunchConfiguration('record'))),
     ])

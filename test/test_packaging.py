@@ -161,6 +161,8 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
                                  'PathJoinSubstitution': lambda parts: ('join', tuple(parts))},
         'launch_ros.actions': {'Node': recorder('node')},
         'launch_ros.substitutions': {'FindPackageShare': lambda name: ('share', name)},
+        'launch_ros.parameter_descriptions': {
+            'ParameterValue': lambda value, value_type=None: ('typed', value, value_type)},
     }
     for name, members in stubs.items():
         module = types.ModuleType(name)
@@ -180,3 +182,6 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
     assert all(n['package'] == PACKAGE and n['name'] == exe for exe, n in nodes.items())
     assert nodes['estimator']['parameters'][1] == {'filter_type': ('config', 'estimator')}
     assert nodes['cw_plant']['parameters'][1]['mode'] == ('config', 'mode')
+    # launch turns real_time_factor:=10 into an integer, which the DOUBLE parameter refuses
+    assert nodes['cw_plant']['parameters'][1]['real_time_factor'] == \
+        ('typed', ('config', 'real_time_factor'), float)

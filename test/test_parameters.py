@@ -91,3 +91,35 @@ def test_readme_parameter_tables_are_current():
     begin = readme.index('<!-- parameters:begin')
     block = readme[readme.index('\n', begin) + 1:readme.index('<!-- parameters:end -->')]
     assert block.strip() == markdown().strip(), 'run: python -m scenario_nodes.parameters and paste into README'
+
+
+def test_the_readme_ros2_run_lines_set_what_they_say():
+    """Each `-p` of the README's `ros2 run` lines reaches its node over the package's parameter
+    file (a bare `-p name:=value` would lose to the file's node section)."""
+    import rclpy
+    from rclpy.node import Node
+    from scenario_nodes.parameters import declare
+
+    readme = (CONFIG.parent / 'README.md').read_text()
+    lines = re.findall(r'^ros2 run snn_rendezvous (\w+)\s+--ros-args (.*?)(?:\s+#.*)?$', readme, re.M)
+    assert len(lines) == 5
+    specs = dict(NODES, recorder=RECORDER)
+    checked = 0
+    for executable, arguments in lines:
+        arguments = arguments.replace('$P', str(CONFIG / 'rendezvous.yaml')).split()
+        context = rclpy.Context()
+        rclpy.init(args=['readme', '--ros-args', *arguments], context=context)
+        try:
+            node = Node(executable, context=context)
+            values = declare(node, specs[executable])
+            for flag, rule in zip(arguments, arguments[1:]):
+                if flag == '-p':
+                    name, _, value = rule.partition(':=')
+                    target, _, name = name.rpartition(':')
+                    assert target in ('', executable), rule
+                    assert values[name] == yaml.safe_load(value), (executable, rule)
+                    checked += 1
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=context)
+    assert checked == 4
