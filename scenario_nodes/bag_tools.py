@@ -47,6 +47,9 @@ class RunData:
     control_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     control: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     spike_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # (steps, N) per-neuron spike counts; N is the largest network of the run, and a step with
+    # fewer neurons (hot swap to another N, or to a non-spiking filter: empty arrays) is
+    # padded with zeros. Only steps that published spikes have a row.
     spikes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
     receive_times: dict = field(default_factory=dict)  # topic -> (k,) ns, in bag order
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
@@ -111,8 +114,11 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
             setattr(run, f'{name}_t', np.array([s[0] for s in series[name]]) / NS)
             setattr(run, name, np.stack([s[1] for s in series[name]]))
     run.spike_count = np.asarray(series['spike_count'], dtype=np.int64)
-    if series['spikes'] and max(len(s) for s in series['spikes']) > 0:
-        run.spikes = np.stack(series['spikes'])
+    neurons = max((len(s) for s in series['spikes']), default=0)
+    if neurons:
+        run.spikes = np.zeros((len(series['spikes']), neurons), dtype=np.int64)
+        for row, counts in zip(run.spikes, series['spikes']):
+            row[:len(counts)] = counts
     return run
 
 
