@@ -16,6 +16,9 @@ from rosbags.typesys import Stores, get_typestore
 
 STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
 NS = 1_000_000_000
+#: The topics read_bag decodes (qos.PIPELINE_TOPICS, without importing rclpy); a bag may hold
+#: others (``ros2 bag record -a``), of types this typestore need not know: only counted.
+PIPELINE = ('truth', 'measurement', 'control', 'estimate', 'spike_count', 'spikes', 'diagnostics')
 
 
 def _stamp(header) -> int:
@@ -51,7 +54,7 @@ class RunData:
     # fewer neurons (hot swap to another N, or to a non-spiking filter: empty arrays) is
     # padded with zeros. Only steps that published spikes have a row.
     spikes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
-    receive_times: dict = field(default_factory=dict)  # topic -> (k,) ns, in bag order
+    receive_times: dict = field(default_factory=dict)  # pipeline topic -> (k,) ns, in bag order
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
     namespace: str = ''
 
@@ -62,7 +65,7 @@ class RunData:
 
 def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
     """Load the pipeline topics of a bag (topic names under ``namespace``; None: the namespace
-    of the bag's ``truth`` or ``estimate`` topic)."""
+    of the bag's ``truth`` or ``estimate`` topic). Other topics are counted, not decoded."""
     path = Path(path)
     typestore = get_typestore(Stores.ROS2_JAZZY)
     run = RunData(path=path)
@@ -77,11 +80,12 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
                               if topic.rsplit('/', 1)[-1] in ('truth', 'estimate')), '')
         prefix = namespace.rstrip('/') + '/'
         run.namespace = namespace.rstrip('/')
-        for connection, timestamp, raw in reader.messages():
+        pipeline = [c for c in reader.connections
+                    if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE]
+        messages = reader.messages(connections=pipeline) if pipeline else ()  # [] reads all
+        for connection, timestamp, raw in messages:
             topic = connection.topic
             receive[topic].append(timestamp)
-            if not topic.startswith(prefix):
-                continue
             name = topic[len(prefix):]
             msg = typestore.deserialize_cdr(raw, connection.msgtype)
             if name in ('truth', 'estimate'):

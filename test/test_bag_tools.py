@@ -7,7 +7,7 @@ import pytest
 pytest.importorskip('rclpy')
 
 from rosbags.rosbag2 import Writer  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
 from scenario_nodes.bag_tools import read_bag  # noqa: E402
 from scenario_nodes.conversions import encode_odometry, encode_spikes, encode_uint32  # noqa: E402
@@ -52,3 +52,18 @@ def test_spike_arrays_of_different_lengths_are_padded_with_zeros_and_reported(tm
     np.testing.assert_array_equal(run.spikes, [[1, 0, 2, 0, 0], [0, 0, 0, 0, 0], [0, 3, 0, 0, 1]])
     write_report([bag], tmp_path / 'report')
     assert (tmp_path / 'report' / 'spikes.png').stat().st_size > 10_000
+
+
+def test_a_topic_of_a_type_the_typestore_does_not_know_is_counted_not_decoded(tmp_path):
+    # e.g. `ros2 bag record -a` with a user's own message on the graph
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    typestore.register(get_types_from_msg('float64 value\n', 'my_msgs/msg/Thing'))
+    thing = typestore.serialize_cdr(typestore.types['my_msgs/msg/Thing'](value=1.0), 'my_msgs/msg/Thing')
+    messages = steps(2)
+    messages.insert(1, ('/thing', 'my_msgs/msg/Thing', thing))
+    run = read_bag(write_bag(tmp_path / 'bag', messages, typestore))
+    assert run.counts['/thing'] == 1 and run.types['/thing'] == 'my_msgs/msg/Thing'
+    np.testing.assert_array_equal(run.truth, [np.arange(6.0), np.arange(6.0) + 1])
+    np.testing.assert_array_equal(run.estimate_t, [0.0, 0.1])
+    only_others = read_bag(write_bag(tmp_path / 'others', [messages[1]], typestore))
+    assert only_others.counts == {'/thing': 1} and only_others.truth.size == 0
