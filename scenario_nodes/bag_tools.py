@@ -161,13 +161,15 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
     steps = int(_number(estimator, 'steps'))
     spikes_total = int(run.spike_count.sum())
     prefix = run.namespace + '/'
+    estimates = _number(estimator, 'estimates_published')
     published = {
         'truth': int(_number(plant, 'truth_published')),
         'measurement': int(_number(sensor, 'measurements_published')),
         'control': int(_number(controller, 'controls_published')),
-        'estimate': int(_number(estimator, 'estimates_published')),
-        'spike_count': int(_number(estimator, 'estimates_published')),
-        'spikes': int(_number(estimator, 'estimates_published')),
+        'estimate': int(estimates),
+        'spike_count': int(estimates),
+        # none with publish_spikes false; estimators older than the key published one per estimate
+        'spikes': int(_number(estimator, 'spikes_published', estimates)),
     }
     recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
     return {

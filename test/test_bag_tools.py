@@ -6,11 +6,13 @@ import pytest
 
 pytest.importorskip('rclpy')
 
+from rclpy.serialization import serialize_message  # noqa: E402
 from rosbags.rosbag2 import Writer  # noqa: E402
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
-from scenario_nodes.bag_tools import read_bag  # noqa: E402
+from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
 from scenario_nodes.conversions import encode_odometry, encode_spikes, encode_uint32  # noqa: E402
+from scenario_nodes.diagnostics import diagnostic_array  # noqa: E402
 from scenario_nodes.recorder_node import KNOWN_TYPES  # noqa: E402
 from scenario_nodes.report import write_report  # noqa: E402
 
@@ -44,6 +46,11 @@ def steps(count, spikes=None):
     return messages
 
 
+def diagnostics(name, **values):
+    return ('/diagnostics', KNOWN_TYPES['diagnostics'],
+            serialize_message(diagnostic_array(10 * NS, name, name, values)))
+
+
 def test_spike_arrays_of_different_lengths_are_padded_with_zeros_and_reported(tmp_path):
     # snn_ekf with 3 neurons, hot swap to emsif (empty arrays), then a 5-neuron network
     spikes = [[1, 0, 2], [], [0, 3, 0, 0, 1]]
@@ -67,3 +74,18 @@ def test_a_topic_of_a_type_the_typestore_does_not_know_is_counted_not_decoded(tm
     np.testing.assert_array_equal(run.estimate_t, [0.0, 0.1])
     only_others = read_bag(write_bag(tmp_path / 'others', [messages[1]], typestore))
     assert only_others.counts == {'/thing': 1} and only_others.truth.size == 0
+
+
+@pytest.mark.parametrize('spikes_published, spikes_recorded', [
+    (0, 0),     # publish_spikes false: the estimator reports that it published none
+    (None, 3),  # an estimator without the spikes_published key: one array per estimate
+])
+def test_spikes_expected_are_the_ones_the_estimator_published(tmp_path, spikes_published, spikes_recorded):
+    estimator = {'filter': 'snn_ekf', 'estimates_published': 3}
+    if spikes_published is not None:
+        estimator['spikes_published'] = spikes_published
+    messages = steps(3, [[1, 0]] * 3 if spikes_recorded else None)
+    messages += [diagnostics('cw_plant', truth_published=3), diagnostics('estimator', **estimator)]
+    summary = summarize(read_bag(write_bag(tmp_path / 'bag', messages)))
+    assert summary['messages']['spikes'] == {'published': spikes_recorded, 'recorded': spikes_recorded}
+    assert summary['recording_complete']
