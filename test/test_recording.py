@@ -24,6 +24,7 @@ from scenario_nodes.paths import config_file  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.recorder_node import KNOWN_TYPES, RecorderNode, message_class  # noqa: E402
 from scenario_nodes.report import moving_rms, write_report  # noqa: E402
+from scenario_nodes.runtime import run_node  # noqa: E402
 
 from ros_helpers import make, ros_context, spin_until  # noqa: E402
 
@@ -131,6 +132,26 @@ def test_a_topic_of_a_type_rosbags_does_not_know_is_skipped_and_the_others_recor
     assert re.search(r'ERROR.*/goals.*nav_msgs/msg/Goals', capfd.readouterr().err)
     with Reader(tmp_path / 'bag') as reader:
         assert {c.topic: c.msgcount for c in reader.connections} == {'/truth': recorder.counts['/truth']}
+
+
+class _DrainFails(RecorderNode):
+    done = True  # run_node stops at once and goes on to drain
+
+    def drain(self, executor, quiet: float = 0.5) -> None:
+        raise RuntimeError('drain failed')
+
+
+def test_the_bag_is_closed_even_when_draining_fails_and_the_error_is_raised(tmp_path):
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(RuntimeError, match='drain failed'):
+            run_node(_DrainFails, ['recorder', '--ros-args', '-p', f'output:={tmp_path / "bag"}'])
+    finally:
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
+    assert (tmp_path / 'bag' / 'metadata.yaml').exists()
+    with Reader(tmp_path / 'bag') as reader:
+        assert {c.topic for c in reader.connections} == {f'/{t}' for t in TOPICS}
 
 
 def test_report_figures_exist_and_its_numbers_are_the_bags(recorded, tmp_path):
