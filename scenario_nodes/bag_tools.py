@@ -16,6 +16,9 @@ from rosbags.typesys import Stores, get_typestore
 
 STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
 NS = 1_000_000_000
+#: The topics read_bag decodes (qos.PIPELINE_TOPICS, without importing rclpy); a bag may hold
+#: others (``ros2 bag record -a``), of types this typestore need not know: only counted.
+PIPELINE = ('truth', 'measurement', 'control', 'estimate', 'spike_count', 'spikes', 'diagnostics')
 
 
 def _stamp(header) -> int:
@@ -47,8 +50,11 @@ class RunData:
     control_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     control: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     spike_count: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    # (steps, N) per-neuron spike counts; N is the largest network of the run, and a step with
+    # fewer neurons (hot swap to another N, or to a non-spiking filter: empty arrays) is
+    # padded with zeros. Only steps that published spikes have a row.
     spikes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int64))
-    receive_times: dict = field(default_factory=dict)  # topic -> (k,) ns, in bag order
+    receive_times: dict = field(default_factory=dict)  # pipeline topic -> (k,) ns, in bag order
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
     namespace: str = ''
 
@@ -59,7 +65,7 @@ class RunData:
 
 def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
     """Load the pipeline topics of a bag (topic names under ``namespace``; None: the namespace
-    of the bag's ``truth`` or ``estimate`` topic)."""
+    of the bag's ``truth`` or ``estimate`` topic). Other topics are counted, not decoded."""
     path = Path(path)
     typestore = get_typestore(Stores.ROS2_JAZZY)
     run = RunData(path=path)
@@ -74,11 +80,12 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
                               if topic.rsplit('/', 1)[-1] in ('truth', 'estimate')), '')
         prefix = namespace.rstrip('/') + '/'
         run.namespace = namespace.rstrip('/')
-        for connection, timestamp, raw in reader.messages():
+        pipeline = [c for c in reader.connections
+                    if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE]
+        messages = reader.messages(connections=pipeline) if pipeline else ()  # [] reads all
+        for connection, timestamp, raw in messages:
             topic = connection.topic
             receive[topic].append(timestamp)
-            if not topic.startswith(prefix):
-                continue
             name = topic[len(prefix):]
             msg = typestore.deserialize_cdr(raw, connection.msgtype)
             if name in ('truth', 'estimate'):
@@ -111,8 +118,11 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
             setattr(run, f'{name}_t', np.array([s[0] for s in series[name]]) / NS)
             setattr(run, name, np.stack([s[1] for s in series[name]]))
     run.spike_count = np.asarray(series['spike_count'], dtype=np.int64)
-    if series['spikes'] and max(len(s) for s in series['spikes']) > 0:
-        run.spikes = np.stack(series['spikes'])
+    neurons = max((len(s) for s in series['spikes']), default=0)
+    if neurons:
+        run.spikes = np.zeros((len(series['spikes']), neurons), dtype=np.int64)
+        for row, counts in zip(run.spikes, series['spikes']):
+            row[:len(counts)] = counts
     return run
 
 
@@ -151,13 +161,15 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
     steps = int(_number(estimator, 'steps'))
     spikes_total = int(run.spike_count.sum())
     prefix = run.namespace + '/'
+    estimates = _number(estimator, 'estimates_published')
     published = {
         'truth': int(_number(plant, 'truth_published')),
         'measurement': int(_number(sensor, 'measurements_published')),
         'control': int(_number(controller, 'controls_published')),
-        'estimate': int(_number(estimator, 'estimates_published')),
-        'spike_count': int(_number(estimator, 'estimates_published')),
-        'spikes': int(_number(estimator, 'estimates_published')),
+        'estimate': int(estimates),
+        'spike_count': int(estimates),
+        # none with publish_spikes false; estimators older than the key published one per estimate
+        'spikes': int(_number(estimator, 'spikes_published', estimates)),
     }
     recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
     return {

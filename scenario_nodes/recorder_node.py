@@ -19,7 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from . import qos
 from .parameters import Spec, declare
@@ -96,6 +96,7 @@ class RecorderNode(Node):
         self._drain_timeout = p['drain_timeout']
         self._last_stamp = 0
         self.counts: dict[str, int] = {}
+        self.skipped: dict[str, str] = {}  # topic -> why it cannot be recorded
         self._waiting: dict[str, str] = {}  # fully qualified topic -> requested name
         for topic in p['topics']:
             name = self.resolve_topic_name(topic)
@@ -114,17 +115,32 @@ class RecorderNode(Node):
         self.get_logger().info(f"recording {sorted(self.counts) + sorted(self._waiting)} to {self.path} "
                                f"({p['storage']})")
 
-    def _record(self, topic: str, type_name: str, profile: QoSProfile, offered: QoSProfile) -> None:
+    def _record(self, topic: str, type_name: str, profile: QoSProfile, offered: QoSProfile) -> bool:
         """Subscribe with ``profile``; metadata.yaml states ``offered`` (the publishers' QoS),
-        which ``ros2 bag play`` republishes with."""
-        connection = self._writer.add_connection(topic, type_name, typestore=self._typestore,
-                                                 offered_qos_profiles=[bag_qos(offered)])
+        which ``ros2 bag play`` republishes with. False, with an error logged, when the type
+        cannot be recorded: the bag needs its definition from the typestore."""
+        try:
+            message_type = message_class(type_name)
+        except (ImportError, AttributeError) as error:
+            return self._skip(topic, type_name, f'no Python message class ({error})')
+        try:
+            connection = self._writer.add_connection(topic, type_name, typestore=self._typestore,
+                                                     offered_qos_profiles=[bag_qos(offered)])
+        except TypesysError as error:
+            return self._skip(topic, type_name, f'not in the rosbags Jazzy typestore ({error})')
         self.counts[topic] = 0
 
         def on_message(raw: bytes, connection=connection, topic=topic) -> None:
             self._write(connection, topic, raw)
 
-        self.create_subscription(message_class(type_name), topic, on_message, profile, raw=True)
+        self.create_subscription(message_type, topic, on_message, profile, raw=True)
+        return True
+
+    def _skip(self, topic: str, type_name: str, reason: str) -> bool:
+        """Leave ``topic`` out of the bag, saying why; the other topics are still recorded."""
+        self.skipped[topic] = f'{type_name}: {reason}'
+        self.get_logger().error(f'not recording {topic} ({type_name}): {reason}; recording the others')
+        return False
 
     def _write(self, connection, topic: str, raw: bytes) -> None:
         if self._closed:
@@ -139,12 +155,11 @@ class RecorderNode(Node):
         for name in list(self._waiting):
             if name in types:
                 publishers = self.get_publishers_info_by_topic(name)
-                if publishers:
-                    self._record(name, types[name][0], adapted_qos(publishers), publishers[0].qos_profile)
-                else:
-                    self._record(name, types[name][0], qos.RECORDER_QOS, qos.PUBLISHER_QOS)
+                profiles = ((adapted_qos(publishers), publishers[0].qos_profile) if publishers
+                            else (qos.RECORDER_QOS, qos.PUBLISHER_QOS))
                 del self._waiting[name]
-                self.get_logger().info(f'found {name} ({types[name][0]}): recording')
+                if self._record(name, types[name][0], *profiles):
+                    self.get_logger().info(f'found {name} ({types[name][0]}): recording')
         if not self._waiting:
             self._discovery.cancel()
 

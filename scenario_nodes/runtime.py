@@ -96,7 +96,8 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
 
     ``node.done`` (optional attribute) lets a node end the process itself (the plant after its
     last step); ``node.drain(executor)`` (optional) may keep spinning after a stop request (the
-    recorder empties its queues); ``node.close()`` (optional) runs before the node is destroyed.
+    recorder empties its queues); ``node.close()`` (optional) runs before the node is destroyed,
+    even when draining failed. An unexpected exception propagates (traceback, exit code 1).
     """
     stop = StopFlag()
     try:
@@ -126,15 +127,27 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
         print(f'[{name}] invalid configuration: {error}', file=sys.stderr)
         code = EXIT_CONFIG
     finally:
-        if node is not None:
-            drain = getattr(node, 'drain', None)
-            if drain is not None and executor is not None and rclpy.ok():
-                drain(executor)
+        try:
+            if node is not None:
+                _finish(node, executor)
+        finally:
+            rclpy.try_shutdown()
+    return code
+
+
+def _finish(node, executor) -> None:
+    """Drain, close, flush and destroy ``node``. A failing step does not skip the later ones
+    (a bag left unclosed has no metadata.yaml and cannot be read); its exception propagates."""
+    try:
+        drain = getattr(node, 'drain', None)
+        if drain is not None and executor is not None and rclpy.ok():
+            drain(executor)
+    finally:
+        try:
             close = getattr(node, 'close', None)
             if close is not None:
                 close()
+        finally:
             if rclpy.ok():
                 flush(node)
             node.destroy_node()
-        rclpy.try_shutdown()
-    return code

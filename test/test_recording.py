@@ -12,6 +12,8 @@ import yaml
 
 pytest.importorskip('rclpy')
 
+from nav_msgs.msg import Goals, Odometry  # noqa: E402
+from rclpy.node import Node  # noqa: E402
 from rclpy.serialization import deserialize_message  # noqa: E402
 from rosbags.rosbag2 import Reader  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
@@ -19,8 +21,12 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
 from scenario_nodes.demo import Pipeline, pipeline_env, run_pipeline  # noqa: E402
 from scenario_nodes.paths import config_file  # noqa: E402
-from scenario_nodes.recorder_node import KNOWN_TYPES, message_class  # noqa: E402
+from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.recorder_node import KNOWN_TYPES, RecorderNode, message_class  # noqa: E402
 from scenario_nodes.report import moving_rms, write_report  # noqa: E402
+from scenario_nodes.runtime import run_node  # noqa: E402
+
+from ros_helpers import make, ros_context, spin_until  # noqa: E402
 
 pytestmark = pytest.mark.slow
 TOPICS = ('truth', 'measurement', 'control', 'estimate', 'spike_count', 'spikes', 'diagnostics')
@@ -107,6 +113,45 @@ def test_a_bag_cut_off_by_sigterm_mid_run_still_opens(tmp_path):
         counts = {c.topic: c.msgcount for c in reader.connections}
         assert counts['/truth'] > 10
         assert sum(1 for _ in reader.messages()) == sum(counts.values())
+
+
+def test_a_topic_of_a_type_rosbags_does_not_know_is_skipped_and_the_others_recorded(tmp_path, capfd):
+    # nav_msgs/Goals: importable in rclpy, missing from the rosbags Jazzy typestore
+    with ros_context() as (context, executor, nodes):
+        recorder = make(RecorderNode, context, executor, nodes, 'recorder', use_sim_time=False,
+                        topics=['truth', 'goals'], output=str(tmp_path / 'bag'))
+        talker = Node('talker', context=context)
+        executor.add_node(talker)
+        nodes.append(talker)
+        truth = talker.create_publisher(Odometry, 'truth', qos.PUBLISHER_QOS)
+        goals = talker.create_publisher(Goals, 'goals', 10)
+        talker.create_timer(0.05, lambda: (truth.publish(Odometry()), goals.publish(Goals())))
+        assert spin_until(executor, lambda: '/goals' in recorder.skipped and recorder.counts['/truth'] >= 3)
+        recorder.close()
+    assert 'nav_msgs/msg/Goals' in recorder.skipped['/goals']
+    assert re.search(r'ERROR.*/goals.*nav_msgs/msg/Goals', capfd.readouterr().err)
+    with Reader(tmp_path / 'bag') as reader:
+        assert {c.topic: c.msgcount for c in reader.connections} == {'/truth': recorder.counts['/truth']}
+
+
+class _DrainFails(RecorderNode):
+    done = True  # run_node stops at once and goes on to drain
+
+    def drain(self, executor, quiet: float = 0.5) -> None:
+        raise RuntimeError('drain failed')
+
+
+def test_the_bag_is_closed_even_when_draining_fails_and_the_error_is_raised(tmp_path):
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    try:
+        with pytest.raises(RuntimeError, match='drain failed'):
+            run_node(_DrainFails, ['recorder', '--ros-args', '-p', f'output:={tmp_path / "bag"}'])
+    finally:
+        signal.signal(signal.SIGINT, handlers[0])
+        signal.signal(signal.SIGTERM, handlers[1])
+    assert (tmp_path / 'bag' / 'metadata.yaml').exists()
+    with Reader(tmp_path / 'bag') as reader:
+        assert {c.topic for c in reader.connections} == {f'/{t}' for t in TOPICS}
 
 
 def test_report_figures_exist_and_its_numbers_are_the_bags(recorded, tmp_path):

@@ -1,0 +1,91 @@
+"""bag_tools on small bags written here with rosbags: bags the pipeline can produce besides the
+demo's (a hot swap, publish_spikes false, ``ros2 bag record -a`` with custom types)."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+
+from rclpy.serialization import serialize_message  # noqa: E402
+from rosbags.rosbag2 import Writer  # noqa: E402
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
+
+from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
+from scenario_nodes.conversions import encode_odometry, encode_spikes, encode_uint32  # noqa: E402
+from scenario_nodes.diagnostics import diagnostic_array  # noqa: E402
+from scenario_nodes.recorder_node import KNOWN_TYPES  # noqa: E402
+from scenario_nodes.report import write_report  # noqa: E402
+
+NS = 1_000_000_000
+STEP_NS = NS // 10
+
+
+def write_bag(path, messages, typestore=None):
+    """A rosbag2 (MCAP) of ``messages``: (topic, type, CDR bytes) received one step apart."""
+    typestore = typestore or get_typestore(Stores.ROS2_JAZZY)
+    connections = {}
+    with Writer(path, version=9) as writer:
+        for k, (topic, msgtype, raw) in enumerate(messages):
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=typestore)
+            writer.write(connections[topic], (k + 1) * STEP_NS, raw)
+    return path
+
+
+def steps(count, spikes=None):
+    """``count`` estimator steps: truth, estimate, spike_count and, if given, spikes[k]."""
+    messages = []
+    for k in range(count):
+        x = np.arange(6.0) + k
+        messages.append(('/truth', KNOWN_TYPES['truth'], encode_odometry(x, None, k * STEP_NS, 'lvlh', 'chaser')))
+        messages.append(('/estimate', KNOWN_TYPES['estimate'],
+                         encode_odometry(x + 0.5, np.eye(6), k * STEP_NS, 'lvlh', 'chaser')))
+        messages.append(('/spike_count', KNOWN_TYPES['spike_count'], encode_uint32(0)))
+        if spikes is not None:
+            messages.append(('/spikes', KNOWN_TYPES['spikes'], encode_spikes(spikes[k])))
+    return messages
+
+
+def diagnostics(name, **values):
+    return ('/diagnostics', KNOWN_TYPES['diagnostics'],
+            serialize_message(diagnostic_array(10 * NS, name, name, values)))
+
+
+def test_spike_arrays_of_different_lengths_are_padded_with_zeros_and_reported(tmp_path):
+    # snn_ekf with 3 neurons, hot swap to emsif (empty arrays), then a 5-neuron network
+    spikes = [[1, 0, 2], [], [0, 3, 0, 0, 1]]
+    bag = write_bag(tmp_path / 'bag', steps(3, spikes))
+    run = read_bag(bag)
+    np.testing.assert_array_equal(run.spikes, [[1, 0, 2, 0, 0], [0, 0, 0, 0, 0], [0, 3, 0, 0, 1]])
+    write_report([bag], tmp_path / 'report')
+    assert (tmp_path / 'report' / 'spikes.png').stat().st_size > 10_000
+
+
+def test_a_topic_of_a_type_the_typestore_does_not_know_is_counted_not_decoded(tmp_path):
+    # e.g. `ros2 bag record -a` with a user's own message on the graph
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    typestore.register(get_types_from_msg('float64 value\n', 'my_msgs/msg/Thing'))
+    thing = typestore.serialize_cdr(typestore.types['my_msgs/msg/Thing'](value=1.0), 'my_msgs/msg/Thing')
+    messages = steps(2)
+    messages.insert(1, ('/thing', 'my_msgs/msg/Thing', thing))
+    run = read_bag(write_bag(tmp_path / 'bag', messages, typestore))
+    assert run.counts['/thing'] == 1 and run.types['/thing'] == 'my_msgs/msg/Thing'
+    np.testing.assert_array_equal(run.truth, [np.arange(6.0), np.arange(6.0) + 1])
+    np.testing.assert_array_equal(run.estimate_t, [0.0, 0.1])
+    only_others = read_bag(write_bag(tmp_path / 'others', [messages[1]], typestore))
+    assert only_others.counts == {'/thing': 1} and only_others.truth.size == 0
+
+
+@pytest.mark.parametrize('spikes_published, spikes_recorded', [
+    (0, 0),     # publish_spikes false: the estimator reports that it published none
+    (None, 3),  # an estimator without the spikes_published key: one array per estimate
+])
+def test_spikes_expected_are_the_ones_the_estimator_published(tmp_path, spikes_published, spikes_recorded):
+    estimator = {'filter': 'snn_ekf', 'estimates_published': 3}
+    if spikes_published is not None:
+        estimator['spikes_published'] = spikes_published
+    messages = steps(3, [[1, 0]] * 3 if spikes_recorded else None)
+    messages += [diagnostics('cw_plant', truth_published=3), diagnostics('estimator', **estimator)]
+    summary = summarize(read_bag(write_bag(tmp_path / 'bag', messages)))
+    assert summary['messages']['spikes'] == {'published': spikes_recorded, 'recorded': spikes_recorded}
+    assert summary['recording_complete']
