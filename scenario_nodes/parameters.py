@@ -19,7 +19,7 @@ from rclpy.parameter import Parameter
 from snn_estimator import EstimatorConfig
 from snn_estimator.estimators import FILTER_KINDS
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, EARTH_MU
-from snn_estimator.config import SPIKE_RULES
+from snn_estimator.config import MEASUREMENT_NOISE_UNITS, SPIKE_RULES
 
 _DEFAULTS = EstimatorConfig()
 
@@ -141,6 +141,10 @@ ESTIMATOR = MODEL + (
          read_only=False, low=0.0),
     Spec('measurement_noise_scale', _DEFAULTS.measurement_noise_scale,
          'R_hat = scale * R (Sec. 3.2: 5)', read_only=False, low=1e-300),
+    Spec('measurement_noise_units', _DEFAULTS.measurement_noise_units,
+         'What R_hat is to the Kalman gain and Riccati equation (Eq. 5-6): spectral_density (as '
+         'printed) or per_sample (variance of each sample: Eq. 5-6 use R_hat * time_step)',
+         choices=MEASUREMENT_NOISE_UNITS),
     Spec('initial_covariance', _floats(_DEFAULTS.initial_covariance),
          'P0, initial error covariance, m^2 and (m/s)^2 (not in the paper)'),
     Spec('initial_state', _floats(_DEFAULTS.initial_state), 'x_hat0, m and m/s (Table 6: x0)'),
@@ -206,6 +210,7 @@ def estimator_config(values: dict) -> EstimatorConfig:
         measurement_noise=list(values['measurement_noise']),
         process_noise_scale=values['process_noise_scale'],
         measurement_noise_scale=values['measurement_noise_scale'],
+        measurement_noise_units=values['measurement_noise_units'],
         initial_covariance=list(values['initial_covariance']),
         initial_state=list(values['initial_state']), spike_rule=values['spike_rule'],
         state_scale=list(values['state_scale']), discretization=values['discretization'],

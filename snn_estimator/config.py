@@ -12,6 +12,8 @@ from .models import DISCRETIZATIONS, StateSpaceModel
 from .validation import as_matrix, as_vector, check_choice, check_covariance, check_positive
 
 SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
+#: What R_hat is to Eq. 5-6: the spectral density they take, or the variance of each sample.
+MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,10 @@ class EstimatorConfig:
     process_noise_scale: float = 0.9
     #: R_hat = measurement_noise_scale * R (Sec. 3.2: 5).
     measurement_noise_scale: float = 5.0
+    #: R_hat in Eq. 5-6 (Kalman gain, Riccati): spectral_density uses it as printed; per_sample
+    #: reads it as the variance of each sample and uses the sampled-data density R_hat dt. The
+    #: MSIF's P^zz (Eq. 9) and the sensor always use the per-sample R.
+    measurement_noise_units: str = 'spectral_density'
     #: P0, initial estimation-error covariance (not stated in the paper; see README).
     initial_covariance: Any = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
     #: x_hat0, initial estimate (Table 6: equal to x0).
@@ -73,6 +79,7 @@ class ResolvedConfig:
     seed: int
     q_hat: np.ndarray
     r_hat: np.ndarray
+    measurement_noise_units: str
     initial_covariance: np.ndarray
     initial_state: np.ndarray
     spike_rule: str
@@ -112,6 +119,7 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
         if np.any(scale <= 0.0):
             raise ValueError(f'state_scale entries must be > 0, got {scale.tolist()}')
     method = check_choice(config.discretization, DISCRETIZATIONS, 'discretization')
+    units = check_choice(config.measurement_noise_units, MEASUREMENT_NOISE_UNITS, 'measurement_noise_units')
     noise = check_positive(config.membrane_noise, 'membrane_noise', strict=False)
     cap = int(config.max_spikes_per_step)
     if cap < 0:
@@ -124,6 +132,16 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
         raise ValueError(f'seed must be >= 0, got {seed}')
     return ResolvedConfig(
         neuron_count=neurons, leak_rate=leak, boundary_layer=delta, decoder_variance=variance,
-        seed=seed, q_hat=q_scale * q, r_hat=r_scale * r, initial_covariance=p0,
+        seed=seed, q_hat=q_scale * q, r_hat=r_scale * r, measurement_noise_units=units,
+        initial_covariance=p0,
         initial_state=x0, spike_rule=rule, state_scale=scale, discretization=method,
         membrane_noise=noise, max_spikes_per_step=cap or 1000 * neurons, silenced_neurons=silenced)
+
+
+def gain_noise_density(settings: ResolvedConfig, dt: float) -> np.ndarray:
+    """The R of Eq. 5-6 (a spectral density): R_hat as printed, or R_hat dt when R_hat is the
+    variance of each sample (then a step of Eq. 5 moves the estimate as far as a discrete
+    Kalman update with variance R_hat would)."""
+    if settings.measurement_noise_units == 'per_sample':
+        return settings.r_hat * dt
+    return settings.r_hat

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from . import kernels
-from .config import EstimatorConfig, ResolvedConfig, resolve
+from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from .models import StateSpaceModel
 
 NETWORK_STREAM = 3  # rng stream id of the decoder and membrane noise (see seeding in README)
@@ -86,9 +86,7 @@ class Estimator:
         self._linear_cache: dict[float, np.ndarray] = {}
         self._rule_code = _RULES[self.settings.spike_rule]
         self._scale = np.ascontiguousarray(self.settings.state_scale)
-        self._consts = kernels.pack_constants(
-            c, self._c_pinv, self.settings.q_hat, np.linalg.inv(self.settings.r_hat),
-            np.diag(self.settings.r_hat), self.settings.boundary_layer, self._scale)
+        self._consts_by_dt: dict[float, np.ndarray] = {}
         self.steps = 0
         self.capped_steps = 0
         self._build_network(neurons=self.settings.neuron_count if self.spiking else 0)
@@ -293,10 +291,17 @@ class Estimator:
             raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
         config = self.config.replace(**changes)
         settings = resolve(config, self.model)
-        consts = kernels.pack_constants(
-            self._c, self._c_pinv, settings.q_hat, np.linalg.inv(settings.r_hat),
-            np.diag(settings.r_hat), settings.boundary_layer, self._scale)
-        self.config, self.settings, self._consts = config, settings, consts
+        self.config, self.settings, self._consts_by_dt = config, settings, {}
+
+    def _constants(self, dt: float) -> np.ndarray:
+        """The kernel's packed constants for steps of ``dt`` (R of Eq. 5-6 may depend on it)."""
+        consts = self._consts_by_dt.get(dt)
+        if consts is None:
+            s = self.settings
+            consts = self._consts_by_dt[dt] = kernels.pack_constants(
+                self._c, self._c_pinv, s.q_hat, np.linalg.inv(gain_noise_density(s, dt)),
+                np.diag(s.r_hat), s.boundary_layer, self._scale)
+        return consts
 
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
@@ -371,7 +376,7 @@ class Estimator:
                               for g in self._noise_rngs])
         status, capped = kernels.estimator_step(
             self._gain_code, self.spiking, self._rule_code, self.has_covariance, use_drift,
-            measured, float(dt), leak, self.settings.max_spikes_per_step, self._consts, dynamics, drift, z, u,
+            measured, float(dt), leak, self.settings.max_spikes_per_step, self._constants(dt), dynamics, drift, z, u,
             self._x_hat, self._p, self._gain, self._decoder, self._gram, self._thresholds,
             self._alive, self._r, self._v, noise, self._spikes, self._total_spikes)
         if status == kernels.STATUS_BAD_INPUT:

@@ -28,6 +28,8 @@ CW_STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
 #: Filters in every Monte-Carlo table, default preset first, then the literal network.
 TABLE_FILTERS = ('ekf', 'emsif', 'snn_ekf', 'snn_emsif', 'esif', 'snn_emsif_star')
 AS_PUBLISHED_FILTERS = ('ekf', 'emsif', 'snn_ekf', 'snn_emsif')
+#: Rows with R_hat read as a per-sample variance (Eq. 5-6 then use R_hat dt; README, Decisions).
+PER_SAMPLE_FILTERS = ('ekf', 'emsif', 'snn_ekf', 'snn_emsif')
 NEURON_COUNTS = tuple(range(50, 501, 50))
 RUNTIME_COUNTS = (50, 100, 300)
 
@@ -117,16 +119,19 @@ def summarise(result: SimulationResult, states) -> dict:
 def run_table(scenario_factory, changes: dict, runs: int, progress: Progress, label: str):
     """All filters of one table; returns (records, results kept for figures)."""
     records, results = {}, {}
-    for preset, kinds in (('default', TABLE_FILTERS), ('as_published', AS_PUBLISHED_FILTERS)):
-        scenario = scenario_factory(preset, **changes)
+    groups = (('default', TABLE_FILTERS, {}), ('as_published', AS_PUBLISHED_FILTERS, {}),
+              ('per_sample_R', PER_SAMPLE_FILTERS, {'measurement_noise_units': 'per_sample'}))
+    for label_suffix, kinds, units in groups:
+        preset = 'as_published' if label_suffix == 'as_published' else 'default'
+        scenario = scenario_factory(preset, **units, **changes)
         for kind in kinds:
-            key = kind if preset == 'default' else f'{kind}@as_published'
+            key = kind if label_suffix == 'default' else f'{kind}@{label_suffix}'
             progress.start(f'{label}: {key}', scenario.steps)
             result = simulate(scenario, kind, runs=runs, on_step=progress.update)
             progress.update(scenario.steps)
             states = CW_STATES if scenario.name == 'rendezvous' else VDP_STATES
             records[key] = summarise(result, states)
-            if preset == 'default':
+            if label_suffix == 'default':
                 results[kind] = result
     return records, results
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .config import gain_noise_density
 from .estimators import Estimator
 
 
@@ -34,6 +35,7 @@ class DenseSpikingFilter:
         self.P = estimator._p[0].copy()
         self.alive = estimator._alive[0].copy()
         self.gain_law = {0: 'kalman', 1: 'msif', 2: 'sif'}[estimator._gain_code]
+        self.settings = s
         self.q_hat = s.q_hat
         self.r_hat = s.r_hat
         self.delta = s.boundary_layer
@@ -44,10 +46,10 @@ class DenseSpikingFilter:
     def x_hat(self) -> np.ndarray:
         return self.scale * (self.decoder @ self.r)                          # Eq. 12
 
-    def gain(self, innovation: np.ndarray) -> np.ndarray:
+    def gain(self, innovation: np.ndarray, dt: float) -> np.ndarray:
         c = self.model.measurement_matrix
         if self.gain_law == 'kalman':
-            return self.P @ c.T @ np.linalg.inv(self.r_hat)                   # Eq. 5
+            return self.P @ c.T @ np.linalg.inv(gain_noise_density(self.settings, dt))  # Eq. 5
         if self.gain_law == 'msif':
             p_zz = c @ self.P @ c.T + self.r_hat                              # Eq. 9 (corrected)
             return np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / self.delta, 1.0))  # Eq. 8
@@ -58,7 +60,7 @@ class DenseSpikingFilter:
         d, s_inv = self.decoder, 1.0 / self.scale
         x_hat = self.x_hat
         c = model.measurement_matrix
-        k_gain = self.gain(z - c @ x_hat)
+        k_gain = self.gain(z - c @ x_hat, dt)
         a_d, b_d = model.linearized_increment(x_hat, dt, self.method)
         a_scaled = s_inv[:, None] * a_d * self.scale[None, :]
         n = len(self.scale)
@@ -69,7 +71,8 @@ class DenseSpikingFilter:
         if self.gain_law != 'sif':
             jac = model.jacobian(x_hat, u)
             self.P = self.P + dt * (jac @ self.P + self.P @ jac.T + self.q_hat
-                                    - self.P @ c.T @ np.linalg.inv(self.r_hat) @ c @ self.P)  # Eq. 6
+                                    - self.P @ c.T @ np.linalg.inv(gain_noise_density(self.settings, dt))
+                                    @ c @ self.P)  # Eq. 6
         v_dot = -self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z  # Eq. 15
         self.v = self.v + dt * v_dot
         self.r = self.r * (1.0 - self.leak * dt)                               # Eq. 11
@@ -107,14 +110,16 @@ class DenseFilter:
         self.x_hat = estimator._x_hat[0].copy()
         self.P = estimator._p[0].copy()
         self.gain_law = {0: 'kalman', 1: 'msif', 2: 'sif'}[estimator._gain_code]
+        self.settings = s
         self.q_hat, self.r_hat, self.delta = s.q_hat, s.r_hat, s.boundary_layer
         self.method = s.discretization
 
     def step(self, z, u, dt: float) -> np.ndarray:
         c = self.model.measurement_matrix
         innovation = z - c @ self.x_hat
+        r_density = gain_noise_density(self.settings, dt)  # the R of Eq. 5-6
         if self.gain_law == 'kalman':
-            gain = self.P @ c.T @ np.linalg.inv(self.r_hat)
+            gain = self.P @ c.T @ np.linalg.inv(r_density)
         elif self.gain_law == 'msif':
             p_zz = c @ self.P @ c.T + self.r_hat
             gain = np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / self.delta, 1.0))
@@ -123,6 +128,6 @@ class DenseFilter:
         if self.gain_law != 'sif':
             jac = self.model.jacobian(self.x_hat, u)
             self.P = self.P + dt * (jac @ self.P + self.P @ jac.T + self.q_hat
-                                    - self.P @ c.T @ np.linalg.inv(self.r_hat) @ c @ self.P)
+                                    - self.P @ c.T @ np.linalg.inv(r_density) @ c @ self.P)
         self.x_hat = self.model.transition(self.x_hat, u, dt, self.method) + dt * gain @ innovation
         return self.x_hat

@@ -164,9 +164,13 @@ def test_initial_rates_are_non_negative_and_decode_to_the_initial_estimate():
 @pytest.mark.parametrize('kind', SPIKING)
 @pytest.mark.parametrize('rule', ['greedy', 'one_per_step', 'all_above'])
 def test_compiled_network_equals_the_dense_paper_network(kind, rule):
+    assert_compiled_equals_dense(kind, spike_rule=rule, neuron_count=60)
+
+
+def assert_compiled_equals_dense(kind, **changes):
+    """Same spikes and estimates, step by step, over a closed-loop rendezvous input."""
     scenario, zs, us = rendezvous_inputs(steps=150)
-    config = scenario.estimator.replace(spike_rule=rule, neuron_count=60)
-    fast = make_estimator(kind, config)
+    fast = make_estimator(kind, scenario.estimator.replace(**changes))
     dense = DenseSpikingFilter(fast)
     for z, u in zip(zs, us):
         fast.step(z, u, 0.1)
@@ -174,6 +178,37 @@ def test_compiled_network_equals_the_dense_paper_network(kind, rule):
         np.testing.assert_array_equal(fast.spikes, dense.spikes)
         np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-9, atol=1e-12)
     assert fast.total_spikes > 0
+
+
+@pytest.mark.parametrize('kind', ['snn_ekf', 'snn_emsif'])
+def test_compiled_network_equals_the_dense_network_with_a_per_sample_r_hat(kind):
+    assert_compiled_equals_dense(kind, measurement_noise_units='per_sample', neuron_count=60)
+
+
+def test_a_per_sample_r_hat_enters_eq_5_and_6_as_r_hat_dt_and_eq_9_as_it_is():
+    """EKF: per_sample R_hat is exactly the spectral density R_hat dt. MSIF: the innovation
+    covariance P^zz keeps the per-sample R_hat, only its Riccati step uses R_hat dt."""
+    scenario, zs, us = rendezvous_inputs(steps=200)
+    dt = scenario.dt
+    base = scenario.estimator
+    per_sample = make_estimator('ekf', base.replace(measurement_noise_units='per_sample'))
+    density = make_estimator('ekf', base.replace(measurement_noise_scale=base.measurement_noise_scale * dt))
+    for z, u in zip(zs, us):
+        per_sample.step(z, u, dt)
+        density.step(z, u, dt)
+    np.testing.assert_allclose(per_sample.x_hat, density.x_hat, rtol=1e-12)
+    np.testing.assert_allclose(per_sample.P, density.P, rtol=1e-12, atol=1e-20)
+    msif = make_estimator('emsif', base.replace(measurement_noise_units='per_sample'))
+    p0, c = msif.P.copy(), scenario.model.measurement_matrix
+    msif.step(zs[0], us[0], dt)
+    r_hat = msif.settings.r_hat
+    p_zz = c @ p0 @ c.T + r_hat
+    np.testing.assert_allclose(msif.gain, np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / 0.1, 1.0)),
+                               rtol=1e-12)
+    a = scenario.model.system_matrix(scenario.model.mean_motion)
+    r_inv = np.linalg.inv(r_hat * dt)
+    expected_p = p0 + dt * (a @ p0 + p0 @ a.T + msif.settings.q_hat - p0 @ c.T @ r_inv @ c @ p0)
+    np.testing.assert_allclose(msif.P, expected_p, rtol=1e-12, atol=1e-20)
 
 
 def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol():
@@ -316,6 +351,7 @@ def test_a_state_the_network_cannot_represent_is_refused_quietly_and_changes_not
     ({'state_scale': (1.0, 1.0, 1.0, 1.0, 1.0, 0.0)}, 'state_scale'),
     ({'spike_rule': 'fastest'}, 'spike_rule'),
     ({'discretization': 'rk45'}, 'discretization'),
+    ({'measurement_noise_units': 'variance'}, 'measurement_noise_units'),
     ({'silenced_neurons': (200,)}, 'silenced_neurons'),
     ({'initial_state': (np.nan, 0, 0, 0, 0, 0)}, 'finite'),
 ])
@@ -361,11 +397,12 @@ def test_van_der_pol_network_uses_the_jacobian_form_of_eq_17():
     assert scipy.linalg.norm(a) > 0
 
 
+@pytest.mark.parametrize('units', ['spectral_density', 'per_sample'])
 @pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif'])
-def test_compiled_direct_filters_equal_the_written_out_equations(kind):
+def test_compiled_direct_filters_equal_the_written_out_equations(kind, units):
     from snn_estimator.reference import DenseFilter
     scenario, zs, us = rendezvous_inputs(steps=200)
-    fast = make_estimator(kind, scenario.estimator)
+    fast = make_estimator(kind, scenario.estimator.replace(measurement_noise_units=units))
     dense = DenseFilter(fast)
     for z, u in zip(zs, us):
         fast.step(z, u, 0.1)
