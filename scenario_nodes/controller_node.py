@@ -19,8 +19,9 @@ from snn_estimator.validation import as_matrix
 from . import qos
 from .conversions import MessageError, decode_odometry, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import CONTROLLER, cw_model, declare, input_lead_limit_s
-from .runtime import clock_ns, on_clock_jump_back, run_node
+from .parameters import CONTROLLER, cw_model, declare
+from .runtime import (clock_ns, on_clock_jump_back, run_node, seconds_ahead_of_clock,
+                      time_base_restarted)
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
@@ -44,6 +45,7 @@ class ControllerNode(Node):
         self._published = 0
         self._safe_steps = 0
         self._safe = False
+        self._time_jumps = 0
         self._rejected = Rejections()
         self._last_stamp_ns = None
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
@@ -91,9 +93,9 @@ class ControllerNode(Node):
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             # a time base restart shows as a clock jump when there is a clock; without one, as
             # estimates far in the past
-            if clock_ns(self) <= 0 and \
-                    stamp_ns < self._last_stamp_ns - seconds_to_ns(self._p['time_jump_threshold']):
+            if time_base_restarted(self, stamp_ns, self._last_stamp_ns, self._p['time_jump_threshold']):
                 self.get_logger().warning('estimate time went back: starting over')
+                self._time_jumps += 1
                 self._last_stamp_ns = None
             else:
                 self._reject('not_newer', f'stamp {stamp_ns * 1e-9:.3f} s did not advance', stamp_ns)
@@ -102,9 +104,9 @@ class ControllerNode(Node):
         if now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age']):
             self._reject('too_old', f"{(now - stamp_ns) * 1e-9:.3f} s behind the clock", stamp_ns)
             return
-        if now > 0 and stamp_ns > now + seconds_to_ns(input_lead_limit_s(self._p)):
-            # accepted, it would make every real estimate 'not_newer' and blind the watchdog
-            self._reject('future', f"{(stamp_ns - now) * 1e-9:.3f} s ahead of the clock", now)
+        ahead = seconds_ahead_of_clock(self, stamp_ns, self._p)
+        if ahead:  # accepted, it would make every real estimate 'not_newer' and blind the watchdog
+            self._reject('future', f'{ahead:.3f} s ahead of the clock', now)
             return
         self._last_stamp_ns = self._last_estimate_ns = stamp_ns
         if self._safe:
@@ -146,6 +148,7 @@ class ControllerNode(Node):
 
     def _on_time_jump(self, seconds: float) -> None:
         self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
+        self._time_jumps += 1
         self._last_stamp_ns = self._last_estimate_ns = None
         if self._safe:
             self._leave_safe_mode('clock reset')
@@ -169,7 +172,8 @@ class ControllerNode(Node):
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
         values = {'controls_published': self._published, 'safe_mode': self._safe,
-                  'safe_mode_steps': self._safe_steps, **self._rejected.as_values('estimates')}
+                  'safe_mode_steps': self._safe_steps, 'time_jumps': self._time_jumps,
+                  **self._rejected.as_values('estimates')}
         problems = [f'{self._rejected.total} estimates rejected'] if self._rejected.total else []
         if self._safe:
             problems.append('safe mode: zero thrust, no estimate')

@@ -34,8 +34,9 @@ from .conversions import (MessageError, control_of, decode_accel, decode_odometr
                           encode_odometry, encode_spikes, encode_uint32, measurement_of, seconds_to_ns,
                           state_of)
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import ESTIMATOR, cw_model, declare, estimator_config, input_lead_limit_s, silenced_set
-from .runtime import clock_ns, on_clock_jump_back, run_node
+from .parameters import ESTIMATOR, cw_model, declare, estimator_config, silenced_set
+from .runtime import (clock_ns, on_clock_jump_back, run_node, seconds_ahead_of_clock,
+                      time_base_restarted)
 
 #: Parameters applied between steps through the parameter services; everything else is read-only.
 RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
@@ -151,8 +152,8 @@ class EstimatorNode(Node):
             return
         # Without a running clock, stamps far in the past mean the time base restarted (with a
         # clock, its own jump callback says so, and old stamps are only late history).
-        if (self._t_ns is not None and self._now_ns() <= 0
-                and stamp_ns < self._t_ns - seconds_to_ns(self._p['time_jump_threshold'])):
+        if self._t_ns is not None and time_base_restarted(self, stamp_ns, self._t_ns,
+                                                         self._p['time_jump_threshold']):
             self._restart(f'measurement time went back from {self._t_ns * 1e-9:.3f} s to '
                           f'{stamp_ns * 1e-9:.3f} s', 'time_jumps')
         if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
@@ -169,10 +170,9 @@ class EstimatorNode(Node):
             self._reject('misaligned', f'{where} does not fall on the estimate time '
                          f'{self._t_ns * 1e-9:.3f} s plus steps of {self._dt} s (time_step?)')
             return
-        now = self._now_ns()
-        if now > 0 and stamp_ns > now + seconds_to_ns(input_lead_limit_s(self._p)):
-            # queued, it would make every real measurement 'too_old' and stall the watchdog
-            self._reject('future', f'{where} is {(stamp_ns - now) * 1e-9:.3f} s ahead of the clock')
+        ahead = seconds_ahead_of_clock(self, stamp_ns, self._p)
+        if ahead:  # queued, it would make every real measurement 'too_old' and stall the watchdog
+            self._reject('future', f'{where} is {ahead:.3f} s ahead of the clock')
             return
         self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
         self._last_arrival = time.monotonic()

@@ -230,13 +230,6 @@ def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
     return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})
 
 
-def input_lead_limit_s(values: dict) -> float:
-    """How far ahead of the simulated clock an input may be stamped before it is rejected:
-    ``max_input_age`` plus two steps (an estimate is stamped one step ahead of the clock, and
-    /clock may arrive after the message it precedes)."""
-    return values['max_input_age'] + 2 * values['time_step']
-
-
 def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
     """The CW model the parameters describe."""
     from snn_estimator import ClohessyWiltshire

@@ -21,6 +21,8 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
+from .conversions import seconds_to_ns
+
 EXIT_OK = 0
 EXIT_CONFIG = 2
 EXIT_FAILURE = 1
@@ -66,6 +68,24 @@ def clock_ns(node) -> int:
     clock = node.get_clock()
     with clock.handle:
         return clock.handle.get_now().nanoseconds
+
+
+def time_base_restarted(node, stamp_ns: int, last_ns: int, threshold_s: float) -> bool:
+    """Without a running clock (it reads 0), an input stamped more than ``threshold_s`` before
+    the last one means the time base restarted (a restarted plant, a bag loop). With a clock,
+    old stamps are only late inputs: its jump callback (:func:`on_clock_jump_back`) reports a
+    restart."""
+    return clock_ns(node) <= 0 and stamp_ns < last_ns - seconds_to_ns(threshold_s)
+
+
+def seconds_ahead_of_clock(node, stamp_ns: int, values: dict) -> float:
+    """How far ``stamp_ns`` lies ahead of the running clock when that is more than
+    ``max_input_age`` plus two ``time_step`` (an estimate is stamped one step ahead, and /clock
+    may arrive after the message it precedes); 0 when it is not, or without a clock. Accepted,
+    such an input would make every real one look old."""
+    now = clock_ns(node)
+    lead = seconds_to_ns(values['max_input_age'] + 2 * values['time_step'])
+    return (stamp_ns - now) * 1e-9 if now > 0 and stamp_ns > now + lead else 0.0
 
 
 def on_clock_jump_back(node, callback: Callable[[float], None]):

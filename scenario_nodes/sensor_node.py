@@ -9,10 +9,10 @@ from rclpy.node import Node
 from snn_estimator.simulation import PositionSensor
 
 from . import qos
-from .conversions import MessageError, decode_odometry, encode_point, seconds_to_ns, state_of
+from .conversions import MessageError, decode_odometry, encode_point, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, cw_model, declare
-from .runtime import clock_ns, on_clock_jump_back, run_node
+from .runtime import on_clock_jump_back, run_node, time_base_restarted
 
 
 class SensorNode(Node):
@@ -29,6 +29,7 @@ class SensorNode(Node):
         self._published = 0
         self._rejected = Rejections()
         self._last_stamp_ns = None
+        self._time_jumps = 0
         self._pub = self.create_publisher(PointStamped, qos.MEASUREMENT, qos.PUBLISHER_QOS)
         self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'])
         self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.SUBSCRIBER_QOS, raw=True)
@@ -44,13 +45,11 @@ class SensorNode(Node):
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)
             return
         stamp_ns = truth.stamp_ns
-        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
-            # a time base restart shows as a clock jump when there is a clock; without one, as
-            # truth far in the past
-            if clock_ns(self) <= 0 and \
-                    stamp_ns < self._last_stamp_ns - seconds_to_ns(self._p['time_jump_threshold']):
-                self.get_logger().warning('truth time went back: starting over')
-                self._last_stamp_ns = None
+        if self._last_stamp_ns is not None and time_base_restarted(
+                self, stamp_ns, self._last_stamp_ns, self._p['time_jump_threshold']):
+            self.get_logger().warning('truth time went back: starting over')
+            self._time_jumps += 1
+            self._last_stamp_ns = None
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             self._rejected['not_newer'] += 1
             self.get_logger().warning('truth stamp did not advance; not measured twice',
@@ -65,10 +64,12 @@ class SensorNode(Node):
 
     def _on_time_jump(self, seconds: float) -> None:
         self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
+        self._time_jumps += 1
         self._last_stamp_ns = None
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
-        values = {'measurements_published': self._published, **self._rejected.as_values('truth')}
+        values = {'measurements_published': self._published, 'time_jumps': self._time_jumps,
+                  **self._rejected.as_values('truth')}
         problems = [f'{self._rejected.total} truth messages rejected'] if self._rejected.total else []
         self._diagnostics.publish(stamp_ns, values, problems)
 

@@ -370,16 +370,31 @@ def test_sensor_starts_over_when_the_clock_or_the_truth_time_goes_back():
             harness.publish(qos.TRUTH, state_to_odometry(truth, None, stamp, 'lvlh', 'c'))
         assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT]))
         harness.wait_value('position_sensor', 'truth_rejected.not_newer', 1)
-        # with a clock: a small step back in the truth is only a duplicate...
-        harness.clock(30 * DT)
-        harness.publish(qos.TRUTH, state_to_odometry(truth, None, 29 * DT, 'lvlh', 'c'))
+        # with a clock, even truth 2 s back is only late: not measured...
+        harness.clock(40 * DT)
+        assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 40 * DT)
+        harness.publish(qos.TRUTH, state_to_odometry(truth, None, 10 * DT, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: sensor._rejected['not_newer'] == 2)
         # ...but the clock going back (a restarted plant) starts the sensor over
-        assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 30 * DT)
-        harness.clock(0)
-        assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 0)
-        harness.publish(qos.TRUTH, state_to_odometry(truth, None, 0, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT, 0]))
-        harness.wait_value('position_sensor', 'truth_rejected.not_newer', 2)  # 29 s was not measured
+        harness.clock(5 * DT)
+        assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 5 * DT)
+        harness.publish(qos.TRUTH, state_to_odometry(truth, None, 5 * DT, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT, 5 * DT]))
+        harness.wait_value('position_sensor', 'time_jumps', 2)
+
+
+def test_controller_starts_over_when_the_clock_goes_back(controller_rig):
+    harness, controller = controller_rig
+    x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+    harness.clock(20 * DT)
+    assert spin_until(harness.executor, lambda: controller.get_clock().now().nanoseconds == 20 * DT)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 21 * DT, 'lvlh', 'c'))
+    assert spin_until(harness.executor, lambda: len(harness.received[qos.CONTROL]) == 1)
+    harness.clock(5 * DT)  # a restarted plant: estimates from 6 s on are new again
+    assert spin_until(harness.executor, lambda: controller.get_clock().now().nanoseconds == 5 * DT)
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 6 * DT, 'lvlh', 'c'))
+    assert spin_until(harness.executor, lambda: len(harness.received[qos.CONTROL]) == 2)
+    harness.wait_value('lqr_controller', 'time_jumps', 1)
 
 
 def test_plant_rejects_bad_controls_and_pauses():
