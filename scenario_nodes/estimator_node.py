@@ -47,12 +47,6 @@ WARM_START_PATIENCE = 5.0  # wall s a joining estimator waits for the controls o
 DROPOUT_WAIT = 0.25  # wall s without any measurement before predicting up to the clock
 
 
-def _check_leak(leak_rate: float, dt: float) -> None:
-    if leak_rate * dt >= 1.0:
-        raise ValueError(f'leak_rate * time_step must be < 1 for the Euler step of Eq. 10-11; '
-                         f'got {leak_rate} * {dt}')
-
-
 class EstimatorNode(Node):
     """Converts messages, calls the core estimator, publishes; holds no filter math."""
 
@@ -63,12 +57,12 @@ class EstimatorNode(Node):
         self._axes = tuple(int(a) for a in p['measured_axes'])
         model = cw_model(p, form=p['cw_model'], measured_axes=self._axes)
         self._estimator = make_estimator(p['filter_type'], estimator_config(p), model)
+        self._estimator.check_time_step(p['time_step'])  # leak and P0 against the step size
         self._estimator.step(np.zeros(len(self._axes)), np.zeros(3), p['time_step'])  # load the
         self._estimator.reset()  # compiled kernel now, not in the first step of the loop
         self._measurement_r = self._estimator.settings.r_hat / p['measurement_noise_scale']
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
-        _check_leak(p['leak_rate'], self._dt)
         self._frame, self._child = p['frame_id'], p['child_frame_id']
         self._first_arrival: float | None = None  # wall time of the first measurement
         self._pending: dict[int, np.ndarray] = {}
@@ -467,10 +461,9 @@ class EstimatorNode(Node):
         if 'boundary_layer' in retune:
             retune['boundary_layer'] = list(retune['boundary_layer'])
         try:  # validate everything before changing anything
-            _check_leak(values['leak_rate'], self._dt)
             silenced = silenced_set(values, self._estimator.neuron_count, self._estimator.settings.seed)
-            if retune:
-                self._estimator.retune(**retune)  # validates first; raises without changing
+            if retune:  # validated first (also against time_step); raises without changing
+                self._estimator.retune(**retune)
         except ValueError as error:
             return SetParametersResult(successful=False, reason=str(error))
         if self._estimator.spiking and ('silenced_neurons' in changes or 'silenced_fraction' in changes):

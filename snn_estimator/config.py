@@ -140,8 +140,9 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
 
 def gain_noise_density(settings: ResolvedConfig, dt: float) -> np.ndarray:
     """The R of Eq. 5-6 (a spectral density): R_hat as printed, or R_hat dt when R_hat is the
-    variance of each sample (then a step of Eq. 5 moves the estimate as far as a discrete
-    Kalman update with variance R_hat would)."""
+    variance of each sample (then, while C P C^T << R_hat, a step of Eq. 5 moves the estimate
+    as far as a discrete Kalman update with variance R_hat would; Estimator.check_time_step
+    refuses a P0 that one Euler step of Eq. 6 would overshoot)."""
     if settings.measurement_noise_units == 'per_sample':
         return settings.r_hat * dt
     return settings.r_hat

@@ -291,12 +291,41 @@ class Estimator:
             raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
         config = self.config.replace(**changes)
         settings = resolve(config, self.model)
+        for dt in self._consts_by_dt:  # the step sizes in use must still work
+            self.check_time_step(dt, settings)
         self.config, self.settings, self._consts_by_dt = config, settings, {}
+
+    def check_time_step(self, dt: float, settings: ResolvedConfig | None = None) -> None:
+        """Raise ValueError when steps of ``dt`` cannot work: a network needs leak_rate * dt < 1
+        (Eq. 10-11), and one Euler step of Eq. 6 from P0 must remove less than P0 in the
+        measured directions (dt C P0 C^T R^-1 <= 1, R the density of Eq. 5-6), or P stops
+        being a covariance and the filter diverges."""
+        s = settings or self.settings
+        if not 0.0 < dt < math.inf:
+            raise ValueError(f'dt must be a finite positive number of seconds, got {dt!r}')
+        if self.spiking and s.leak_rate * dt >= 1.0:
+            raise ValueError(f'leak_rate * dt must be < 1 (got {s.leak_rate} * {dt}); use a smaller step')
+        if not self.has_covariance:
+            return
+        c = self._c
+        step_gain = dt * c @ s.initial_covariance @ c.T @ np.linalg.inv(gain_noise_density(s, dt))
+        largest = float(np.max(np.linalg.eigvals(step_gain).real))
+        if largest > 1.0 + 1e-9:
+            hint = (', or measurement_noise_units spectral_density'
+                    if s.measurement_noise_units == 'per_sample' else '')
+            raise ValueError(
+                f'dt C P0 C^T R^-1 reaches {largest:.3g} at dt = {dt} s (at most 1): the '
+                'Euler step of Eq. 6 would make P indefinite and the filter diverge. Lower '
+                f'initial_covariance (P0) on the measured axes, raise measurement_noise_scale{hint}, '
+                'or use a smaller time step')
 
     def _constants(self, dt: float) -> np.ndarray:
         """The kernel's packed constants for steps of ``dt`` (R of Eq. 5-6 may depend on it)."""
         consts = self._consts_by_dt.get(dt)
         if consts is None:
+            self.check_time_step(dt)
+            if len(self._consts_by_dt) >= 16:  # a caller varying dt: keep the cache small
+                self._consts_by_dt.clear()
             s = self.settings
             consts = self._consts_by_dt[dt] = kernels.pack_constants(
                 self._c, self._c_pinv, s.q_hat, np.linalg.inv(gain_noise_density(s, dt)),
@@ -363,11 +392,8 @@ class Estimator:
         if z.shape[1] != self.model.n_meas or u.shape[1] != self.model.n_input:
             raise ValueError(f'z must have {self.model.n_meas} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
-        if not 0.0 < dt < math.inf:
-            raise ValueError(f'dt must be a finite positive number of seconds, got {dt!r}')
+        consts = self._constants(dt)  # checks dt the first time it is used
         leak = self.settings.leak_rate
-        if self.spiking and leak * dt >= 1.0:
-            raise ValueError(f'leak_rate * dt must be < 1 (got {leak} * {dt}); use a smaller step')
         dynamics, drift, use_drift = self._dynamics(dt, u)
         noise = self._zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:
@@ -376,7 +402,7 @@ class Estimator:
                               for g in self._noise_rngs])
         status, capped = kernels.estimator_step(
             self._gain_code, self.spiking, self._rule_code, self.has_covariance, use_drift,
-            measured, float(dt), leak, self.settings.max_spikes_per_step, self._constants(dt), dynamics, drift, z, u,
+            measured, float(dt), leak, self.settings.max_spikes_per_step, consts, dynamics, drift, z, u,
             self._x_hat, self._p, self._gain, self._decoder, self._gram, self._thresholds,
             self._alive, self._r, self._v, noise, self._spikes, self._total_spikes)
         if status == kernels.STATUS_BAD_INPUT:

@@ -211,6 +211,27 @@ def test_a_per_sample_r_hat_enters_eq_5_and_6_as_r_hat_dt_and_eq_9_as_it_is():
     np.testing.assert_allclose(msif.P, expected_p, rtol=1e-12, atol=1e-20)
 
 
+def test_a_step_that_would_make_p_indefinite_is_refused_before_it_is_taken():
+    """One Euler step of Eq. 6 removes dt P0 C^T R^-1 C P0 in the measured directions; removing
+    more than P0 makes P indefinite and the filter diverge, so such a step is refused before it
+    is taken, naming the fix."""
+    scenario, zs, us = rendezvous_inputs(steps=5)
+    big_p0 = (0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4)  # R_hat = 0.05 m^2
+    per_sample = make_estimator('ekf', scenario.estimator.replace(
+        measurement_noise_units='per_sample', initial_covariance=big_p0))
+    with pytest.raises(ValueError, match='initial_covariance'):
+        per_sample.step(zs[0], us[0], 0.1)
+    assert per_sample.steps == 0
+    spectral = make_estimator('emsif', scenario.estimator.replace(initial_covariance=big_p0))
+    spectral.step(zs[0], us[0], 0.1)  # dt P0 / R_hat = 0.2: fine
+    assert np.all(np.linalg.eigvalsh(spectral.P) > 0)
+    with pytest.raises(ValueError, match='time step'):
+        spectral.step(zs[1], us[1], 1.0)  # 2.0 at dt = 1 s
+    with pytest.raises(ValueError, match='measurement_noise_scale'):
+        spectral.retune(measurement_noise_scale=0.1)  # R_hat = 1e-3: 10 at the step in use
+    assert spectral.settings.r_hat[0, 0] == pytest.approx(0.05)
+
+
 def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol():
     scenario = van_der_pol_scenario()
     rng = np.random.default_rng(3)

@@ -213,6 +213,8 @@ def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_tr
     (EstimatorNode, 'estimator', {'initial_state': [1.0, 2.0]}, 'initial_state'),
     (EstimatorNode, 'estimator', {'initial_covariance': [1.0, 1.0, 1.0, 1.0, 1.0, -1.0]}, 'positive definite'),
     (EstimatorNode, 'estimator', {'filter_type': 'ukf'}, 'filter_type'),
+    (EstimatorNode, 'estimator', {'measurement_noise_units': 'per_sample',
+                                  'initial_covariance': [0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4]}, 'initial_covariance'),
     (PlantNode, 'cw_plant', {'mode': 'fast'}, 'mode'),
     (PlantNode, 'cw_plant', {'start_time': 3e9}, 'start_time'),  # beyond a ROS stamp's int32 s
     (SensorNode, 'position_sensor', {'measurement_noise': [1.0, 2.0]}, 'measurement_noise'),
