@@ -89,7 +89,7 @@ class CpuSampler:
                 for name in last if name in first}
 
 
-def bench_run(run_dir: Path, estimator: str, duration: float) -> dict:
+def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = True) -> dict:
     """One lockstep run; returns its real-time factor and CPU per step by node."""
     from .bag_tools import read_bag, summarize
 
@@ -100,7 +100,8 @@ def bench_run(run_dir: Path, estimator: str, duration: float) -> dict:
         samplers[-1].start()
 
     try:
-        result = run_pipeline(run_dir, estimator, 'lockstep', duration=duration, on_start=watch)
+        result = run_pipeline(run_dir, estimator, 'lockstep', duration=duration, on_start=watch,
+                              pin_cpus=pin_cpus)
     finally:
         for sampler in samplers:
             sampler.stop()
@@ -120,6 +121,8 @@ def main(argv=None) -> int:
     parser.add_argument('--duration', type=float, default=720.0,
                         help='simulated seconds per run (default 720: long enough for a CPU window)')
     parser.add_argument('--out', type=Path, help='also write the figures as JSON here')
+    parser.add_argument('--cpu-affinity', default='auto', choices=('auto', 'off'),
+                        help="as snn_demo's (auto: estimator and controller on one CPU)")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.duration <= 0:
         parser.error('--runs must be >= 1 and --duration > 0')
@@ -129,7 +132,8 @@ def main(argv=None) -> int:
     with TemporaryDirectory(prefix='snn_loop_bench_') as folder:
         for index in range(args.runs):
             try:
-                run = bench_run(Path(folder) / f'run_{index}', args.estimator, args.duration)
+                run = bench_run(Path(folder) / f'run_{index}', args.estimator, args.duration,
+                                args.cpu_affinity == 'auto')
             except RuntimeError as error:
                 print(f'snn_loop_bench: run {index + 1} failed: {error}', file=sys.stderr)
                 return 1

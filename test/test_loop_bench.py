@@ -76,3 +76,29 @@ def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
         # every node works each step; no node can use more than all CPUs for the whole step
         wall_ms_per_step = 1e3 * run['wall_time_s'] / run['steps']
         assert all(0 < ms < 1.5 * os.cpu_count() * wall_ms_per_step for ms in cpu.values())
+
+
+def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
+    from scenario_nodes.demo import cpu_plan
+    plan = cpu_plan({0, 1})
+    assert plan['estimator'] == plan['lqr_controller'] == {1}
+    assert plan['cw_plant'] == plan['position_sensor'] == plan['recorder'] == {0}
+    four = cpu_plan({4, 5, 6, 7})
+    assert four['estimator'] == {7} and four['recorder'] == {4, 5, 6}
+    assert cpu_plan({3}) == {}  # one CPU: nothing to separate
+
+
+@pytest.mark.skipif(not hasattr(os, 'sched_getaffinity') or len(os.sched_getaffinity(0)) < 2,
+                    reason='needs CPU affinity and two CPUs')
+def test_pipeline_nodes_start_on_their_planned_cpus_unless_told_not_to(tmp_path):
+    from scenario_nodes.demo import Pipeline, cpu_plan, pipeline_env
+    from scenario_nodes.paths import config_file
+    everything = os.sched_getaffinity(0)
+    for pin, expected in ((True, cpu_plan()), (False, {})):
+        pipeline = Pipeline(tmp_path / str(pin), config_file(), {}, pipeline_env(), pin_cpus=pin)
+        pipeline.start()
+        try:
+            for name, process in pipeline.processes.items():
+                assert os.sched_getaffinity(process.pid) == expected.get(name, everything), name
+        finally:
+            pipeline.stop_all()
