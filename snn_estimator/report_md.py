@@ -56,8 +56,8 @@ defaults (state scaling, exact zero-order-hold steps; README, "Decisions").
   C^+ on Van der Pol either way). The rendezvous rows barely change: with Q_hat ~ 1e-12 the
   Kalman gain decays like 1/t whatever R_hat is (the filter becomes a growing-memory least
   squares fit), and the EMSIF's gain is set by P^zz, which uses the per-sample R_hat in both
-  readings. The paper's values remain smaller than anything we measure; we do not tune ours
-  to match.
+  readings. The paper's EMSIF values remain far smaller than anything we measure; we do not
+  tune ours to match.
 * **EKF versus EMSIF.** With the corrected rendezvous model and exact discretisation the
   Kalman gain decays as P converges, so the EKF averages measurements over a long time and
   beats the EMSIF, whose gain settles at about 0.5 C^+ ((C P C^T + R_hat)_jj / delta with
