@@ -14,11 +14,10 @@ import numpy as np
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from .topics import PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
+
 STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
 NS = 1_000_000_000
-#: The topics read_bag decodes (qos.PIPELINE_TOPICS, without importing rclpy); a bag may hold
-#: others (``ros2 bag record -a``), of types this typestore need not know: only counted.
-PIPELINE = ('truth', 'measurement', 'control', 'estimate', 'spike_count', 'spikes', 'diagnostics')
 
 
 def _stamp(header) -> int:
@@ -81,7 +80,7 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
         prefix = namespace.rstrip('/') + '/'
         run.namespace = namespace.rstrip('/')
         pipeline = [c for c in reader.connections
-                    if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE]
+                    if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE_TOPICS]
         messages = reader.messages(connections=pipeline) if pipeline else ()  # [] reads all
         for connection, timestamp, raw in messages:
             topic = connection.topic

@@ -104,7 +104,7 @@ class ControllerNode(Node):
         if now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age']):
             self._reject('too_old', f"{(now - stamp_ns) * 1e-9:.3f} s behind the clock", stamp_ns)
             return
-        ahead = seconds_ahead_of_clock(self, stamp_ns, self._p)
+        ahead = seconds_ahead_of_clock(now, stamp_ns, self._p)
         if ahead:  # accepted, it would make every real estimate 'not_newer' and blind the watchdog
             self._reject('future', f'{ahead:.3f} s ahead of the clock', now)
             return

@@ -57,9 +57,10 @@ class EstimatorNode(Node):
         self._axes = tuple(int(a) for a in p['measured_axes'])
         model = cw_model(p, form=p['cw_model'], measured_axes=self._axes)
         self._estimator = make_estimator(p['filter_type'], estimator_config(p), model)
-        self._estimator.check_time_step(p['time_step'])  # leak and P0 against the step size
-        self._estimator.step(np.zeros(len(self._axes)), np.zeros(3), p['time_step'])  # load the
-        self._estimator.reset()  # compiled kernel now, not in the first step of the loop
+        # one step now loads the compiled kernel (not in the loop's first step) and checks leak
+        # and P0 against time_step (check_time_step: a ValueError is a configuration error)
+        self._estimator.step(np.zeros(len(self._axes)), np.zeros(3), p['time_step'])
+        self._estimator.reset()
         self._measurement_r = self._estimator.settings.r_hat / p['measurement_noise_scale']
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
@@ -164,7 +165,7 @@ class EstimatorNode(Node):
             self._reject('misaligned', f'{where} does not fall on the estimate time '
                          f'{self._t_ns * 1e-9:.3f} s plus steps of {self._dt} s (time_step?)')
             return
-        ahead = seconds_ahead_of_clock(self, stamp_ns, self._p)
+        ahead = seconds_ahead_of_clock(self._now_ns(), stamp_ns, self._p)
         if ahead:  # queued, it would make every real measurement 'too_old' and stall the watchdog
             self._reject('future', f'{where} is {ahead:.3f} s ahead of the clock')
             return

@@ -13,6 +13,10 @@ and how a replacement estimator finds the sensor's history.
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+# The topic names live in .topics (no rclpy there); re-exported here beside their QoS.
+from .topics import (CLOCK, CONTROL, DIAGNOSTICS, ESTIMATE, MEASUREMENT, PIPELINE_TOPICS,  # noqa: F401
+                     SET_STATE, SPIKE_COUNT, SPIKES, TRUTH)
+
 
 def _latched(depth: int) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
@@ -35,19 +39,6 @@ RECORDER_QOS = QoSProfile(
 CLOCK_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST, depth=1,
     reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
-
-# Relative names, so namespaces and remapping work.
-TRUTH = 'truth'
-MEASUREMENT = 'measurement'
-CONTROL = 'control'
-ESTIMATE = 'estimate'
-SPIKE_COUNT = 'spike_count'
-SPIKES = 'spikes'
-DIAGNOSTICS = 'diagnostics'
-SET_STATE = 'set_state'  # estimator input: replace the estimate (nav_msgs/Odometry)
-CLOCK = '/clock'
-
-PIPELINE_TOPICS = (TRUTH, MEASUREMENT, CONTROL, ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS)
 
 #: The target's local-vertical/local-horizontal frame (x V-bar, y -H, z R-bar toward Earth).
 LVLH_FRAME = 'lvlh'

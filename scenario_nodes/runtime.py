@@ -74,18 +74,17 @@ def time_base_restarted(node, stamp_ns: int, last_ns: int, threshold_s: float) -
     """Without a running clock (it reads 0), an input stamped more than ``threshold_s`` before
     the last one means the time base restarted (a restarted plant, a bag loop). With a clock,
     old stamps are only late inputs: its jump callback (:func:`on_clock_jump_back`) reports a
-    restart."""
-    return clock_ns(node) <= 0 and stamp_ns < last_ns - seconds_to_ns(threshold_s)
+    restart. The clock is read only for a stamp that far back (this runs for every input)."""
+    return stamp_ns < last_ns - seconds_to_ns(threshold_s) and clock_ns(node) <= 0
 
 
-def seconds_ahead_of_clock(node, stamp_ns: int, values: dict) -> float:
-    """How far ``stamp_ns`` lies ahead of the running clock when that is more than
+def seconds_ahead_of_clock(now_ns: int, stamp_ns: int, values: dict) -> float:
+    """How far ``stamp_ns`` lies ahead of the clock reading ``now_ns`` when that is more than
     ``max_input_age`` plus two ``time_step`` (an estimate is stamped one step ahead, and /clock
-    may arrive after the message it precedes); 0 when it is not, or without a clock. Accepted,
-    such an input would make every real one look old."""
-    now = clock_ns(node)
+    may arrive after the message it precedes); 0 when it is not, or without a clock (0).
+    Accepted, such an input would make every real one look old."""
     lead = seconds_to_ns(values['max_input_age'] + 2 * values['time_step'])
-    return (stamp_ns - now) * 1e-9 if now > 0 and stamp_ns > now + lead else 0.0
+    return (stamp_ns - now_ns) * 1e-9 if now_ns > 0 and stamp_ns > now_ns + lead else 0.0
 
 
 def on_clock_jump_back(node, callback: Callable[[float], None]):

@@ -1,0 +1,17 @@
+"""Topic names of the pipeline, defined once and free of rclpy (bag_tools reads bags without
+ROS); scenario_nodes.qos re-exports them beside the QoS profiles.
+
+Relative names, so namespaces and remapping work.
+"""
+
+TRUTH = 'truth'
+MEASUREMENT = 'measurement'
+CONTROL = 'control'
+ESTIMATE = 'estimate'
+SPIKE_COUNT = 'spike_count'
+SPIKES = 'spikes'
+DIAGNOSTICS = 'diagnostics'
+SET_STATE = 'set_state'  # estimator input: replace the estimate (nav_msgs/Odometry)
+CLOCK = '/clock'
+
+PIPELINE_TOPICS = (TRUTH, MEASUREMENT, CONTROL, ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS)
