@@ -2,6 +2,7 @@
 
     ros2 launch snn_rendezvous rendezvous.launch.py estimator:=snn_ekf mode:=realtime
     ros2 launch snn_rendezvous rendezvous.launch.py params_file:=/path/to/my.yaml record:=true
+    ros2 launch snn_rendezvous rendezvous.launch.py scheduling:=batch   # as snn_demo runs them
 
 Each node is its own process; swapping the estimator is only the `estimator` argument.
 """
@@ -9,7 +10,7 @@ Each node is its own process; swapping the estimator is only the `estimator` arg
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
@@ -36,13 +37,20 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'record', default_value='false',
             description='Also start the recorder (rosbag2 MCAP in ./bag_<date-time>)'),
+        DeclareLaunchArgument(
+            'scheduling', default_value='normal', choices=['normal', 'batch'],
+            description='batch: start every node under SCHED_BATCH (chrt --batch 0, Linux), as '
+                        'snn_demo does: no wakeup preemption, a faster lockstep loop on few cores'),
     ]
     params = LaunchConfiguration('params_file')
     namespace = LaunchConfiguration('namespace')
+    prefix = PythonExpression(["'chrt --batch 0' if '", LaunchConfiguration('scheduling'),
+                               "' == 'batch' else ''"])
 
     def node(executable, extra=None, **kwargs):
         return Node(package=PACKAGE, executable=executable, name=executable, namespace=namespace,
-                    parameters=[params] + ([extra] if extra else []), output='screen', **kwargs)
+                    parameters=[params] + ([extra] if extra else []), output='screen',
+                    prefix=prefix, **kwargs)
 
     return LaunchDescription(arguments + [
         node('lqr_controller'),

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
 
-from .demo import FILTERS, Pipeline, run_pipeline
+from .demo import FILTERS, SCHEDULING, Pipeline, run_pipeline
 
 #: Part of the stepping interval, at each end, left out of the CPU window.
 WINDOW_MARGIN = 0.2
@@ -89,7 +89,8 @@ class CpuSampler:
                 for name in last if name in first}
 
 
-def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = True) -> dict:
+def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = True,
+              scheduling: str = 'batch') -> dict:
     """One lockstep run; returns its real-time factor and CPU per step by node."""
     from .bag_tools import read_bag, summarize
 
@@ -101,7 +102,7 @@ def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = T
 
     try:
         result = run_pipeline(run_dir, estimator, 'lockstep', duration=duration, on_start=watch,
-                              pin_cpus=pin_cpus)
+                              pin_cpus=pin_cpus, scheduling=scheduling)
     finally:
         for sampler in samplers:
             sampler.stop()
@@ -123,6 +124,8 @@ def main(argv=None) -> int:
     parser.add_argument('--out', type=Path, help='also write the figures as JSON here')
     parser.add_argument('--cpu-affinity', default='auto', choices=('auto', 'off'),
                         help="as snn_demo's (auto: estimator and controller on one CPU)")
+    parser.add_argument('--scheduling', default='batch', choices=SCHEDULING,
+                        help="as snn_demo's (batch: SCHED_BATCH, no wakeup preemption)")
     args = parser.parse_args(argv)
     if args.runs < 1 or args.duration <= 0:
         parser.error('--runs must be >= 1 and --duration > 0')
@@ -133,7 +136,7 @@ def main(argv=None) -> int:
         for index in range(args.runs):
             try:
                 run = bench_run(Path(folder) / f'run_{index}', args.estimator, args.duration,
-                                args.cpu_affinity == 'auto')
+                                args.cpu_affinity == 'auto', args.scheduling)
             except RuntimeError as error:
                 print(f'snn_loop_bench: run {index + 1} failed: {error}', file=sys.stderr)
                 return 1

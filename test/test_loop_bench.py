@@ -88,17 +88,32 @@ def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
     assert cpu_plan({3}) == {}  # one CPU: nothing to separate
 
 
-@pytest.mark.skipif(not hasattr(os, 'sched_getaffinity') or len(os.sched_getaffinity(0)) < 2,
-                    reason='needs CPU affinity and two CPUs')
-def test_pipeline_nodes_start_on_their_planned_cpus_unless_told_not_to(tmp_path):
+@pytest.mark.skipif(not hasattr(os, 'sched_getaffinity') or len(os.sched_getaffinity(0)) < 2
+                    or not hasattr(os, 'SCHED_BATCH'),
+                    reason='needs CPU affinity, SCHED_BATCH and two CPUs')
+def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_to(tmp_path):
     from scenario_nodes.demo import Pipeline, cpu_plan, pipeline_env
     from scenario_nodes.paths import config_file
     everything = os.sched_getaffinity(0)
-    for pin, expected in ((True, cpu_plan()), (False, {})):
-        pipeline = Pipeline(tmp_path / str(pin), config_file(), {}, pipeline_env(), pin_cpus=pin)
+    own_policy, own_nice = os.sched_getscheduler(0), os.getpriority(os.PRIO_PROCESS, 0)
+    for pin, scheduling in ((True, 'batch'), (False, 'normal')):
+        expected = cpu_plan() if pin else {}
+        pipeline = Pipeline(tmp_path / str(pin), config_file(), {}, pipeline_env(), pin_cpus=pin,
+                            scheduling=scheduling)
         pipeline.start()
         try:
             for name, process in pipeline.processes.items():
                 assert os.sched_getaffinity(process.pid) == expected.get(name, everything), name
+                policy = os.SCHED_BATCH if scheduling == 'batch' else own_policy
+                assert os.sched_getscheduler(process.pid) == policy, (name, scheduling)
+                nice = min(own_nice + 10, 19) if name == 'recorder' else own_nice
+                assert os.getpriority(os.PRIO_PROCESS, process.pid) == nice, name
         finally:
             pipeline.stop_all()
+
+
+def test_pipeline_refuses_an_unknown_scheduling_policy(tmp_path):
+    from scenario_nodes.demo import Pipeline, pipeline_env
+    from scenario_nodes.paths import config_file
+    with pytest.raises(ValueError, match='scheduling'):
+        Pipeline(tmp_path, config_file(), {}, pipeline_env(), scheduling='fifo')

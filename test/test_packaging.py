@@ -158,7 +158,8 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
         'launch.actions': {'DeclareLaunchArgument': recorder('argument')},
         'launch.conditions': {'IfCondition': recorder('condition')},
         'launch.substitutions': {'LaunchConfiguration': lambda name: ('config', name),
-                                 'PathJoinSubstitution': lambda parts: ('join', tuple(parts))},
+                                 'PathJoinSubstitution': lambda parts: ('join', tuple(parts)),
+                                 'PythonExpression': lambda parts: ('python', tuple(parts))},
         'launch_ros.actions': {'Node': recorder('node')},
         'launch_ros.substitutions': {'FindPackageShare': lambda name: ('share', name)},
         'launch_ros.parameter_descriptions': {
@@ -185,3 +186,11 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
     # launch turns real_time_factor:=10 into an integer, which the DOUBLE parameter refuses
     assert nodes['cw_plant']['parameters'][1]['real_time_factor'] == \
         ('typed', ('config', 'real_time_factor'), float)
+    # scheduling:=batch prefixes every node with chrt; the expression is what launch evaluates
+    assert arguments['scheduling']['choices'] == ['normal', 'batch']
+    for choice, expected in (('batch', 'chrt --batch 0'), ('normal', '')):
+        for n in nodes.values():
+            kind, parts = n['prefix']
+            assert kind == 'python'
+            text = ''.join(choice if part == ('config', 'scheduling') else part for part in parts)
+            assert eval(text) == expected  # noqa: S307 (PythonExpression evaluates the same text)
