@@ -201,7 +201,7 @@ def _child_setup(cpus: set[int] | None, lower_priority: bool, batch: bool = Fals
     time it wakes a subscriber: the woken process runs when the CPU is free, so a node ends its
     callback (the estimator publishes three messages per step) instead of being switched out
     after every publish. Five processes on two CPUs otherwise spent about a third of their CPU
-    time switching; CPU per step fell from 2.3-2.7 to 1.7-1.9 ms (README, "Performance")."""
+    time switching; CPU per step fell by about a third (README, "Performance")."""
     def setup():
         if cpus:
             os.sched_setaffinity(0, cpus)
@@ -274,6 +274,8 @@ def main(argv=None) -> int:
     from .bag_tools import read_bag, summarize
     summary = summarize(read_bag(result['bag']))
     summary['exit_codes'] = result['exit_codes']
+    # how the processes ran: the real-time factor depends on it
+    summary['scheduling'], summary['cpu_affinity'] = args.scheduling, args.cpu_affinity
     (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
     if not args.no_report:
         from .report import write_report

@@ -151,7 +151,9 @@ def main(argv=None) -> int:
           f'min {min(factors):.1f}, max {max(factors):.1f} over {len(factors)} runs')
     if args.out:
         args.out.write_text(json.dumps({'estimator': args.estimator, 'duration_s': args.duration,
-                                        'cpus': os.cpu_count(), 'runs': runs}, indent=2) + '\n')
+                                        'cpus': os.cpu_count(),
+                                        'scheduling': args.scheduling, 'cpu_affinity': args.cpu_affinity,
+                                        'runs': runs}, indent=2) + '\n')
         print(f'wrote {args.out}')
     return 0
 

@@ -67,7 +67,9 @@ def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
     assert loop_bench.main(['--runs', '1', '--duration', '60', '--estimator', 'ekf', '--out', str(out)]) == 0
     printed = capsys.readouterr().out
     assert 'run 1: real-time factor' in printed and 'median' in printed
-    run = json.loads(out.read_text())['runs'][0]
+    figures = json.loads(out.read_text())
+    assert figures['scheduling'] == 'batch' and figures['cpu_affinity'] == 'auto'  # the defaults
+    run = figures['runs'][0]
     assert run['steps'] == 600 and run['real_time_factor'] > 0
     assert math.isfinite(run['final_range_m'])
     if os.path.exists('/proc/self/stat'):
@@ -117,3 +119,21 @@ def test_pipeline_refuses_an_unknown_scheduling_policy(tmp_path):
     from scenario_nodes.paths import config_file
     with pytest.raises(ValueError, match='scheduling'):
         Pipeline(tmp_path, config_file(), {}, pipeline_env(), scheduling='fifo')
+
+
+@pytest.mark.slow
+def test_snn_demo_prints_and_writes_the_summary_with_how_the_nodes_ran(tmp_path):
+    """The demo command itself (what `make demo` runs), shortened: summary.json carries the
+    issue's keys and the process set-up the real-time factor depends on."""
+    done = subprocess.run([sys.executable, '-m', 'scenario_nodes.demo', '--duration', '30',
+                           '--estimator', 'ekf', '--runs-dir', str(tmp_path), '--name', 'short',
+                           '--no-report', '--scheduling', 'normal', '--cpu-affinity', 'off'],
+                          capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert 'real-time factor' in done.stdout and 'final range' in done.stdout
+    summary = json.loads((tmp_path / 'short' / 'summary.json').read_text())
+    assert {'estimator', 'sim_time_s', 'wall_time_s', 'real_time_factor', 'steps', 'rmse_last_60s',
+            'final_range_m', 'spikes_total', 'spike_fraction', 'control_timeouts',
+            'measurements_rejected'} <= set(summary)
+    assert summary['estimator'] == 'ekf' and summary['steps'] == 300
+    assert summary['scheduling'] == 'normal' and summary['cpu_affinity'] == 'off'
