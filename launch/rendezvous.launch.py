@@ -8,9 +8,9 @@ Each node is its own process; swapping the estimator is only the `estimator` arg
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
@@ -39,20 +39,31 @@ def generate_launch_description():
             description='Also start the recorder (rosbag2 MCAP in ./bag_<date-time>)'),
         DeclareLaunchArgument(
             'scheduling', default_value='normal', choices=['normal', 'batch'],
-            description='batch: start every node under SCHED_BATCH (chrt --batch 0, Linux), as '
-                        'snn_demo does: no wakeup preemption, a faster lockstep loop on few cores'),
+            description='batch: start every node under SCHED_BATCH (chrt --batch 0, Linux; a node '
+                        'fails to start where the kernel refuses it), as snn_demo does: no wakeup '
+                        'preemption, a faster lockstep loop on few cores'),
     ]
+    return LaunchDescription(arguments + [OpaqueFunction(function=_nodes)])
+
+
+def _nodes(context):
+    """The nodes, with ``scheduling`` and ``--launch-prefix`` resolved: with batch each runs as
+    ``chrt --batch 0 [launch-prefix] <executable>``; otherwise launch applies its prefix as usual."""
     params = LaunchConfiguration('params_file')
     namespace = LaunchConfiguration('namespace')
-    prefix = PythonExpression(["'chrt --batch 0' if '", LaunchConfiguration('scheduling'),
-                               "' == 'batch' else ''"])
+    batch = LaunchConfiguration('scheduling').perform(context) == 'batch'
+    if batch:
+        user_prefix = LaunchConfiguration('launch-prefix', default='').perform(context)
+        started_as = {'prefix': f'chrt --batch 0 {user_prefix}'.strip()}
+    else:
+        started_as = {}
 
     def node(executable, extra=None, **kwargs):
-        return Node(package=PACKAGE, executable=executable, name=executable, namespace=namespace,
-                    parameters=[params] + ([extra] if extra else []), output='screen',
-                    prefix=prefix, **kwargs)
+        return Node(package=PACKAGE, executable=executable, name=executable, exec_name=executable,
+                    namespace=namespace, parameters=[params] + ([extra] if extra else []),
+                    output='screen', **started_as, **kwargs)
 
-    return LaunchDescription(arguments + [
+    return [
         node('lqr_controller'),
         node('estimator', {'filter_type': LaunchConfiguration('estimator')}),
         node('position_sensor'),
@@ -62,4 +73,4 @@ def generate_launch_description():
                           'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'),
                                                              value_type=float)}),
         node('recorder', condition=IfCondition(LaunchConfiguration('record'))),
-    ])
+    ]

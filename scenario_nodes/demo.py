@@ -34,6 +34,16 @@ FILTERS = ('snn_emsif', 'snn_ekf', 'snn_emsif_star', 'emsif', 'ekf', 'esif')
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).
 SCHEDULING = ('batch', 'normal')
+BATCH, NORMAL = getattr(os, 'SCHED_BATCH', None), getattr(os, 'SCHED_OTHER', None)
+
+
+def running_policy(pid: int) -> int | None:
+    """The scheduling policy of process ``pid``; None where it cannot be read (not Linux, or
+    the process has already exited)."""
+    try:
+        return os.sched_getscheduler(pid)
+    except (AttributeError, OSError):
+        return None
 
 
 def cpu_plan(available=None) -> dict[str, set[int]]:
@@ -60,6 +70,7 @@ class Pipeline:
         self.namespace = namespace
         self.cpus = cpu_plan() if pin_cpus else {}
         self.batch = scheduling == 'batch'
+        self.refused_batch: list[str] = []  # nodes the kernel would not run under SCHED_BATCH
         self.run_dir = run_dir
         self.params_file = params_file
         self.overrides = overrides
@@ -97,7 +108,17 @@ class Pipeline:
         self.processes[name] = subprocess.Popen(
             self.command(name, module), env=self.env, stdout=log, stderr=subprocess.STDOUT,
             start_new_session=True, preexec_fn=_child_setup(self.cpus.get(name), name == 'recorder', self.batch))
+        if self.batch and running_policy(self.processes[name].pid) not in (BATCH, None):
+            if not self.refused_batch:
+                print(f'snn_demo: the kernel refused SCHED_BATCH for {name}; the nodes run under the '
+                      'normal policy (slower lockstep)', file=sys.stderr)
+            self.refused_batch.append(name)
         return self.processes[name]
+
+    @property
+    def scheduling(self) -> str:
+        """The policy the nodes actually run under: 'batch' only if every one got it."""
+        return 'batch' if self.batch and not self.refused_batch else 'normal'
 
     def failed(self) -> list[str]:
         """Nodes that exited although they should still run."""
@@ -151,7 +172,8 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
                  scheduling: str = 'batch') -> dict:
-    """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag'}. Raises RuntimeError
+    """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
+    policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started."""
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -188,14 +210,16 @@ def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'locks
         time.sleep(0.3)  # the estimator's last step and the controller's answer
     finally:
         codes = pipeline.stop_all()
-    return {'exit_codes': codes, 'wall_s': time.monotonic() - started, 'bag': run_dir / 'bag'}
+    return {'exit_codes': codes, 'wall_s': time.monotonic() - started, 'bag': run_dir / 'bag',
+            'scheduling': pipeline.scheduling}
 
 
 def _child_setup(cpus: set[int] | None, lower_priority: bool, batch: bool = False):
     """What a node process does before it starts: take its CPUs (see :func:`cpu_plan`; threads
-    it creates later inherit them and the scheduling policy); with ``batch``, run under
-    SCHED_BATCH; and, for the recorder, yield to the loop (nice 10: its KEEP_ALL reader queues
-    hold what it has not written yet, and it drains them before closing).
+    it creates later inherit them and the scheduling policy); run under SCHED_BATCH with
+    ``batch``, else SCHED_OTHER (not whatever the caller runs under); and, for the recorder,
+    yield to the loop (nice 10: its KEEP_ALL reader queues hold what it has not written yet, and
+    it drains them before closing).
 
     SCHED_BATCH (no privileges needed) keeps the kernel from preempting a running node each
     time it wakes a subscriber: the woken process runs when the CPU is free, so a node ends its
@@ -207,10 +231,11 @@ def _child_setup(cpus: set[int] | None, lower_priority: bool, batch: bool = Fals
             os.sched_setaffinity(0, cpus)
         if lower_priority:
             os.nice(10)
-        if batch and hasattr(os, 'SCHED_BATCH'):
+        policy = BATCH if batch else NORMAL
+        if policy is not None:
             try:
-                os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-            except OSError:  # refused (a restricted container): the normal policy still works
+                os.sched_setscheduler(0, policy, os.sched_param(0))
+            except OSError:  # refused (some containers): Pipeline notices, says so and records it
                 pass
     return setup
 
@@ -252,7 +277,7 @@ def main(argv=None) -> int:
                         help='auto: estimator and controller on one CPU, the other nodes on the rest')
     parser.add_argument('--scheduling', default='batch', choices=SCHEDULING,
                         help='Linux policy of the node processes: batch (SCHED_BATCH, no wakeup '
-                             'preemption; faster lockstep) or normal')
+                             'preemption; faster lockstep) or normal (SCHED_OTHER)')
     args = parser.parse_args(argv)
     name = args.name or f"{args.estimator}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     run_dir = (args.runs_dir / name).resolve()
@@ -275,7 +300,7 @@ def main(argv=None) -> int:
     summary = summarize(read_bag(result['bag']))
     summary['exit_codes'] = result['exit_codes']
     # how the processes ran: the real-time factor depends on it
-    summary['scheduling'], summary['cpu_affinity'] = args.scheduling, args.cpu_affinity
+    summary['scheduling'], summary['cpu_affinity'] = result['scheduling'], args.cpu_affinity
     (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
     if not args.no_report:
         from .report import write_report

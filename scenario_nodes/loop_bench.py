@@ -111,6 +111,7 @@ def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = T
     stepping_end = float(run.last_diagnostics('cw_plant').get('finished_unix_time', 0.0))
     cpu = samplers[0].cpu_per_step(stepping_end, summary['wall_time_s'], summary['steps'])
     return {'real_time_factor': summary['real_time_factor'], 'steps': summary['steps'],
+            'scheduling': result['scheduling'],
             'wall_time_s': summary['wall_time_s'], 'final_range_m': summary['final_range_m'],
             'cpu_ms_per_step': cpu}
 
@@ -130,7 +131,7 @@ def main(argv=None) -> int:
     if args.runs < 1 or args.duration <= 0:
         parser.error('--runs must be >= 1 and --duration > 0')
     print(f'snn_loop_bench: {args.runs} lockstep runs of {args.duration:.0f} s with {args.estimator}, '
-          f'{os.cpu_count()} CPUs')
+          f'{os.cpu_count()} CPUs, scheduling {args.scheduling}, CPU affinity {args.cpu_affinity}')
     runs = []
     with TemporaryDirectory(prefix='snn_loop_bench_') as folder:
         for index in range(args.runs):
@@ -152,7 +153,7 @@ def main(argv=None) -> int:
     if args.out:
         args.out.write_text(json.dumps({'estimator': args.estimator, 'duration_s': args.duration,
                                         'cpus': os.cpu_count(),
-                                        'scheduling': args.scheduling, 'cpu_affinity': args.cpu_affinity,
+                                        'cpu_affinity': args.cpu_affinity,
                                         'runs': runs}, indent=2) + '\n')
         print(f'wrote {args.out}')
     return 0

@@ -143,7 +143,7 @@ def test_package_xml_declares_every_runtime_dependency():
 
 def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
     """Run generate_launch_description() against stand-ins for launch/launch_ros (not
-    installable here) and check what it would start."""
+    installable here) and check what it would start, for both scheduling choices."""
     created = {}
 
     def recorder(kind):
@@ -153,13 +153,18 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
                 created.setdefault(kind, []).append(self)
         return Action
 
+    class Config(tuple):
+        """LaunchConfiguration stand-in: compares as ('config', name), performs from a dict."""
+        def perform(self, context):
+            return context.get(self[1], self[2])
+
     stubs = {
         'launch': {'LaunchDescription': lambda actions: actions},
-        'launch.actions': {'DeclareLaunchArgument': recorder('argument')},
+        'launch.actions': {'DeclareLaunchArgument': recorder('argument'),
+                           'OpaqueFunction': recorder('opaque')},
         'launch.conditions': {'IfCondition': recorder('condition')},
-        'launch.substitutions': {'LaunchConfiguration': lambda name: ('config', name),
-                                 'PathJoinSubstitution': lambda parts: ('join', tuple(parts)),
-                                 'PythonExpression': lambda parts: ('python', tuple(parts))},
+        'launch.substitutions': {'LaunchConfiguration': lambda name, default=None: Config(('config', name, default)),
+                                 'PathJoinSubstitution': lambda parts: ('join', tuple(parts))},
         'launch_ros.actions': {'Node': recorder('node')},
         'launch_ros.substitutions': {'FindPackageShare': lambda name: ('share', name)},
         'launch_ros.parameter_descriptions': {
@@ -175,22 +180,26 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
     exec(compile(path.read_text(), str(path), 'exec'), namespace)
     namespace['generate_launch_description']()
     arguments = {a.args[0]: a.kwargs for a in created['argument']}
-    assert {'estimator', 'params_file', 'mode'} <= set(arguments)
+    assert {'estimator', 'params_file', 'mode', 'scheduling'} <= set(arguments)
     assert all(kwargs.get('description') for kwargs in arguments.values())
     assert arguments['params_file']['default_value'] == ('join', (('share', PACKAGE), 'config', 'rendezvous.yaml'))
-    nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
-    assert set(nodes) == set(NODES)
-    assert all(n['package'] == PACKAGE and n['name'] == exe for exe, n in nodes.items())
-    assert nodes['estimator']['parameters'][1] == {'filter_type': ('config', 'estimator')}
-    assert nodes['cw_plant']['parameters'][1]['mode'] == ('config', 'mode')
-    # launch turns real_time_factor:=10 into an integer, which the DOUBLE parameter refuses
-    assert nodes['cw_plant']['parameters'][1]['real_time_factor'] == \
-        ('typed', ('config', 'real_time_factor'), float)
-    # scheduling:=batch prefixes every node with chrt; the expression is what launch evaluates
     assert arguments['scheduling']['choices'] == ['normal', 'batch']
-    for choice, expected in (('batch', 'chrt --batch 0'), ('normal', '')):
-        for n in nodes.values():
-            kind, parts = n['prefix']
-            assert kind == 'python'
-            text = ''.join(choice if part == ('config', 'scheduling') else part for part in parts)
-            assert eval(text) == expected  # noqa: S307 (PythonExpression evaluates the same text)
+    assert arguments['scheduling']['default_value'] == 'normal'
+    make_nodes = created['opaque'][0].kwargs['function']
+    for context, prefix in (({'scheduling': 'normal'}, None),  # launch applies --launch-prefix itself
+                            ({'scheduling': 'batch'}, 'chrt --batch 0'),
+                            ({'scheduling': 'batch', 'launch-prefix': 'gdb -ex run --args'},
+                             'chrt --batch 0 gdb -ex run --args')):
+        created['node'] = []
+        make_nodes(context)
+        nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
+        assert set(nodes) == set(NODES)
+        for exe, n in nodes.items():
+            assert n['package'] == PACKAGE and n['name'] == exe
+            assert n['exec_name'] == exe  # log lines say [estimator-2], not [chrt-2]
+            assert n.get('prefix') == prefix, (exe, context)
+        assert nodes['estimator']['parameters'][1] == {'filter_type': ('config', 'estimator', None)}
+        assert nodes['cw_plant']['parameters'][1]['mode'] == ('config', 'mode', None)
+        # launch turns real_time_factor:=10 into an integer, which the DOUBLE parameter refuses
+        assert nodes['cw_plant']['parameters'][1]['real_time_factor'] == \
+            ('typed', ('config', 'real_time_factor', None), float)
