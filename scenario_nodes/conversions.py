@@ -275,7 +275,7 @@ def encode_spikes(spikes: np.ndarray) -> bytes:
 def state_of(record: OdometryRecord) -> np.ndarray:
     """The state; raises MessageError if it is not finite."""
     state = record.state
-    if not np.all(np.isfinite(state)):
+    if not np.isfinite(state).all():
         raise MessageError('non_finite', f'state has NaN/Inf: {state.tolist()}')
     return state
 
@@ -283,14 +283,14 @@ def state_of(record: OdometryRecord) -> np.ndarray:
 def measurement_of(record: StampedVector, measured_axes: Sequence[int]) -> np.ndarray:
     """The measured axes; raises MessageError if one of them is not finite."""
     z = record.vector[list(measured_axes)]
-    if not np.all(np.isfinite(z)):
+    if not np.isfinite(z).all():
         raise MessageError('non_finite', f'measured axes {list(measured_axes)} hold {z.tolist()}')
     return z
 
 
 def control_of(record: StampedVector) -> np.ndarray:
     """The control; raises MessageError if it is not finite."""
-    if not np.all(np.isfinite(record.vector)):
+    if not np.isfinite(record.vector).all():
         raise MessageError('non_finite', f'control has NaN/Inf: {record.vector.tolist()}')
     return record.vector
 

@@ -197,7 +197,7 @@ class Estimator:
         n = self.model.n_state
         x0 = self.settings.initial_state if x_hat0 is None else np.asarray(x_hat0, dtype=float)
         x0 = np.broadcast_to(x0, (self.runs, n)).astype(float)
-        if not np.all(np.isfinite(x0)):
+        if not np.isfinite(x0).all():
             raise ValueError('x_hat0 must be finite')
         p0 = self.settings.initial_covariance if P0 is None else np.asarray(P0, dtype=float)
         self._p = np.ascontiguousarray(np.broadcast_to(p0, (self.runs, n, n)), dtype=float).copy()
@@ -218,7 +218,7 @@ class Estimator:
         self._require_network()
         with np.errstate(over='ignore', invalid='ignore'):  # overflow is checked and refused below
             target = np.asarray(x_hat, dtype=float) / self._scale
-        if not np.all(np.isfinite(target)):
+        if not np.isfinite(target).all():
             raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: not finite on the network '
                              f'scale S = {self._scale.tolist()}')
         alive = self._alive[run]
@@ -229,7 +229,7 @@ class Estimator:
         with np.errstate(over='ignore', invalid='ignore'):
             decoded = decoder @ rates
             potentials = decoder.T @ (target - decoded)
-        if not (np.all(np.isfinite(decoded)) and np.all(np.isfinite(potentials))):
+        if not (np.isfinite(decoded).all() and np.isfinite(potentials).all()):
             raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: the network overflows')
         self._r[run] = rates
         self._v[run] = potentials
@@ -239,10 +239,10 @@ class Estimator:
         """Replace the estimate (and covariance) of every run, keeping the network's decoder."""
         n = self.model.n_state
         x = np.broadcast_to(np.asarray(x_hat, dtype=float), (self.runs, n))
-        if not np.all(np.isfinite(x)):
+        if not np.isfinite(x).all():
             raise ValueError('x_hat must be finite')
         covariance = None if P is None else np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n))
-        if covariance is not None and not np.all(np.isfinite(covariance)):
+        if covariance is not None and not np.isfinite(covariance).all():
             raise ValueError('P must be finite')
         if self.spiking:
             for b in range(self.runs):
