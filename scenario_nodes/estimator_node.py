@@ -57,11 +57,12 @@ class EstimatorNode(Node):
         self._axes = tuple(int(a) for a in p['measured_axes'])
         model = cw_model(p, form=p['cw_model'], measured_axes=self._axes)
         self._estimator = make_estimator(p['filter_type'], estimator_config(p), model)
-        # one step now loads the compiled kernel (not in the loop's first step) and checks leak
+        # one step now loads the compiled kernels (not in the loop's first step) and checks leak
         # and P0 against time_step (check_time_step: a ValueError is a configuration error)
+        self._measurement_r = self._estimator.settings.r_hat / p['measurement_noise_scale']
+        self._estimator.innovation_nis(np.zeros(len(self._axes)), self._measurement_r)
         self._estimator.step(np.zeros(len(self._axes)), np.zeros(3), p['time_step'])
         self._estimator.reset()
-        self._measurement_r = self._estimator.settings.r_hat / p['measurement_noise_scale']
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
         self._frame, self._child = p['frame_id'], p['child_frame_id']

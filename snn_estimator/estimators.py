@@ -335,14 +335,11 @@ class Estimator:
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
         estimate, per run (R per sample; P = 0 for the covariance-free filters)."""
-        z = np.asarray(z, dtype=float).reshape(self.runs, -1)
-        nu = z - self._x_hat @ self._c.T
-        s = np.asarray(measurement_covariance, dtype=float)
-        if self.has_covariance:
-            s = self._c @ self._p @ self._c.T + s
-        else:
-            s = np.broadcast_to(s, (self.runs,) + s.shape)
-        return np.einsum('bi,bi->b', nu, np.linalg.solve(s, nu[..., None])[..., 0])
+        z = np.ascontiguousarray(np.asarray(z, dtype=float).reshape(self.runs, -1))
+        r = np.ascontiguousarray(measurement_covariance, dtype=float)
+        if r.shape != (z.shape[1], z.shape[1]):
+            raise ValueError(f'measurement_covariance must be {z.shape[1]}x{z.shape[1]}, got {r.shape}')
+        return kernels.innovation_nis(z, self._x_hat, self._c, self._p, r, self.has_covariance)
 
     # ------------------------------------------------------------------ stepping
     def _dynamics(self, dt: float, u: np.ndarray):
