@@ -51,17 +51,15 @@ def _nodes(context):
     ``chrt --batch 0 [launch-prefix] <executable>``; otherwise launch applies its prefix as usual."""
     params = LaunchConfiguration('params_file')
     namespace = LaunchConfiguration('namespace')
-    batch = LaunchConfiguration('scheduling').perform(context) == 'batch'
-    if batch:
+    prefix = None  # launch's own --launch-prefix handling
+    if LaunchConfiguration('scheduling').perform(context) == 'batch':
         user_prefix = LaunchConfiguration('launch-prefix', default='').perform(context)
-        started_as = {'prefix': f'chrt --batch 0 {user_prefix}'.strip()}
-    else:
-        started_as = {}
+        prefix = f'chrt --batch 0 {user_prefix}'.strip()
 
     def node(executable, extra=None, **kwargs):
         return Node(package=PACKAGE, executable=executable, name=executable, exec_name=executable,
                     namespace=namespace, parameters=[params] + ([extra] if extra else []),
-                    output='screen', **started_as, **kwargs)
+                    output='screen', prefix=prefix, **kwargs)
 
     return [
         node('lqr_controller'),

@@ -335,7 +335,7 @@ class Estimator:
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
         estimate, per run (R per sample; P = 0 for the covariance-free filters)."""
-        z = np.ascontiguousarray(np.asarray(z, dtype=float).reshape(self.runs, -1))
+        z = np.ascontiguousarray(z, dtype=float).reshape(self.runs, -1)
         r = np.ascontiguousarray(measurement_covariance, dtype=float)
         if r.shape != (z.shape[1], z.shape[1]):
             raise ValueError(f'measurement_covariance must be {z.shape[1]}x{z.shape[1]}, got {r.shape}')

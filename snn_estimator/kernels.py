@@ -277,19 +277,9 @@ def innovation_nis(z, x_hat, c, p, r, has_covariance):
     """Normalised innovation squared ``nu^T S^-1 nu`` per run, ``nu = z - C x_hat``,
     ``S = C P C^T + R`` (``S = R`` without a covariance). Compiled: the ROS estimator checks it
     every step, and the batched numpy version cost twice the filter step itself."""
-    runs, m = z.shape
-    n = x_hat.shape[1]
-    out = np.empty(runs)
-    for b in range(runs):
-        nu = np.empty(m)
-        for i in range(m):
-            acc = z[b, i]
-            for k in range(n):
-                acc -= c[i, k] * x_hat[b, k]
-            nu[i] = acc
-        s = r.copy()
-        if has_covariance:
-            cp = c @ p[b]
-            s += cp @ c.T
+    out = np.empty(z.shape[0])
+    for b in range(z.shape[0]):
+        nu = z[b] - c @ x_hat[b]
+        s = c @ p[b] @ c.T + r if has_covariance else r
         out[b] = nu @ np.linalg.solve(s, nu)
     return out

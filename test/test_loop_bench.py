@@ -1,6 +1,7 @@
 """snn_loop_bench: the CPU window arithmetic against hand-computed values, and one short run
 through the real pipeline (figures present and consistent; speed itself is not asserted)."""
 
+import functools
 import json
 import math
 import os
@@ -19,6 +20,7 @@ class _Pipeline:
     processes = {}
 
 
+@functools.cache
 def _batch_allowed() -> bool:
     """Whether this machine lets a process switch itself to SCHED_BATCH (some containers
     refuse; the pipeline then falls back to the normal policy and says so)."""
