@@ -23,7 +23,7 @@ $(STAMP): setup.py pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=23"
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
-	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
 	touch $(STAMP)
 

@@ -12,11 +12,11 @@ EXECUTABLES = {
     'lqr_controller': 'scenario_nodes.controller_node:main',
     'estimator': 'scenario_nodes.estimator_node:main',
     'recorder': 'scenario_nodes.recorder_node:main',
-    'report': 'scenario_nodes.report:main',
-    'snn_demo': 'scenario_nodes.demo:main',
-    'snn_experiments': 'snn_estimator.experiments:main',
-    'snn_bench': 'snn_estimator.bench:main',
-    'snn_loop_bench': 'scenario_nodes.loop_bench:main',
+    'report': 'snn_tools.report:main',
+    'snn_demo': 'snn_tools.demo:main',
+    'snn_experiments': 'snn_tools.experiments:main',
+    'snn_bench': 'snn_tools.bench:main',
+    'snn_loop_bench': 'snn_tools.loop_bench:main',
 }
 
 data_files = [
@@ -45,7 +45,9 @@ setup(
     python_requires='>=3.10',
     install_requires=[
         'setuptools',
-        'numpy>=1.24',
+        # brian2 2.9.0 (the independent simulator of the neuromorphic check) does not import
+        # with numpy 2.3+ (ndarray.ptp); numba 0.68 supports 2.2
+        'numpy>=1.24,<2.3',
         'scipy>=1.10',
         'control>=0.10',
         'numba>=0.58',
@@ -53,7 +55,15 @@ setup(
         'rosbags>=0.10',
         'PyYAML>=6',
     ],
-    extras_require={'test': ['pytest>=7', 'hypothesis>=6']},
+    extras_require={
+        # the Basilisk truth plant (issue: high-fidelity truth); pinned, its API moves
+        'basilisk': ['bsk==2.12.1'],
+        # Monte-Carlo campaigns on Dask, results as Parquet
+        'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14'],
+        # NIR export of the networks and the independent Brian2 simulation of them
+        'neuromorphic': ['nir>=1.0', 'brian2==2.9.0'],
+        'test': ['pytest>=7', 'hypothesis>=6', 'ruff>=0.6'],
+    },
     zip_safe=True,
     maintainer='snn_rendezvous maintainers',
     maintainer_email='maintainers@users.noreply.h-seed-73572919.example',

@@ -19,10 +19,10 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
-from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
+from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from scenario_nodes.conversions import stamp_to_ns  # noqa: E402
-from scenario_nodes.demo import NODES, Pipeline, pipeline_env  # noqa: E402
-from scenario_nodes.paths import config_file  # noqa: E402
+from snn_tools.demo import NODES, Pipeline, pipeline_env  # noqa: E402
+from snn_tools.paths import config_file  # noqa: E402
 
 pytestmark = pytest.mark.slow
 MODULES = dict(NODES)

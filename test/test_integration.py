@@ -11,8 +11,8 @@ import pytest
 pytest.importorskip('rclpy')
 
 from snn_estimator import FILTER_KINDS, rendezvous_scenario, simulate  # noqa: E402
-from scenario_nodes.bag_tools import read_bag, summarize  # noqa: E402
-from scenario_nodes.demo import run_pipeline  # noqa: E402
+from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
+from snn_tools.demo import run_pipeline  # noqa: E402
 
 pytestmark = pytest.mark.slow
 KINDS = tuple(FILTER_KINDS)

@@ -12,8 +12,8 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from scenario_nodes import loop_bench  # noqa: E402
-from scenario_nodes.loop_bench import CpuSampler, process_cpu_seconds  # noqa: E402
+from snn_tools import loop_bench  # noqa: E402
+from snn_tools.loop_bench import CpuSampler, process_cpu_seconds  # noqa: E402
 
 
 class _Pipeline:
@@ -91,7 +91,7 @@ def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
 
 
 def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
-    from scenario_nodes.demo import cpu_plan
+    from snn_tools.demo import cpu_plan
     plan = cpu_plan({0, 1})
     assert plan['estimator'] == plan['lqr_controller'] == {1}
     assert plan['cw_plant'] == plan['position_sensor'] == plan['recorder'] == {0}
@@ -104,8 +104,8 @@ def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
                     or not _batch_allowed(),
                     reason='needs CPU affinity, SCHED_BATCH allowed and two CPUs')
 def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_to(tmp_path):
-    from scenario_nodes.demo import Pipeline, cpu_plan, pipeline_env
-    from scenario_nodes.paths import config_file
+    from snn_tools.demo import Pipeline, cpu_plan, pipeline_env
+    from snn_tools.paths import config_file
     everything = os.sched_getaffinity(0)
     own_nice = os.getpriority(os.PRIO_PROCESS, 0)
     for pin, scheduling in ((True, 'batch'), (False, 'normal')):
@@ -129,8 +129,8 @@ def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_t
 def test_a_refused_sched_batch_is_reported_and_recorded_as_normal(tmp_path, monkeypatch, capsys):
     """Where the kernel refuses SCHED_BATCH (the child then stays SCHED_OTHER), the pipeline
     says so once and reports the policy the nodes really run under."""
-    from scenario_nodes import demo
-    from scenario_nodes.paths import config_file
+    from snn_tools import demo
+    from snn_tools.paths import config_file
     monkeypatch.setattr(demo, 'running_policy', lambda pid: os.SCHED_OTHER)
     pipeline = demo.Pipeline(tmp_path, config_file(), {}, demo.pipeline_env(), pin_cpus=False,
                              scheduling='batch')
@@ -144,8 +144,8 @@ def test_a_refused_sched_batch_is_reported_and_recorded_as_normal(tmp_path, monk
 
 
 def test_pipeline_refuses_an_unknown_scheduling_policy(tmp_path):
-    from scenario_nodes.demo import Pipeline, pipeline_env
-    from scenario_nodes.paths import config_file
+    from snn_tools.demo import Pipeline, pipeline_env
+    from snn_tools.paths import config_file
     with pytest.raises(ValueError, match='scheduling'):
         Pipeline(tmp_path, config_file(), {}, pipeline_env(), scheduling='fifo')
 
@@ -154,7 +154,7 @@ def test_pipeline_refuses_an_unknown_scheduling_policy(tmp_path):
 def test_snn_demo_prints_and_writes_the_summary_with_how_the_nodes_ran(tmp_path):
     """The demo command itself (what `make demo` runs), shortened: summary.json carries the
     issue's keys and the process set-up the real-time factor depends on."""
-    done = subprocess.run([sys.executable, '-m', 'scenario_nodes.demo', '--duration', '30',
+    done = subprocess.run([sys.executable, '-m', 'snn_tools.demo', '--duration', '30',
                            '--estimator', 'ekf', '--runs-dir', str(tmp_path), '--name', 'short',
                            '--no-report', '--scheduling', 'normal', '--cpu-affinity', 'off'],
                           capture_output=True, text=True, timeout=180)

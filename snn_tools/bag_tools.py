@@ -14,7 +14,7 @@ import numpy as np
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from .topics import PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
+from scenario_nodes.topics import PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
 
 STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
 NS = 1_000_000_000

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from snn_estimator.figures import (Track, colour_of, control_figure, label_of, raster_figure,
+from .figures import (Track, colour_of, control_figure, label_of, raster_figure,
                                    rmse_figure, tracking_figure)
 
 from .bag_tools import STATES, RunData, matched_errors, read_bag, summarize

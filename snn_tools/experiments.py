@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .estimators import make_estimator
-from .simulation import SimulationResult, rendezvous_scenario, simulate, van_der_pol_scenario
+from snn_estimator.estimators import make_estimator
+from snn_estimator.simulation import SimulationResult, rendezvous_scenario, simulate, van_der_pol_scenario
 
 VDP_STATES = ('x1', 'x2')
 CW_STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')

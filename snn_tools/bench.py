@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .estimators import FILTER_KINDS, make_estimator
+from snn_estimator.estimators import FILTER_KINDS, make_estimator
 from .experiments import time_steps
-from .reference import DenseFilter, DenseSpikingFilter
-from .simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
+from snn_estimator.reference import DenseFilter, DenseSpikingFilter
+from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
 
 NEURON_COUNTS = (50, 100, 200, 300)
 
