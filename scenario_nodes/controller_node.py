@@ -17,11 +17,12 @@ from snn_estimator.simulation import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix
 
 from . import qos
-from .conversions import MessageError, decode_odometry, encode_accel, seconds_to_ns, state_of
+from snn_estimator.gates import NewestFirst
+
+from .codec import MessageError, check_frame, decode_odometry, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
-from .runtime import (clock_ns, on_clock_jump_back, run_node, seconds_ahead_of_clock,
-                      time_base_restarted)
+from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
@@ -34,7 +35,7 @@ def design_gain(values: dict) -> np.ndarray:
     return lqr_gain(model, values['lqr_state_weight'], values['lqr_input_weight'])
 
 
-class ControllerNode(Node):
+class ControllerNode(ProcessHooks, Node):
     """Wraps :func:`snn_estimator.simulation.lqr_control`."""
 
     def __init__(self, **kwargs):
@@ -47,11 +48,13 @@ class ControllerNode(Node):
         self._safe = False
         self._time_jumps = 0
         self._rejected = Rejections()
-        self._last_stamp_ns = None
+        self._gate = NewestFirst(p['time_jump_threshold'], p['max_input_age'], p['time_step'])
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
-        self._pub = self.create_publisher(AccelStamped, qos.CONTROL, qos.PUBLISHER_QOS)
-        self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'])
-        self.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.SUBSCRIBER_QOS, raw=True)
+        self._answers = Answers()
+        self._events = qos.QosEvents(self)
+        self._pub = qos.publisher(self, self._events, AccelStamped, qos.CONTROL)
+        self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events)
+        qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -72,43 +75,33 @@ class ControllerNode(Node):
     def _reject(self, reason: str, detail: str, stamp_ns: int) -> None:
         self._rejected[reason] += 1
         self.get_logger().warning(f'rejected estimate ({detail})', throttle_duration_sec=5.0)
-        self._publish_diagnostics(max(stamp_ns, self._last_stamp_ns or 0))
+        self._publish_diagnostics(max(stamp_ns, self._gate.last_ns or 0))
 
     def _on_estimate(self, data: bytes) -> None:
         try:
-            estimate = decode_odometry(data)
+            estimate = check_frame(decode_odometry(data), self._p['frame_id'])
+            x_hat = state_of(estimate)
         except MessageError as error:
             self._reject(error.reason, str(error), 0)
             return
         stamp_ns = estimate.stamp_ns
-        if estimate.frame_id != self._p['frame_id']:
-            self._reject('wrong_frame', f"frame '{estimate.frame_id}', expected '{self._p['frame_id']}'",
-                         stamp_ns)
-            return
-        try:
-            x_hat = state_of(estimate)
-        except MessageError as error:
-            self._reject(error.reason, str(error), stamp_ns)
-            return
-        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
-            # a time base restart shows as a clock jump when there is a clock; without one, as
-            # estimates far in the past
-            if time_base_restarted(self, stamp_ns, self._last_stamp_ns, self._p['time_jump_threshold']):
-                self.get_logger().warning('estimate time went back: starting over')
-                self._time_jumps += 1
-                self._last_stamp_ns = None
+        kind = self._gate.classify(stamp_ns, lambda: clock_ns(self))
+        if kind == 'repeat':
+            if self._answers.resend(stamp_ns, self._pub):  # the estimate came again: same control
+                self._published += 1
+                self._publish_diagnostics(self._gate.last_ns)
             else:
                 self._reject('not_newer', f'stamp {stamp_ns * 1e-9:.3f} s did not advance', stamp_ns)
-                return
-        now = clock_ns(self)
-        if now > 0 and stamp_ns < now - seconds_to_ns(self._p['max_input_age']):
-            self._reject('too_old', f"{(now - stamp_ns) * 1e-9:.3f} s behind the clock", stamp_ns)
             return
-        ahead = seconds_ahead_of_clock(now, stamp_ns, self._p)
-        if ahead:  # accepted, it would make every real estimate 'not_newer' and blind the watchdog
-            self._reject('future', f'{ahead:.3f} s ahead of the clock', now)
+        if kind in ('too_old', 'future'):  # accepted, a future one would blind the watchdog
+            self._reject(kind, f'stamp {stamp_ns * 1e-9:.3f} s against the clock at '
+                         f'{clock_ns(self) * 1e-9:.3f} s', stamp_ns)
             return
-        self._last_stamp_ns = self._last_estimate_ns = stamp_ns
+        if kind == 'restarted':
+            self.get_logger().warning('estimate time went back: starting over')
+            self._time_jumps += 1
+            self._answers.clear()
+        self._last_estimate_ns = stamp_ns
         if self._safe:
             self._leave_safe_mode(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s')
         self._publish_control(lqr_control(self._gain, x_hat), stamp_ns)
@@ -128,9 +121,9 @@ class ControllerNode(Node):
     def _on_safe_step(self) -> None:
         """Simulated-time timer while in safe mode: zero thrust for every new step."""
         now = clock_ns(self)
-        if self._safe and (self._last_stamp_ns is None or now > self._last_stamp_ns):
+        if self._safe and (self._gate.last_ns is None or now > self._gate.last_ns):
             self._safe_steps += 1
-            self._last_stamp_ns = now
+            self._gate.last_ns = now
             self._publish_control(np.zeros(3), now)
 
     def _leave_safe_mode(self, why: str) -> None:
@@ -141,7 +134,9 @@ class ControllerNode(Node):
         self.get_logger().info(f'{why}: leaving safe mode')
 
     def _publish_control(self, u: np.ndarray, stamp_ns: int) -> None:
-        self._pub.publish(encode_accel(u, stamp_ns, self._p['frame_id']))
+        data = encode_accel(u, stamp_ns, self._p['frame_id'])
+        self._pub.publish(data)
+        self._answers.remember(stamp_ns, data)
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
@@ -149,17 +144,20 @@ class ControllerNode(Node):
     def _on_time_jump(self, seconds: float) -> None:
         self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
         self._time_jumps += 1
-        self._last_stamp_ns = self._last_estimate_ns = None
+        self._gate.reset()
+        self._last_estimate_ns = None
+        self._answers.clear()
         if self._safe:
             self._leave_safe_mode('clock reset')
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """Gains change between two estimates, after the new ones were checked."""
-        changes = {p.name: p.value for p in parameters}
+        changes = {p.name: p.value for p in parameters if not p.name.startswith('qos_overrides.')}
         if not GAIN_PARAMETERS & set(changes):
             if 'estimate_timeout' in changes and changes['estimate_timeout'] <= 0:
                 return SetParametersResult(successful=False, reason='estimate_timeout must be > 0')
             self._p = dict(self._p, **changes)
+            self._gate.max_input_age = self._p['max_input_age']
             return SetParametersResult(successful=True)
         values = dict(self._p, **changes)
         try:
@@ -171,7 +169,8 @@ class ControllerNode(Node):
         return SetParametersResult(successful=True)
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
-        values = {'controls_published': self._published, 'safe_mode': self._safe,
+        values = {'controls_published': self._published, 'controls_resent': self._answers.resent,
+                  'safe_mode': self._safe,
                   'safe_mode_steps': self._safe_steps, 'time_jumps': self._time_jumps,
                   **self._rejected.as_values('estimates')}
         problems = [f'{self._rejected.total} estimates rejected'] if self._rejected.total else []
@@ -181,8 +180,8 @@ class ControllerNode(Node):
 
     def close(self) -> None:
         """Final diagnostics, so the totals of the run are on record."""
-        if self._last_stamp_ns is not None:
-            self._publish_diagnostics(self._last_stamp_ns)
+        if self._gate.last_ns is not None:
+            self._publish_diagnostics(self._gate.last_ns)
             self._diagnostics.flush()
 
 

@@ -6,6 +6,7 @@ from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
+from . import qos
 from .conversions import diagnostic_status, ns_to_stamp
 
 
@@ -34,15 +35,16 @@ def diagnostic_array(stamp_ns: int, name: str, node_name: str, values: dict,
 
 
 class DiagnosticsPublisher:
-    """Publishes one node's status on `diagnostics` at most every ``period`` simulated seconds."""
+    """Publishes one node's status on `diagnostics` at most every ``period`` simulated seconds.
+    The node's incompatible-QoS counts (``events``) go into every status."""
 
-    def __init__(self, node, name: str, period: float):
-        from . import qos
+    def __init__(self, node, name: str, period: float, events: qos.QosEvents, lifecycle: bool = False):
         self._node = node
         self._name = name
+        self._events = events
         self._period_ns = int(round(period * 1e9))
         self._last_ns = None
-        self._publisher = node.create_publisher(DiagnosticArray, qos.DIAGNOSTICS, qos.PUBLISHER_QOS)
+        self.publisher = qos.publisher(node, events, DiagnosticArray, qos.DIAGNOSTICS, lifecycle=lifecycle)
 
     def due(self, stamp_ns: int) -> bool:
         """True for the first message, then once per period (every time for period 0)."""
@@ -51,10 +53,14 @@ class DiagnosticsPublisher:
 
     def publish(self, stamp_ns: int, values: dict, problems: list[str] | None = None) -> None:
         self._last_ns = stamp_ns
-        self._publisher.publish(diagnostic_array(
+        values = dict(values, **self._events.values())
+        problems = list(problems or [])
+        if self._events.incompatible:
+            problems.append(f"incompatible QoS on {', '.join(sorted(self._events.incompatible))}")
+        self.publisher.publish(diagnostic_array(
             stamp_ns, self._name, self._node.get_fully_qualified_name(), values, problems))
 
     def flush(self, timeout: float = 1.0) -> None:
         """Wait until subscribers acknowledged what was published (before the process exits)."""
         from rclpy.duration import Duration
-        self._publisher.wait_for_all_acked(Duration(seconds=timeout))
+        self.publisher.wait_for_all_acked(Duration(seconds=timeout))

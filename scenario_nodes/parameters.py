@@ -1,27 +1,35 @@
 """Every node parameter, declared once: name, default, unit/meaning, range, read-only.
 
-The tables here are the source of the ParameterDescriptors and of the defaults; config/*.yaml
-repeats them with comments (a test keeps the two in step). Matrices are flat row-major lists
+These tables are the one source of the parameters: the nodes declare them (with their
+ParameterDescriptors), the YAML files in config/ and the README's tables are generated from
+them (``python -m scenario_nodes.parameters --write``; a test keeps them in step), and their
+defaults come from the core's :mod:`snn_estimator.defaults`. Matrices are flat row-major lists
 (1 value = scalar times identity, n values = diagonal, n*n values = full).
 """
 
 from __future__ import annotations
 
+import argparse
+import textwrap
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterUninitializedException
-from rclpy.parameter import Parameter
-
-from snn_estimator import EstimatorConfig
+from snn_estimator import defaults as D
+from snn_estimator.config import GAIN_SCHEDULES, MEASUREMENT_NOISE_UNITS, SPIKE_RULES, EstimatorConfig
 from snn_estimator.estimators import FILTER_KINDS
-from snn_estimator.models import DEFAULT_ORBIT_RADIUS, EARTH_MU
-from snn_estimator.config import MEASUREMENT_NOISE_UNITS, SPIKE_RULES
+from snn_estimator.runner import START_MODES
 
-_DEFAULTS = EstimatorConfig()
+from .topics import PIPELINE_TOPICS
+
+ROOT = Path(__file__).resolve().parents[1]
+#: The spiking filter the estimator runs unless told otherwise: the one that converges from a
+#: dispersed start in the Monte Carlo of results/rendezvous_dispersed.json (README, "Results").
+DEFAULT_FILTER = 'snn_ekf'
+#: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
+DOUBLE_ARRAY, INTEGER_ARRAY = 'double_array', 'integer_array'
 
 
 @dataclass(frozen=True)
@@ -35,9 +43,10 @@ class Spec:
     low: float | None = None
     high: float | None = None
     choices: Sequence[str] = ()
-    kind: Parameter.Type | None = None
+    kind: str | None = None
 
-    def descriptor(self) -> ParameterDescriptor:
+    def descriptor(self):
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
         text = self.description
         if self.choices:
             text += f" (one of: {' | '.join(self.choices)})"
@@ -54,42 +63,48 @@ class Spec:
 
 
 def _floats(values) -> list:
-    return [float(v) for v in values]
+    return [float(v) for v in np.ravel(values)]
 
 
 MODEL = (
-    Spec('time_step', 0.1, 'Sample period of truth, measurement and estimator, s (Sec. 3.2: 0.1)',
-         low=1e-6, high=3600.0),
-    Spec('orbit_radius', DEFAULT_ORBIT_RADIUS,
-         'Target orbit radius R_o, m; mean motion n = sqrt(mu/R_o^3) (Eq. 39). Not stated in '
-         'the paper: 400 km LEO', low=1.0),
-    Spec('gravitational_parameter', EARTH_MU,
-         "Earth's mu, m^3/s^2 (Table 6: 398600 km^3/s^2)", low=1.0),
-    Spec('frame_id', 'lvlh', "Frame of states and measurements: the target's LVLH frame"),
+    Spec('time_step', D.RENDEZVOUS_TIME_STEP, 'Sample period of truth, measurement and estimator, s '
+         '(Sec. 3.2: 0.1)', low=1e-6, high=3600.0),
+    Spec('orbit_radius', D.ORBIT_RADIUS, 'Target orbit radius R_o, m; mean motion n = sqrt(mu/R_o^3) '
+         '(Eq. 39). Not stated in the paper: 400 km LEO', low=1.0),
+    Spec('gravitational_parameter', D.EARTH_MU, "Earth's mu, m^3/s^2 (Table 6: 398600 km^3/s^2)", low=1.0),
+    Spec('frame_id', 'lvlh', "Frame of states and measurements: the target's LVLH frame (x "
+         'along-track, y opposite the orbit normal, z radial toward Earth)'),
     Spec('child_frame_id', 'chaser', 'child_frame_id of the state messages'),
     Spec('diagnostics_period', 1.0, 'Simulated s between diagnostics messages (0: every step)', low=0.0),
 )
 
 PLANT = MODEL + (
-    Spec('initial_state', _floats(_DEFAULTS.initial_state),
-         'x0 = [x, y, z, vx, vy, vz], m and m/s (Table 6)'),
-    Spec('process_noise', [1e-12],
+    Spec('initial_state', _floats(D.RENDEZVOUS_X0), 'x0 = [x, y, z, vx, vy, vz], m and m/s (Table 6)'),
+    Spec('process_noise', [D.RENDEZVOUS_PROCESS_NOISE],
          'Q, process-noise spectral density of the truth, (m/s^2)^2/Hz (Table 6: 1e-12 I6)'),
     Spec('seed', 0, 'Seed of the process noise (stream 1 of the seed; see README)', low=0),
     Spec('mode', 'lockstep', 'lockstep: step k+1 only after the control for step k arrived; '
          'realtime: step on a wall-clock timer', choices=('lockstep', 'realtime')),
-    Spec('duration', 360.0, 'Simulated time to run, s (0: run until stopped)', low=0.0),
+    Spec('duration', D.RENDEZVOUS_DURATION, 'Simulated time to run, s (0: run until stopped)', low=0.0),
     Spec('real_time_factor', 1.0, 'realtime mode: simulated seconds per wall-clock second',
          low=1e-3, high=1e6),
-    Spec('control_timeout', 1.0, 'lockstep: wall-clock s to wait for the control of a step '
-         'before holding the last control (counted as a control timeout)', low=1e-3),
-    Spec('start_time', 0.0, 'Simulated time of the first sample, s (below 2^31 s: a ROS time '
-         'stamp counts whole seconds in an int32)', low=0.0, high=2.0 ** 31 - 3600.0),
+    Spec('control_timeout', 1.0, 'lockstep: wall-clock s to wait for the control of a step before '
+         'holding the last control (counted as a control timeout)', low=1e-3),
+    Spec('resend_period', 0.25, 'lockstep: wall-clock s without the control of a step after which '
+         'the state is sent again (each node answers a repeated input again: a sample lost on a '
+         'best-effort link does not stall the loop)', low=1e-3),
+    Spec('start_time', 0.0, 'Simulated time of the first sample, s (below 2^31 s: a ROS time stamp '
+         'counts whole seconds in an int32)', low=0.0, high=2.0 ** 31 - 3600.0),
     Spec('publish_clock', True, 'Publish /clock (the plant owns simulated time)'),
-    Spec('exit_when_done', False, 'Exit the process after the last step (used by the demo)'),
-    Spec('min_truth_subscribers', 0, "Publish the first state only once this many subscriptions "
-         "match 'truth' (the demo: 2, sensor and recorder), so that a short run cannot end before a "
-         'slow recorder has even matched it', low=0),
+    Spec('wait_for_loop', True, "Start the scenario (publish x0, start the clock) only once the loop "
+         "is there: 'truth' matched by min_truth_subscribers subscriptions, and 'measurement', "
+         "'estimate' and 'control' each with a publisher and a subscriber; says what it waits for"),
+    Spec('min_truth_subscribers', 1, "Subscriptions 'truth' needs before the start (the sensor; the "
+         'demo: 2 with the recorder)', low=0),
+    Spec('start_delay', 0.3, 'Wall-clock s to wait once the loop is there, so that every pair of '
+         'endpoints has matched before the first sample', low=0.0),
+    Spec('exit_when_done', False, 'Exit the process after the last step (the demo and a lockstep '
+         'launch: the launch then ends)'),
     Spec('paused', False, 'Hold simulated time (no steps, no /clock) until set false again',
          read_only=False),
 )
@@ -97,22 +112,21 @@ PLANT = MODEL + (
 SENSOR = MODEL + (
     Spec('measured_axes', [0, 1, 2], 'Position axes measured (0 x, 1 y, 2 z); the others are '
          'published as NaN'),
-    Spec('measurement_noise', [1e-2], 'R, covariance of the position noise per sample, m^2 '
-         '(Table 6: 1e-2 I3)'),
+    Spec('measurement_noise', [D.RENDEZVOUS_MEASUREMENT_NOISE], 'R, covariance of the position noise '
+         'per sample, m^2 (Table 6: 1e-2 I3)'),
     Spec('seed', 0, 'Seed of the measurement noise (stream 2 of the seed)', low=0),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, a truth this far before the last '
          'one means the time base restarted: start over, s', low=0.0),
 )
 
 CONTROLLER = MODEL + (
-    Spec('lqr_state_weight', [1.0], 'Qc of the LQR cost, per m^2 and (m/s)^2 (not in the paper)',
-         read_only=False),
-    Spec('lqr_input_weight', [1e5], 'Rc of the LQR cost, per (m/s^2)^2 (not in the paper)',
-         read_only=False),
+    Spec('lqr_state_weight', [D.LQR_STATE_WEIGHT], 'Qc of the LQR cost, per m^2 and (m/s)^2 (not in '
+         'the paper)', read_only=False),
+    Spec('lqr_input_weight', [D.LQR_INPUT_WEIGHT], 'Rc of the LQR cost, per (m/s^2)^2 (not in the '
+         'paper)', read_only=False),
     Spec('gain', None, 'K (3x6, 18 values row-major) to use instead of designing it from Qc, Rc',
-         read_only=False, kind=Parameter.Type.DOUBLE_ARRAY),
-    Spec('cw_model', 'standard', 'CW matrix used for the LQR design',
-         choices=('standard', 'as_published')),
+         read_only=False, kind=DOUBLE_ARRAY),
+    Spec('cw_model', 'standard', 'CW matrix used for the LQR design', choices=('standard', 'as_published')),
     Spec('estimate_timeout', 0.5, 'Simulated s without a usable estimate before safe mode (zero '
          'thrust)', read_only=False, low=1e-9),
     Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock, or stamped '
@@ -121,56 +135,65 @@ CONTROLLER = MODEL + (
          'last one means the time base restarted: start over, s', low=0.0),
 )
 
+_CORE = EstimatorConfig()
 ESTIMATOR = MODEL + (
-    Spec('filter_type', 'snn_emsif', 'The estimator', choices=tuple(FILTER_KINDS)),
+    Spec('filter_type', DEFAULT_FILTER, 'The estimator (README, "Filters")', choices=tuple(FILTER_KINDS)),
     Spec('cw_model', 'standard', "CW matrix of the filter's model: standard, or Eq. 41 as printed",
          choices=('standard', 'as_published')),
     Spec('measured_axes', [0, 1, 2], 'Position axes in the measurement (must match the sensor)'),
-    Spec('neuron_count', _DEFAULTS.neuron_count, 'N, number of LIF neurons (Table 6: 200)',
-         low=1, high=100000),
-    Spec('leak_rate', _DEFAULTS.leak_rate, 'lambda, leak of v and r, 1/s (Eq. 10-11; Table 6: 0.001)',
+    Spec('neuron_count', _CORE.neuron_count, 'N, number of LIF neurons (Table 6: 200)', low=1, high=100000),
+    Spec('leak_rate', _CORE.leak_rate, 'lambda, leak of v and r, 1/s (Eq. 10-11; Table 6: 0.001)',
          read_only=False, low=0.0),
-    Spec('boundary_layer', [0.1], 'delta, sliding boundary layer per measured axis or one for '
-         'all, m (Eq. 7-8, 21-24; Table 6: 0.1)', read_only=False),
-    Spec('decoder_variance', _DEFAULTS.decoder_variance,
-         'Variance of the decoder entries, D ~ N(0, var) (Sec. 3.2: 1/15)', low=1e-300),
-    Spec('seed', 0, 'Seed of the decoder and membrane noise (stream 3 of the seed)', low=0),
-    Spec('process_noise', [1e-12], "Q the filter's Q_hat is scaled from, (m/s^2)^2/Hz"),
-    Spec('measurement_noise', [1e-2], "R the filter's R_hat is scaled from, m^2"),
-    Spec('process_noise_scale', _DEFAULTS.process_noise_scale, 'Q_hat = scale * Q (Sec. 3.2: 0.9)',
+    Spec('boundary_layer', [_CORE.boundary_layer], 'delta, sliding boundary layer per measured axis '
+         'or one for all, m (Eq. 7-8, 21-24; Table 6: 0.1)', read_only=False),
+    Spec('decoder_variance', _CORE.decoder_variance, 'Variance of the decoder entries, D ~ N(0, var) '
+         '(Sec. 3.2: 1/15)', low=1e-300),
+    Spec('seed', 0, 'Seed of the decoder, membrane noise and dispersed start (streams 3 and 5)', low=0),
+    Spec('process_noise', [_CORE.process_noise], "Q the filter's Q_hat is scaled from, (m/s^2)^2/Hz"),
+    Spec('measurement_noise', [_CORE.measurement_noise], "R the filter's R_hat is scaled from, m^2"),
+    Spec('process_noise_scale', _CORE.process_noise_scale, 'Q_hat = scale * Q (Sec. 3.2: 0.9)',
          read_only=False, low=0.0),
-    Spec('measurement_noise_scale', _DEFAULTS.measurement_noise_scale,
-         'R_hat = scale * R (Sec. 3.2: 5)', read_only=False, low=1e-300),
-    Spec('measurement_noise_units', _DEFAULTS.measurement_noise_units,
+    Spec('measurement_noise_scale', _CORE.measurement_noise_scale, 'R_hat = scale * R (Sec. 3.2: 5)',
+         read_only=False, low=1e-300),
+    Spec('measurement_noise_units', _CORE.measurement_noise_units,
          'What R_hat is to the Kalman gain and Riccati equation (Eq. 5-6): spectral_density (as '
          'printed) or per_sample (variance of each sample: Eq. 5-6 use R_hat * time_step)',
          choices=MEASUREMENT_NOISE_UNITS),
-    Spec('initial_covariance', _floats(_DEFAULTS.initial_covariance),
+    Spec('gain_schedule', _CORE.gain_schedule, 'time_varying: the gain follows P or the innovation '
+         'every step (the paper); steady_state: held at its value at the fixed point of Eq. 6 '
+         '(constant network weights)', choices=GAIN_SCHEDULES),
+    Spec('initial_covariance', _floats(_CORE.initial_covariance),
          'P0, initial error covariance, m^2 and (m/s)^2 (not in the paper)'),
-    Spec('initial_state', _floats(_DEFAULTS.initial_state), 'x_hat0, m and m/s (Table 6: x0)'),
-    Spec('spike_rule', _DEFAULTS.spike_rule, 'How neurons above threshold fire in one step',
-         choices=SPIKE_RULES),
-    Spec('state_scale', _floats(_DEFAULTS.state_scale), 'Diagonal of S: the network encodes '
-         'x~ = S^-1 x (all 1: the literal network), m and m/s per unit'),
-    Spec('discretization', _DEFAULTS.discretization, 'Stepping of the continuous equations',
+    Spec('initial_state', _floats(_CORE.initial_state), 'x_hat0, m and m/s (Table 6: x0)'),
+    Spec('initial_state_dispersion', True, 'Start from x_hat0 + L xi (L L^T = P0, xi ~ N(0, I) from '
+         'the seed), not from x_hat0: the filter does not know the truth (the paper starts at the '
+         'truth: false)'),
+    Spec('spike_rule', _CORE.spike_rule, 'How neurons above threshold fire in one step', choices=SPIKE_RULES),
+    Spec('state_scale', _floats(_CORE.state_scale), 'Diagonal of S: the network encodes x~ = S^-1 x '
+         '(all 1: the literal network), m and m/s per unit'),
+    Spec('discretization', _CORE.discretization, 'Stepping of the continuous equations',
          choices=('exact', 'euler')),
-    Spec('membrane_noise', 0.0, 'eta, membrane noise, per sqrt(s) (Eq. 10; 0 = off)', read_only=False,
-         low=0.0),
+    Spec('membrane_noise', 0.0, 'eta, membrane noise, per sqrt(s) (Eq. 10; 0 = off)', read_only=False, low=0.0),
     Spec('max_spikes_per_step', 0, 'Cap on spikes per step for the greedy rule (0: 1000 N)', low=0),
-    Spec('silenced_neurons', None, 'Indices of silenced (dead) neurons', read_only=False,
-         kind=Parameter.Type.INTEGER_ARRAY),
+    Spec('silenced_neurons', None, 'Indices of silenced (dead) neurons', read_only=False, kind=INTEGER_ARRAY),
     Spec('silenced_fraction', 0.0, 'Fraction of neurons silenced, chosen at random with the seed '
          '(added to silenced_neurons)', read_only=False, low=0.0, high=1.0),
     Spec('publish_spikes', True, 'Publish per-neuron spike counts on `spikes` every step'),
-    Spec('initialization', 'auto', 'Start from the parameters, or from the newest estimate an '
-         'earlier estimator left on `estimate` (hot swap) and replay the inputs since then; '
-         'auto: the latter when one arrives within warm_start_wait',
-         choices=('auto', 'parameters', 'last_estimate')),
-    Spec('warm_start_wait', 0.5, 'auto initialization: wall-clock s after the first measurement to '
-         'wait for the topics\' history (an earlier estimate, more measurements)', low=0.0),
-    Spec('warm_start_min_samples', 20, 'auto initialization: with no earlier estimate but at least '
-         'this many measurements in the history, start from a least-squares fit of the newest '
-         'this many', low=2),
+    Spec('autostart', True, 'Configure and activate at start-up (a managed node otherwise: ros2 '
+         'lifecycle set /estimator configure, activate)'),
+    Spec('standby', False, 'Hot standby: configure, run on the same inputs but do not publish, and '
+         'activate when the active estimator stops publishing (standby_timeout)'),
+    Spec('standby_timeout', 0.1, 'standby: activate when our estimate is newer than the newest one '
+         'on `estimate` for this many wall-clock s, or by two time steps of simulated time', low=1e-3),
+    Spec('initialization', 'auto', 'How the filter starts: parameters (initial_state at the first '
+         'measurement), last_estimate (the newest estimate on `estimate`, replaying the inputs since: '
+         'hot swap), history (a least-squares fit of the measurement history: restart after a crash); '
+         'auto: the first of last_estimate, history, parameters that the topics\' history allows',
+         choices=START_MODES),
+    Spec('history_wait', 1.0, 'Wall-clock s at most to read the history that publishers keep on '
+         '`estimate`, `measurement` and `control` when configured (no wait when none keeps any)', low=0.0),
+    Spec('initial_fit_window', D.INITIAL_FIT_WINDOW, 'Seconds of measurement history a least-squares '
+         'start fits (10 s: ~2 cm, ~3.5 mm/s 1-sigma at the default R)', low=1e-3),
     Spec('max_input_age', 1.0, 'Measurements older than this behind the newest one received '
          '(stragglers), or stamped more than this plus two time steps ahead of the simulated '
          'clock, are rejected, s', read_only=False, low=1e-9),
@@ -182,23 +205,63 @@ ESTIMATOR = MODEL + (
          'measurement (0: never)', read_only=False, low=0),
 )
 
+RECORDER = (
+    Spec('topics', list(PIPELINE_TOPICS), 'Topics to record (relative names resolve in the '
+         "node's namespace); types of topics outside the pipeline are discovered from the graph"),
+    Spec('output', '', 'Bag directory to create (empty: bag_<date>-<time> in the working directory)'),
+    Spec('storage', 'mcap', 'Storage plugin', choices=('mcap', 'sqlite3')),
+    Spec('drain_timeout', 5.0, 'On SIGINT/SIGTERM, wall-clock s at most to keep writing queued '
+         'messages before closing the bag', low=0.0),
+)
 
-def declare(node, specs: Sequence[Spec]) -> dict:
-    """Declare ``specs`` on ``node``; return name -> value (None for unset arrays)."""
+#: Node name -> its table, in the order the YAML files and the README list them.
+NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER,
+         'estimator': ESTIMATOR, 'recorder': RECORDER}
+
+
+def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
+    """Declare ``specs`` on ``node`` (once; a lifecycle node configured again reads them);
+    return name -> value (None for unset arrays). With ``check``, a value outside ``choices``
+    raises ValueError naming the parameter (see :func:`check_choices`)."""
+    from rclpy.exceptions import ParameterUninitializedException
+    from rclpy.parameter import Parameter
+
+    kinds = {DOUBLE_ARRAY: Parameter.Type.DOUBLE_ARRAY, INTEGER_ARRAY: Parameter.Type.INTEGER_ARRAY}
     values = {}
     for spec in specs:
-        if spec.default is None:
-            node.declare_parameter(spec.name, spec.kind, spec.descriptor())
+        if node.has_parameter(spec.name):  # a lifecycle node configured again
+            values[spec.name] = node.get_parameter(spec.name).value
+        elif spec.default is None:
+            node.declare_parameter(spec.name, kinds[spec.kind], spec.descriptor())
             try:
                 values[spec.name] = node.get_parameter(spec.name).value
             except ParameterUninitializedException:
                 values[spec.name] = None
         else:
             values[spec.name] = node.declare_parameter(spec.name, spec.default, spec.descriptor()).value
-        if spec.choices and values[spec.name] not in spec.choices:
-            raise ValueError(f"parameter {spec.name} must be one of {' | '.join(spec.choices)}; "
-                             f'got {values[spec.name]!r}')
+    if check:
+        check_choices(values, specs)
     return values
+
+
+def read(node, specs: Sequence[Spec]) -> dict:
+    """The current values of declared ``specs`` (None for an array never set)."""
+    from rclpy.exceptions import ParameterUninitializedException
+    values = {}
+    for spec in specs:
+        try:
+            values[spec.name] = node.get_parameter(spec.name).value
+        except ParameterUninitializedException:
+            values[spec.name] = None
+    return values
+
+
+def check_choices(values: dict, specs: Sequence[Spec]) -> None:
+    """ValueError naming the first parameter whose value is not one of its choices."""
+    for spec in specs:
+        if spec.choices and values.get(spec.name) not in spec.choices:
+            raise ValueError(f"parameter {spec.name} must be one of {' | '.join(spec.choices)}; "
+                             f'got {values.get(spec.name)!r}')
 
 
 def estimator_config(values: dict) -> EstimatorConfig:
@@ -211,8 +274,10 @@ def estimator_config(values: dict) -> EstimatorConfig:
         process_noise_scale=values['process_noise_scale'],
         measurement_noise_scale=values['measurement_noise_scale'],
         measurement_noise_units=values['measurement_noise_units'],
+        gain_schedule=values['gain_schedule'],
         initial_covariance=list(values['initial_covariance']),
-        initial_state=list(values['initial_state']), spike_rule=values['spike_rule'],
+        initial_state=list(values['initial_state']),
+        initial_state_dispersion=values['initial_state_dispersion'], spike_rule=values['spike_rule'],
         state_scale=list(values['state_scale']), discretization=values['discretization'],
         membrane_noise=values['membrane_noise'], max_spikes_per_step=values['max_spikes_per_step'],
         silenced_neurons=tuple(silenced_set(values, values['neuron_count'], values['seed'])))
@@ -237,33 +302,134 @@ def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
                              form=form, measured_axes=tuple(measured_axes))
 
 
+# ---------------------------------------------------------------- generated files
+def _show(value) -> str:
+    if value is None:
+        return '(unset)'
+    if isinstance(value, float):
+        return f'{value:g}'
+    if isinstance(value, list):
+        return '[' + ', '.join(_show(v) for v in value) + ']'
+    return str(value)
+
+
 def markdown() -> str:
     """Parameter reference tables (README, between the 'parameters' markers)."""
-    from .recorder_node import RECORDER
-
-    def show(value) -> str:
-        if value is None:
-            return '(unset)'
-        if isinstance(value, float):
-            return f'{value:g}'
-        if isinstance(value, list):
-            return '[' + ', '.join(show(v) for v in value) + ']'
-        return str(value)
-
     shared = {spec.name for spec in MODEL}
     lines = []
-    for title, specs in (('all pipeline nodes', MODEL), ('cw_plant', PLANT), ('position_sensor', SENSOR),
-                         ('lqr_controller', CONTROLLER), ('estimator', ESTIMATOR), ('recorder', RECORDER)):
+    for title, specs in (('all pipeline nodes', MODEL), *NODES.items()):
         lines += [f'**{title}**', '', '| parameter | default | meaning |', '|---|---|---|']
         for spec in specs:
             if specs is not MODEL and spec.name in shared:
                 continue
             choices = ' (' + ' \\| '.join(spec.choices) + ')' if spec.choices else ''
             runtime = '' if spec.read_only else ' **[runtime]**'
-            lines.append(f'| `{spec.name}` | `{show(spec.default)}` | {spec.description}{choices}{runtime} |')
+            lines.append(f'| `{spec.name}` | `{_show(spec.default)}` | {spec.description}{choices}{runtime} |')
         lines.append('')
     return '\n'.join(lines)
 
 
+def _yaml_float(value: float) -> str:
+    """Shortest exact text of ``value`` that YAML 1.1 (PyYAML, rcl) reads as a float: always
+    with a decimal point, large values in scientific notation."""
+    text = repr(value)
+    if abs(value) >= 1e7 and 'e' not in text:
+        mantissa, exponent = f'{value:.15e}'.split('e')
+        text = f"{mantissa.rstrip('0')}e{exponent}"
+    if 'e' in text:
+        mantissa, exponent = text.split('e')
+        text = f"{mantissa if '.' in mantissa else mantissa + '.0'}e{exponent}"
+        if mantissa.endswith('.'):
+            text = f'{mantissa}0e{exponent}'
+    return text
+
+
+def _yaml_value(value) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, float):
+        return _yaml_float(value)
+    if isinstance(value, list):
+        return '[' + ', '.join(_yaml_value(v) for v in value) + ']'
+    if isinstance(value, str):
+        return f"'{value}'" if value == '' else value
+    return str(value)
+
+
+#: The files in config/: name -> (header, estimator overrides).
+CONFIG_FILES = {
+    'rendezvous.yaml': (
+        "the paper's rendezvous scenario (Sec. 3.2, Table 6) with this package's numerical "
+        'defaults and a filter that does not know the truth (dispersed start).', {}),
+    'rendezvous_as_published.yaml': (
+        'the rendezvous scenario with the network exactly as Table 6 gives it: no state scaling, '
+        'forward-Euler steps, the estimate starting at the truth. Expect ~0.1 m of spike quantisation.',
+        {'state_scale': [1.0] * 6, 'discretization': 'euler', 'initial_state_dispersion': False}),
+}
+
+
+def yaml_document(header: str, estimator_overrides: dict) -> str:
+    """A parameter file for all nodes, every parameter commented (generated from the tables)."""
+    out = [f'# snn_rendezvous: {header}',
+           '# Generated from scenario_nodes/parameters.py (python -m scenario_nodes.parameters --write).',
+           '# Use with: ros2 run snn_rendezvous <node> --ros-args --params-file <this file>',
+           '# Matrices are flat lists: 1 value = scalar x identity, n values = diagonal, n*n = row-major.',
+           '# [runtime] parameters can be changed while running (ros2 param set); the others are read',
+           '# at start-up.', '']
+
+    def block(section: str, specs, extra: dict, skip=()):
+        out.extend([f'{section}:', '  ros__parameters:'])
+        for name, (comment, value) in extra.items():
+            out.append(f'    # {comment}')
+            out.append(f'    {name}: {_yaml_value(value)}')
+        for spec in specs:
+            if spec.name in skip:
+                continue
+            runtime = ' [runtime]' if not spec.read_only else ''
+            choices = f" ({' | '.join(spec.choices)})" if spec.choices else ''
+            for line in textwrap.wrap(spec.description + choices + runtime, 92):
+                out.append(f'    # {line}')
+            value = estimator_overrides.get(spec.name, spec.default) if specs is ESTIMATOR else spec.default
+            prefix = '# ' if value is None else ''
+            out.append(f'    {prefix}{spec.name}: {_yaml_value(value if value is not None else [])}')
+        out.append('')
+
+    block('/**', MODEL, {'use_sim_time': ('stamps from /clock, which the plant publishes', True)})
+    shared = {spec.name for spec in MODEL}
+    for node, specs in NODES.items():
+        extra = ({'use_sim_time': ('the plant is the clock: it must not follow /clock itself', False)}
+                 if node == 'cw_plant' else {})
+        block(f'/**/{node}', specs, extra, skip=shared)
+    return '\n'.join(out)
+
+
+def generated_files() -> dict[Path, str]:
+    """Every file generated from the tables, with its content."""
+    files = {ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
+    readme = ROOT / 'README.md'
+    if readme.exists():
+        text = readme.read_text()
+        begin = text.index('<!-- parameters:begin')
+        start = text.index('\n', begin) + 1
+        end = text.index('<!-- parameters:end -->')
+        files[readme] = text[:start] + markdown() + '\n' + text[end:]
+    return files
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description='Print the README parameter tables, or --write the '
+                                                 'generated files (config/*.yaml, the README tables).')
+    parser.add_argument('--write', action='store_true')
+    args = parser.parse_args(argv)
+    if not args.write:
+        print(markdown())
+        return 0
+    for path, content in generated_files().items():
+        if not path.exists() or path.read_text() != content:
+            path.write_text(content)
+            print(f'wrote {path}')
+    return 0
+
+
 if __name__ == '__main__':
-    print(markdown())
+    raise SystemExit(main())

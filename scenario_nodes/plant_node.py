@@ -1,8 +1,12 @@
 """cw_plant: the Clohessy-Wiltshire truth. Owns simulated time and publishes /clock.
 
-lockstep: publish x_k at t_k, wait for the control stamped t_k, step, repeat (a control that
-does not come within ``control_timeout`` wall-clock seconds is replaced by the last one and
-counted). realtime: step on a wall-clock timer at ``real_time_factor`` with the latest control.
+Start: with ``wait_for_loop`` the scenario (x0, the clock) starts only once the loop is there:
+'truth' matched by ``min_truth_subscribers`` subscriptions and 'measurement', 'estimate' and
+'control' each with a publisher and a subscription, then ``start_delay`` wall seconds. It says
+what it waits for. lockstep: publish x_k at t_k, wait for the control stamped t_k, step, repeat
+(a control that does not come within ``control_timeout`` wall-clock seconds is replaced by the
+last one and counted). realtime: step on a wall-clock timer at ``real_time_factor`` with the
+latest control.
 """
 
 from __future__ import annotations
@@ -20,18 +24,45 @@ from rosgraph_msgs.msg import Clock as ClockMessage
 from snn_estimator.simulation import Plant
 
 from . import qos
-from .conversions import MessageError, control_of, decode_accel, encode_clock, encode_odometry, seconds_to_ns
+from .codec import MessageError, control_of, decode_accel, encode_clock, encode_odometry, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import PLANT, cw_model, declare
-from .runtime import run_node
+from .runtime import ProcessHooks, run_node
 
 #: Steps at the start during which the lockstep plant waits for controls without a timeout.
 STARTUP_STEPS = 10
-#: Wall-clock seconds the lockstep plant waits for the very first control before warning again.
+#: Wall-clock seconds between two notices of what the plant is still waiting for.
 STARTUP_NOTICE_PERIOD = 5.0
 
 
-class PlantNode(Node):
+def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole_loop: bool) -> list[str]:
+    """What the loop still lacks before the plant may start (empty: ready), from the graph:
+    matched subscriptions on 'truth' and, with ``whole_loop``, a node in each role of the loop,
+    recognised by what it subscribes and publishes (a recorder or ``ros2 topic echo`` on a
+    topic does not stand in for the controller)."""
+    missing = []
+    if truth_subscribers < min_truth_subscribers:
+        missing.append(f"{min_truth_subscribers - truth_subscribers} subscription(s) on '{qos.TRUTH}'")
+    if not whole_loop:
+        return missing
+
+    def nodes(info) -> set:
+        return {(endpoint.node_namespace, endpoint.node_name) for endpoint in info}
+
+    def publishing(topic):
+        return nodes(node.get_publishers_info_by_topic(node.resolve_topic_name(topic)))
+
+    def subscribing(topic):
+        return nodes(node.get_subscriptions_info_by_topic(node.resolve_topic_name(topic)))
+
+    roles = (('a sensor (truth -> measurement)', subscribing(qos.TRUTH) & publishing(qos.MEASUREMENT)),
+             ('an estimator (measurement, control -> estimate)',
+              subscribing(qos.MEASUREMENT) & subscribing(qos.CONTROL) & publishing(qos.ESTIMATE)),
+             ('a controller (estimate -> control)', subscribing(qos.ESTIMATE) & publishing(qos.CONTROL)))
+    return missing + [role for role, present in roles if not present]
+
+
+class PlantNode(ProcessHooks, Node):
     """Wraps :class:`snn_estimator.simulation.Plant`; holds no dynamics of its own."""
 
     def __init__(self, **kwargs):
@@ -50,20 +81,21 @@ class PlantNode(Node):
         self._controls_received = 0
         self._rejected = Rejections()
         self._truth_published = 0
+        self._truth_resent = 0
+        self._sent_at = 0.0
         self._waiting_since = None
         self._started_wall = None
         self._finished_wall = None
         self._finished_unix = 0.0
         self._held = None
         self._early: dict[int, np.ndarray] = {}
-        self.done = False
-        self.exit_code = 0
 
-        self._truth_pub = self.create_publisher(Odometry, qos.TRUTH, qos.PUBLISHER_QOS)
+        self._events = qos.QosEvents(self)
+        self._truth_pub = qos.publisher(self, self._events, Odometry, qos.TRUTH)
         self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
                            if p['publish_clock'] else None)
-        self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'])
-        self.create_subscription(AccelStamped, qos.CONTROL, self._on_control, qos.SUBSCRIBER_QOS, raw=True)
+        self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'], self._events)
+        qos.subscription(self, self._events, AccelStamped, qos.CONTROL, self._on_control)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self._lockstep:
@@ -76,26 +108,31 @@ class PlantNode(Node):
             f"{p['mode']} CW truth, dt {self._dt} s, n = {self._plant.model.mean_motion:.4e} rad/s, "
             f"{'until stopped' if self._total_steps is None else f'{self._total_steps} steps'}")
         self._ready = False
-        self._ready_since = time.monotonic()
-        self._readiness = None
-        self._check_ready()
-        if not self._ready:
-            self._readiness = self.create_timer(0.02, self._check_ready, clock=steady)
+        self._loop_since = None  # wall time the loop was first seen complete
+        self._notice_at = time.monotonic()
+        self._readiness = self.create_timer(0.02, self._check_ready, clock=steady)
 
     def _check_ready(self) -> None:
-        """Publish the first state once ``min_truth_subscribers`` subscriptions match 'truth'."""
+        """Start the scenario (publish x0) once the loop is there (wait_for_loop) and
+        start_delay has passed; say what is missing every STARTUP_NOTICE_PERIOD s."""
         if self._ready:
             return
+        p = self._p
         matched = self._truth_pub.get_subscription_count()
-        if matched < self._p['min_truth_subscribers']:
-            if time.monotonic() - self._ready_since > STARTUP_NOTICE_PERIOD:
-                self.get_logger().info(f"waiting for {self._p['min_truth_subscribers']} subscriptions on "
-                                       f"'{qos.TRUTH}' ({matched} so far) before the first step")
-                self._ready_since = time.monotonic()
+        missing = loop_missing(self, matched, p['min_truth_subscribers'], p['wait_for_loop'])
+        now = time.monotonic()
+        if missing:
+            self._loop_since = None
+            if now - self._notice_at > STARTUP_NOTICE_PERIOD:
+                self.get_logger().info(f"waiting for {', '.join(missing)} before the first step")
+                self._notice_at = now
+            return
+        self._loop_since = self._loop_since or now
+        if now - self._loop_since < p['start_delay']:
             return
         self._ready = True
-        if self._readiness is not None:
-            self.destroy_timer(self._readiness)
+        self.destroy_timer(self._readiness)
+        self.get_logger().info(f'the loop is there: starting the scenario at t = {self._t_ns * 1e-9:.3f} s')
         self._publish_sample()
 
     # ---------------------------------------------------------------- events
@@ -153,7 +190,13 @@ class PlantNode(Node):
             if self._p['paused'] and self._waiting_since is not None:
                 self._waiting_since = time.monotonic()
             return
-        waited = time.monotonic() - self._waiting_since
+        now = time.monotonic()
+        waited = now - self._waiting_since
+        if now - self._sent_at > self._p['resend_period']:
+            # a sample lost on a best-effort link would stall the lockstep loop: send it again;
+            # every node answers a repeated input with its answer to it (README, "Lockstep")
+            self._truth_resent += 1
+            self._publish_sample(resend=True)
         if self._step < STARTUP_STEPS:  # processes still warming up: no timeouts yet
             if waited > STARTUP_NOTICE_PERIOD:
                 self.get_logger().info(f"waiting for the control of t = {self._t_ns * 1e-9:.1f} s on "
@@ -190,14 +233,17 @@ class PlantNode(Node):
                 return
             u = self._early.pop(early[0])
 
-    def _publish_sample(self) -> None:
+    def _publish_sample(self, resend: bool = False) -> None:
         if self._clock_pub is not None:
             self._clock_pub.publish(encode_clock(self._t_ns))
         x = self._plant.x[0]
         self._truth_pub.publish(encode_odometry(
             x, None, self._t_ns, self._p['frame_id'], self._p['child_frame_id']))
         self._truth_published += 1
-        self._waiting_since = time.monotonic()
+        self._sent_at = time.monotonic()
+        if resend:
+            return
+        self._waiting_since = self._sent_at
         if self._diagnostics.due(self._t_ns):
             self._publish_diagnostics()
 
@@ -206,7 +252,7 @@ class PlantNode(Node):
         self._finished_unix = time.time()  # when stepping ended, for tools outside the process
         self._waiting_since = None
         self._publish_diagnostics()
-        values = self._values()
+        values = self.values()
         self.get_logger().info(
             f"done: {values['steps']} steps, {values['sim_time']:.1f} s simulated in "
             f"{values['wall_time']:.2f} s (x{values['real_time_factor']:.0f}), "
@@ -231,7 +277,7 @@ class PlantNode(Node):
         self.get_logger().warning(f'rejected control ({reason}): {detail}', throttle_duration_sec=5.0)
         self._publish_diagnostics()
 
-    def _values(self) -> dict:
+    def values(self) -> dict:
         end = self._finished_wall or time.monotonic()
         wall = (end - self._started_wall) if self._started_wall else 0.0
         sim = self._step * self._dt
@@ -239,7 +285,7 @@ class PlantNode(Node):
             'steps': self._step, 'sim_time': sim, 'wall_time': wall,
             'real_time_factor': sim / wall if wall > 0 else 0.0,
             'control_timeouts': self._timeouts, 'controls_received': self._controls_received,
-            'truth_published': self._truth_published,
+            'truth_published': self._truth_published, 'truth_resent': self._truth_resent,
             'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished,
             'finished_unix_time': self._finished_unix,
         }
@@ -250,7 +296,7 @@ class PlantNode(Node):
         problems = [f'{self._timeouts} control timeouts'] if self._timeouts else []
         if self._rejected.total:
             problems.append(f'{self._rejected.total} controls rejected')
-        self._diagnostics.publish(self._t_ns, self._values(), problems)
+        self._diagnostics.publish(self._t_ns, self.values(), problems)
 
 
 def main(args=None) -> int:

@@ -1,33 +1,42 @@
-"""Topic names, frames and QoS of the pipeline, defined once.
+"""QoS of the pipeline, defined once, and the helpers every node creates its endpoints with.
 
-Every pipeline topic is RELIABLE and TRANSIENT_LOCAL: a node that starts late still receives
-what was published before it matched, which is how the lockstep loop starts without a handshake
-and how a replacement estimator finds the sensor's history.
+| endpoint | reliability | durability | history | why |
+|---|---|---|---|---|
+| every publisher (truth, measurement, control, estimate, spike_count, spikes, diagnostics) | reliable | transient local | keep last 5000 | matches any subscriber; a lagging recorder never loses a sample; a joining node can read the topic's history (hot swap, crash restart) |
+| every subscription of the loop | best effort | volatile | keep last 100 (estimator inputs 1000) | matches publishers with the default profile (`ros2 topic pub`, robot_localization), the sensor-data profile (drivers) and ours, as nav2 and robot_localization subscribe to sensors |
+| the estimator's start-up history reader | reliable | transient local | keep last 1000 | reads, once, what publishers that keep history still hold |
+| recorder | adapts to the publishers (reliable + transient local for ours) | | keep all | records every sample |
+| /clock | best effort | volatile | keep last 1 | as rclpy's time source subscribes |
 
-* publishers keep the last 5000 samples (8 minutes of the 0.1 s loop): a subscriber's DDS
-  reader, e.g. a recorder that lags, may fall that far behind before an unacknowledged sample
-  could be overwritten;
-* subscribers of the loop keep 10 (at most two are ever outstanding in lockstep), the
-  estimator's inputs 1000 (the history a replacement estimator starts from), the recorder all.
+Every pipeline publisher and subscription accepts the standard QoS overrides, e.g.
+``-p qos_overrides./measurement.subscription.reliability:=reliable`` (history, depth,
+reliability, durability). An incompatible peer is counted (``qos_incompatible.<topic>`` in
+the node's diagnostics) and logged once, naming the profile to use.
 """
 
+from __future__ import annotations
+
+from collections import Counter
+
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 # The topic names live in .topics (no rclpy there); re-exported here beside their QoS.
 from .topics import (CLOCK, CONTROL, DIAGNOSTICS, ESTIMATE, MEASUREMENT, PIPELINE_TOPICS,  # noqa: F401
                      SET_STATE, SPIKE_COUNT, SPIKES, TRUTH)
 
 
-def _latched(depth: int) -> QoSProfile:
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+def _profile(reliability, durability, depth: int) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=reliability,
+                      durability=durability)
 
 
-PUBLISHER_QOS = _latched(5000)
-SUBSCRIBER_QOS = _latched(10)
-HISTORY_QOS = _latched(1000)
-#: Kept for users' own nodes: a profile that matches both ends of the pipeline topics.
-PIPELINE_QOS = SUBSCRIBER_QOS
+PUBLISHER_QOS = _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL, 5000)
+SUBSCRIPTION_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 100)
+#: The estimator's inputs: a deeper queue, so a burst (a replayed bag) is not cut.
+INPUT_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 1000)
+HISTORY_QOS = _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL, 1000)
 
 #: What the recorder subscribes with: KEEP_ALL, so its reader queue never overwrites a sample
 #: its Python side has not written yet (it may lag behind the loop and catch up later).
@@ -36,10 +45,65 @@ RECORDER_QOS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 #: /clock as rosgraph expects it (rclpy's time source subscribes best-effort, depth 1).
-CLOCK_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST, depth=1,
-    reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+CLOCK_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 1)
 
 #: The target's local-vertical/local-horizontal frame (x V-bar, y -H, z R-bar toward Earth).
 LVLH_FRAME = 'lvlh'
 CHASER_FRAME = 'chaser'
+
+_OVERRIDABLE = (QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY,
+                QoSPolicyKind.DURABILITY)
+
+
+class QosEvents:
+    """Counts incompatible-QoS events per topic and logs the first of each, naming the fix."""
+
+    def __init__(self, node):
+        self._node = node
+        self.incompatible = Counter()
+
+    def _on_incompatible(self, topic: str, side: str):
+        def callback(event) -> None:
+            first = topic not in self.incompatible
+            self.incompatible[topic] += max(1, int(getattr(event, 'total_count_change', 1)))
+            if first:
+                policy = getattr(getattr(event, 'last_policy_kind', None), 'name', 'a policy')
+                peer = 'publisher' if side == 'subscription' else 'subscription'
+                self._node.get_logger().warning(
+                    f"'{topic}': a {peer} with incompatible QoS ({policy}) cannot be matched. "
+                    f'This {side} uses {describe(PUBLISHER_QOS if side == "publisher" else SUBSCRIPTION_QOS)}; '
+                    'publish with the default or the sensor-data profile, or set '
+                    f"qos_overrides./<ns>/{topic}.{side}.<policy> (README, 'QoS')")
+        return callback
+
+    def subscription_callbacks(self, topic: str) -> SubscriptionEventCallbacks:
+        return SubscriptionEventCallbacks(incompatible_qos=self._on_incompatible(topic, 'subscription'))
+
+    def publisher_callbacks(self, topic: str) -> PublisherEventCallbacks:
+        return PublisherEventCallbacks(incompatible_qos=self._on_incompatible(topic, 'publisher'))
+
+    def values(self) -> dict:
+        values = {'qos_incompatible': sum(self.incompatible.values())}
+        values.update({f'qos_incompatible.{topic}': n for topic, n in sorted(self.incompatible.items())})
+        return values
+
+
+def describe(profile: QoSProfile) -> str:
+    return (f'{profile.reliability.name.lower()}, {profile.durability.name.lower()}, '
+            f'{profile.history.name.lower()} {profile.depth}')
+
+
+def publisher(node, events: QosEvents, message_type, topic: str, lifecycle: bool = False):
+    """A pipeline publisher: PUBLISHER_QOS, overridable, incompatibilities counted."""
+    create = node.create_lifecycle_publisher if lifecycle else node.create_publisher
+    return create(message_type, topic, PUBLISHER_QOS, event_callbacks=events.publisher_callbacks(topic),
+                  qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
+
+
+def subscription(node, events: QosEvents, message_type, topic: str, callback, profile: QoSProfile = None):
+    """A pipeline subscription taking CDR bytes: best effort and volatile unless overridden,
+    so any publisher matches it."""
+    return node.create_subscription(
+        message_type, topic, callback, profile or SUBSCRIPTION_QOS, raw=True,
+        event_callbacks=events.subscription_callbacks(topic),
+        qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))

@@ -22,8 +22,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from . import qos
-from .parameters import Spec, declare
-from .runtime import clock_ns, run_node
+from .parameters import RECORDER, declare
+from .runtime import ProcessHooks, clock_ns, run_node
 
 KNOWN_TYPES = {
     qos.TRUTH: 'nav_msgs/msg/Odometry',
@@ -35,15 +35,6 @@ KNOWN_TYPES = {
     qos.DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     'clock': 'rosgraph_msgs/msg/Clock',
 }
-
-RECORDER = (
-    Spec('topics', list(qos.PIPELINE_TOPICS), 'Topics to record (relative names resolve in the '
-         "node's namespace); types of topics outside the pipeline are discovered from the graph"),
-    Spec('output', '', 'Bag directory to create (empty: bag_<date>-<time> in the working directory)'),
-    Spec('storage', 'mcap', 'Storage plugin', choices=('mcap', 'sqlite3')),
-    Spec('drain_timeout', 5.0, 'On SIGINT/SIGTERM, wall-clock s at most to keep writing queued '
-         'messages before closing the bag', low=0.0),
-)
 
 _ZERO = QosTime(sec=0, nsec=0)
 
@@ -77,7 +68,7 @@ def adapted_qos(publishers) -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
-class RecorderNode(Node):
+class RecorderNode(ProcessHooks, Node):
     """Subscribes with raw=True and hands the CDR bytes to a rosbags Writer."""
 
     def __init__(self, **kwargs):

@@ -21,13 +21,90 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-from .conversions import seconds_to_ns
 
 EXIT_OK = 0
 EXIT_CONFIG = 2
 EXIT_FAILURE = 1
 #: Callbacks run between two checks of rclpy.ok() (a stop request is checked after each one).
 SPIN_BURST = 100
+
+
+class ProcessHooks:
+    """What :func:`run_node` asks of a node, with do-nothing defaults (every node inherits it).
+
+    * ``start()``: after the node joined the executor (a managed node configures and activates
+      itself here when autostart is set; ValueError means a configuration error, exit 2);
+    * ``done``: set true to end the process (the plant after its last step);
+    * ``exit_code``: the process's exit code when it ends normally;
+    * ``drain(executor)``: after a stop request, may keep spinning (the recorder empties its queues);
+    * ``close()``: before the node is destroyed, even when draining failed (final diagnostics).
+    """
+
+    done = False
+    exit_code = EXIT_OK
+
+    def start(self) -> None:
+        """Called once the node is spinning-ready."""
+
+    def drain(self, executor) -> None:
+        """Called after a stop request, before close()."""
+
+    def close(self) -> None:
+        """Called before the node is destroyed."""
+
+
+class ThrottledLog:
+    """``log(level, message)`` for the core's callbacks: warnings of the same kind (their first
+    two words) at most once per ``period`` wall seconds; info and errors always."""
+
+    def __init__(self, logger, period: float = 5.0):
+        self._logger = logger
+        self._period = period
+        self._last: dict[str, float] = {}
+
+    def __call__(self, level: str, message: str) -> None:
+        if level == 'warning':
+            key = ' '.join(message.split()[:2])
+            now = time.monotonic()
+            if now - self._last.get(key, -self._period) < self._period:
+                return
+            self._last[key] = now
+        # one call site per severity: rclpy's logger keeps a context per call site and refuses
+        # a different severity from the same line
+        if level == 'error':
+            self._logger.error(message)
+        elif level == 'warning':
+            self._logger.warning(message)
+        else:
+            self._logger.info(message)
+
+
+class Answers:
+    """The last few messages a node sent, by the stamp of the input they answered: in lockstep
+    the plant sends a state again when its control does not come (a sample lost on a
+    best-effort link), and every node answers a repeated input with the same answer."""
+
+    def __init__(self, keep: int = 8):
+        self._keep = keep
+        self._sent: dict[int, bytes] = {}
+        self.resent = 0
+
+    def remember(self, stamp_ns: int, data: bytes) -> None:
+        self._sent[stamp_ns] = data
+        if len(self._sent) > self._keep:
+            del self._sent[min(self._sent)]
+
+    def resend(self, stamp_ns: int, publisher) -> bool:
+        """Publish again what answered ``stamp_ns``; False if nothing did (or it is forgotten)."""
+        data = self._sent.get(stamp_ns)
+        if data is None:
+            return False
+        publisher.publish(data)
+        self.resent += 1
+        return True
+
+    def clear(self) -> None:
+        self._sent.clear()
 
 
 class StopFlag:
@@ -70,23 +147,6 @@ def clock_ns(node) -> int:
         return clock.handle.get_now().nanoseconds
 
 
-def time_base_restarted(node, stamp_ns: int, last_ns: int, threshold_s: float) -> bool:
-    """Without a running clock (it reads 0), an input stamped more than ``threshold_s`` before
-    the last one means the time base restarted (a restarted plant, a bag loop). With a clock,
-    old stamps are only late inputs: its jump callback (:func:`on_clock_jump_back`) reports a
-    restart. The clock is read only for a stamp that far back (this runs for every input)."""
-    return stamp_ns < last_ns - seconds_to_ns(threshold_s) and clock_ns(node) <= 0
-
-
-def seconds_ahead_of_clock(now_ns: int, stamp_ns: int, values: dict) -> float:
-    """How far ``stamp_ns`` lies ahead of the clock reading ``now_ns`` when that is more than
-    ``max_input_age`` plus two ``time_step`` (an estimate is stamped one step ahead, and /clock
-    may arrive after the message it precedes); 0 when it is not, or without a clock (0).
-    Accepted, such an input would make every real one look old."""
-    lead = seconds_to_ns(values['max_input_age'] + 2 * values['time_step'])
-    return (stamp_ns - now_ns) * 1e-9 if now_ns > 0 and stamp_ns > now_ns + lead else 0.0
-
-
 def on_clock_jump_back(node, callback: Callable[[float], None]):
     """Call ``callback(seconds)`` after the node's clock jumped back (a restarted plant, a bag
     played in a loop). Keep the returned handle as long as the node: dropping it unregisters."""
@@ -111,12 +171,10 @@ def make_executor():
 
 
 def run_node(factory: Callable, args=None, name: str = 'node') -> int:
-    """Create the node with ``factory()`` and spin it until a signal, shutdown or ``node.done``.
-
-    ``node.done`` (optional attribute) lets a node end the process itself (the plant after its
-    last step); ``node.drain(executor)`` (optional) may keep spinning after a stop request (the
-    recorder empties its queues); ``node.close()`` (optional) runs before the node is destroyed,
-    even when draining failed. An unexpected exception propagates (traceback, exit code 1).
+    """Create the node with ``factory()``, call its ``start()`` and spin it until a signal,
+    shutdown or ``node.done`` (see :class:`ProcessHooks`). A configuration error (ValueError,
+    ParameterException) exits with code 2 and a message that says what to fix; an unexpected
+    exception propagates (traceback, exit code 1).
     """
     stop = StopFlag()
     try:
@@ -131,15 +189,16 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
         node = factory()
         executor = make_executor()
         executor.add_node(node)
+        node.start()
         spin_once = executor.spin_once
-        while rclpy.ok() and not stop.requested and not getattr(node, 'done', False):
+        while rclpy.ok() and not stop.requested and not node.done:
             # checked per callback, rclpy.ok() took 13 % of the recorder's main thread (py-spy);
             # spin_once raises ExternalShutdownException on shutdown anyway
             for _ in range(SPIN_BURST):
                 spin_once(timeout_sec=0.05)
-                if stop.requested or getattr(node, 'done', False):
+                if stop.requested or node.done:
                     break
-        code = getattr(node, 'exit_code', EXIT_OK)
+        code = node.exit_code
     except (KeyboardInterrupt, ExternalShutdownException):
         code = EXIT_OK
     except (ValueError, ParameterException) as error:  # invalid parameters: say what to fix
@@ -158,14 +217,11 @@ def _finish(node, executor) -> None:
     """Drain, close, flush and destroy ``node``. A failing step does not skip the later ones
     (a bag left unclosed has no metadata.yaml and cannot be read); its exception propagates."""
     try:
-        drain = getattr(node, 'drain', None)
-        if drain is not None and executor is not None and rclpy.ok():
-            drain(executor)
+        if executor is not None and rclpy.ok():
+            node.drain(executor)
     finally:
         try:
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
+            node.close()
         finally:
             if rclpy.ok():
                 flush(node)

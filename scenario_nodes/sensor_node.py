@@ -9,13 +9,15 @@ from rclpy.node import Node
 from snn_estimator.simulation import PositionSensor
 
 from . import qos
-from .conversions import MessageError, decode_odometry, encode_point, state_of
+from snn_estimator.gates import NewestFirst
+
+from .codec import MessageError, check_frame, decode_odometry, encode_point, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, cw_model, declare
-from .runtime import on_clock_jump_back, run_node, time_base_restarted
+from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
 
 
-class SensorNode(Node):
+class SensorNode(ProcessHooks, Node):
     """Wraps :class:`snn_estimator.simulation.PositionSensor`: one measurement per truth sample,
     stamped with the truth's time, NaN on the axes it does not measure."""
 
@@ -28,36 +30,43 @@ class SensorNode(Node):
         self._sensor = PositionSensor(model, p['measurement_noise'], seeds=[p['seed']])
         self._published = 0
         self._rejected = Rejections()
-        self._last_stamp_ns = None
+        self._gate = NewestFirst(p['time_jump_threshold'])
         self._time_jumps = 0
-        self._pub = self.create_publisher(PointStamped, qos.MEASUREMENT, qos.PUBLISHER_QOS)
-        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'])
-        self.create_subscription(Odometry, qos.TRUTH, self._on_truth, qos.SUBSCRIBER_QOS, raw=True)
+        self._answers = Answers()
+        self._events = qos.QosEvents(self)
+        self._pub = qos.publisher(self, self._events, PointStamped, qos.MEASUREMENT)
+        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events)
+        qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
 
     def _on_truth(self, data: bytes) -> None:
         try:
-            truth = decode_odometry(data)
+            truth = check_frame(decode_odometry(data), self._p['frame_id'])
             x = state_of(truth)
         except MessageError as error:
             self._rejected[error.reason] += 1
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)
             return
         stamp_ns = truth.stamp_ns
-        if self._last_stamp_ns is not None and time_base_restarted(
-                self, stamp_ns, self._last_stamp_ns, self._p['time_jump_threshold']):
+        kind = self._gate.classify(stamp_ns, lambda: clock_ns(self))
+        if kind == 'repeat':
+            if self._answers.resend(stamp_ns, self._pub):  # the plant sent it again: same measurement
+                self._published += 1
+            else:
+                self._rejected['not_newer'] += 1
+                self.get_logger().warning('truth stamp did not advance; not measured twice',
+                                          throttle_duration_sec=5.0)
+            self._publish_diagnostics(self._gate.last_ns)
+            return
+        if kind == 'restarted':
             self.get_logger().warning('truth time went back: starting over')
             self._time_jumps += 1
-            self._last_stamp_ns = None
-        if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
-            self._rejected['not_newer'] += 1
-            self.get_logger().warning('truth stamp did not advance; not measured twice',
-                                      throttle_duration_sec=5.0)
-            return
-        self._last_stamp_ns = stamp_ns
+            self._answers.clear()
         z = self._sensor.measure(x)[0]
-        self._pub.publish(encode_point(z, self._axes, stamp_ns, self._p['frame_id']))
+        data = encode_point(z, self._axes, stamp_ns, self._p['frame_id'])
+        self._pub.publish(data)
+        self._answers.remember(stamp_ns, data)
         self._published += 1
         if self._diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
@@ -65,18 +74,20 @@ class SensorNode(Node):
     def _on_time_jump(self, seconds: float) -> None:
         self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
         self._time_jumps += 1
-        self._last_stamp_ns = None
+        self._gate.reset()
+        self._answers.clear()
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
-        values = {'measurements_published': self._published, 'time_jumps': self._time_jumps,
+        values = {'measurements_published': self._published, 'measurements_resent': self._answers.resent,
+                  'time_jumps': self._time_jumps,
                   **self._rejected.as_values('truth')}
         problems = [f'{self._rejected.total} truth messages rejected'] if self._rejected.total else []
         self._diagnostics.publish(stamp_ns, values, problems)
 
     def close(self) -> None:
         """Final diagnostics, so the totals of the run are on record."""
-        if self._last_stamp_ns is not None:
-            self._publish_diagnostics(self._last_stamp_ns)
+        if self._gate.last_ns is not None:
+            self._publish_diagnostics(self._gate.last_ns)
             self._diagnostics.flush()
 
 

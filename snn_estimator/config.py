@@ -8,12 +8,16 @@ from typing import Any
 
 import numpy as np
 
+from . import defaults as D
 from .models import DISCRETIZATIONS, StateSpaceModel
 from .validation import as_matrix, as_vector, check_choice, check_covariance, check_positive
 
 SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
 #: What R_hat is to Eq. 5-6: the spectral density they take, or the variance of each sample.
 MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
+#: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
+#: state (constant network weights, what a neuromorphic chip holds).
+GAIN_SCHEDULES = ('time_varying', 'steady_state')
 
 
 @dataclass(frozen=True)
@@ -25,35 +29,39 @@ class EstimatorConfig:
     """
 
     #: N, number of LIF neurons (Table 6: 200).
-    neuron_count: int = 200
+    neuron_count: int = D.RENDEZVOUS_NEURONS
     #: lambda, leak of membrane potentials and filtered spike trains, 1/s (Eq. 10-11; Table 6).
-    leak_rate: float = 0.001
+    leak_rate: float = D.RENDEZVOUS_LEAK_RATE
     #: delta, sliding boundary layer of the (M)SIF gain, one per measurement or a scalar (Eq. 7-8).
-    boundary_layer: Any = 0.1
+    boundary_layer: Any = D.RENDEZVOUS_BOUNDARY_LAYER
     #: Variance of the decoder entries, D ~ N(0, var) (Sec. 3.2: 1/15).
-    decoder_variance: float = 1.0 / 15.0
+    decoder_variance: float = D.RENDEZVOUS_DECODER_VARIANCE
     #: Seed of the decoder (and membrane noise); run b of a batch uses seed + b.
     seed: int = 0
     #: Q, true process-noise spectral density (Table 6: 1e-12 I6); the filter uses scale * Q.
-    process_noise: Any = 1e-12
+    process_noise: Any = D.RENDEZVOUS_PROCESS_NOISE
     #: R, true measurement-noise covariance per sample (Table 6: 1e-2 I3); the filter uses scale * R.
-    measurement_noise: Any = 1e-2
+    measurement_noise: Any = D.RENDEZVOUS_MEASUREMENT_NOISE
     #: Q_hat = process_noise_scale * Q (Sec. 3.2: 0.9).
-    process_noise_scale: float = 0.9
+    process_noise_scale: float = D.RENDEZVOUS_PROCESS_NOISE_SCALE
     #: R_hat = measurement_noise_scale * R (Sec. 3.2: 5).
-    measurement_noise_scale: float = 5.0
+    measurement_noise_scale: float = D.RENDEZVOUS_MEASUREMENT_NOISE_SCALE
     #: R_hat in Eq. 5-6 (Kalman gain, Riccati): spectral_density uses it as printed; per_sample
     #: reads it as the variance of each sample and uses the sampled-data density R_hat dt. The
     #: MSIF's P^zz (Eq. 9) and the sensor always use the per-sample R.
     measurement_noise_units: str = 'spectral_density'
     #: P0, initial estimation-error covariance (not stated in the paper; see README).
-    initial_covariance: Any = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
+    initial_covariance: Any = D.RENDEZVOUS_INITIAL_COVARIANCE
     #: x_hat0, initial estimate (Table 6: equal to x0).
-    initial_state: Any = (70.0, 30.0, -5.0, -1.7, -0.9, 0.25)
+    initial_state: Any = D.RENDEZVOUS_X0
+    #: Start each run from x_hat0 + L xi, L L^T = P0, xi ~ N(0, I) from the run's seed (stream
+    #: 5), instead of x_hat0 itself: a filter that does not know the truth (the paper's Table 6
+    #: starts at x_hat0 = x0, which hides how the filters converge).
+    initial_state_dispersion: bool = False
     #: How neurons above threshold fire within one step: greedy | one_per_step | all_above.
     spike_rule: str = 'greedy'
     #: Diagonal of S: the network encodes x~ = S^-1 x (None: S = I, the paper's literal network).
-    state_scale: Any = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
+    state_scale: Any = D.RENDEZVOUS_STATE_SCALE
     #: How the continuous equations are stepped: exact (ZOH of the linearised drift) | euler.
     discretization: str = 'exact'
     #: Standard deviation of the membrane noise eta, per sqrt(s) (Eq. 10; 0 = off).
@@ -62,6 +70,9 @@ class EstimatorConfig:
     max_spikes_per_step: int = 0
     #: Indices of silenced (dead) neurons.
     silenced_neurons: tuple = field(default_factory=tuple)
+    #: time_varying (the paper: K from P or the innovation every step) | steady_state (K held at
+    #: its value at the fixed point of Eq. 6; linear models only).
+    gain_schedule: str = 'time_varying'
 
     def replace(self, **changes) -> 'EstimatorConfig':
         """A copy with some fields changed (unknown names raise TypeError)."""
@@ -82,12 +93,14 @@ class ResolvedConfig:
     measurement_noise_units: str
     initial_covariance: np.ndarray
     initial_state: np.ndarray
+    initial_state_dispersion: bool
     spike_rule: str
     state_scale: np.ndarray
     discretization: str
     membrane_noise: float
     max_spikes_per_step: int
     silenced_neurons: tuple
+    gain_schedule: str
 
 
 def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
@@ -127,6 +140,7 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
     silenced = tuple(sorted({int(i) for i in config.silenced_neurons}))
     if silenced and (silenced[0] < 0 or silenced[-1] >= neurons):
         raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {silenced}')
+    schedule = check_choice(config.gain_schedule, GAIN_SCHEDULES, 'gain_schedule')
     seed = int(config.seed)
     if seed < 0:
         raise ValueError(f'seed must be >= 0, got {seed}')
@@ -134,8 +148,9 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
         neuron_count=neurons, leak_rate=leak, boundary_layer=delta, decoder_variance=variance,
         seed=seed, q_hat=q_scale * q, r_hat=r_scale * r, measurement_noise_units=units,
         initial_covariance=p0,
-        initial_state=x0, spike_rule=rule, state_scale=scale, discretization=method,
-        membrane_noise=noise, max_spikes_per_step=cap or 1000 * neurons, silenced_neurons=silenced)
+        initial_state=x0, initial_state_dispersion=bool(config.initial_state_dispersion), spike_rule=rule, state_scale=scale, discretization=method,
+        membrane_noise=noise, max_spikes_per_step=cap or 1000 * neurons, silenced_neurons=silenced,
+        gain_schedule=schedule)
 
 
 def gain_noise_density(settings: ResolvedConfig, dt: float) -> np.ndarray:

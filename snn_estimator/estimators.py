@@ -1,15 +1,27 @@
-"""The filters of the paper behind one interface, and the registry that builds them.
+"""The filters of the paper (and our remedies) behind one interface, and the registry.
 
-=================  ==========================================  ==============================
-kind               gain                                        state integration
-=================  ==========================================  ==============================
-``ekf``            Kalman, K = P C^T R^-1 (Eq. 5), P by Eq. 6   direct (Eq. 3)
-``emsif``          MSIF, C^+ sat(diag(Pzz)/delta) (Eq. 8-9)     direct
-``esif``           SIF, C^+ sat(|z - z_hat|/delta) (Eq. 7)      direct (twin of snn_emsif_star)
-``snn_ekf``        Kalman (Eq. 19-20)                           spiking network (Eq. 14-15)
-``snn_emsif``      MSIF (Eq. 21-22)                             spiking network
-``snn_emsif_star`` SIF, no covariance (Eq. 23-24)               spiking network
-=================  ==========================================  ==============================
+====================  ==============================================  ====================
+kind                  gain                                            state integration
+====================  ==============================================  ====================
+``ekf``               Kalman, K = P C^T R^-1 (Eq. 5), P by Eq. 6      direct (Eq. 3)
+``emsif``             MSIF, C^+ sat(diag(Pzz)/delta) (Eq. 8-9)        direct
+``esif``              SIF, C^+ sat(|z - z_hat|/delta) (Eq. 7)         direct (twin of snn_emsif_star)
+``emsif_hybrid``      MSIF rows on measured directions, Kalman rows   direct
+                      on the unmeasured ones (not in the paper)
+``snn_ekf``           Kalman (Eq. 19-20)                              spiking network (Eq. 14-15)
+``snn_emsif``         MSIF (Eq. 21-22)                                spiking network
+``snn_emsif_star``    SIF, no covariance (Eq. 23-24)                  spiking network
+``snn_emsif_hybrid``  as emsif_hybrid (Omega_k = -D^T K C D, F_k = D^T K)  spiking network
+====================  ==============================================  ====================
+
+With C = [I 0] (positions measured) the MSIF/SIF gain C^+ sat(.) has zero velocity rows: the
+literal (S)EMSIF never corrects a velocity error (README, "Decisions"). The hybrid keeps the
+sliding gain on the measured directions and adds the Kalman gain projected on the unmeasured
+ones, (I - C^+ C) P C^T R^-1, with P the covariance of the gain actually used.
+
+``gain_schedule: steady_state`` replaces any gain by its constant value at the fixed point of
+Eq. 6 (see :func:`steady_state_gain`): the network's weights are then constant, which is what
+a neuromorphic chip can hold (and what ``snn_export`` writes).
 
 Every estimator steps a batch of independent runs (leading axis ``runs``); with ``runs == 1``
 the public arrays drop that axis. One step maps the estimate at t_k, the measurement z_k taken
@@ -19,9 +31,11 @@ at t_k and the control u_k held over [t_k, t_k + dt) to the estimate at t_k + dt
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
+import scipy.linalg
+import scipy.special
 from scipy.optimize import nnls
 
 from . import kernels
@@ -29,22 +43,61 @@ from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from .models import StateSpaceModel
 
 NETWORK_STREAM = 3  # rng stream id of the decoder and membrane noise (see seeding in README)
+DISPERSION_STREAM = 5  # rng stream id of the dispersed initial estimate
 
-_GAINS = {'kalman': kernels.GAIN_KALMAN, 'msif': kernels.GAIN_MSIF, 'sif': kernels.GAIN_SIF}
+_GAINS = {'kalman': kernels.GAIN_KALMAN, 'msif': kernels.GAIN_MSIF, 'sif': kernels.GAIN_SIF,
+          'msif_hybrid': kernels.GAIN_MSIF_HYBRID, 'msif_weighted': kernels.GAIN_MSIF_WEIGHTED}
+_COVARIANCES = {'none': kernels.COVARIANCE_NONE, 'riccati': kernels.COVARIANCE_RICCATI,
+                'gain': kernels.COVARIANCE_GAIN}
 _RULES = {'greedy': kernels.RULE_GREEDY, 'one_per_step': kernels.RULE_ONE_PER_STEP,
           'all_above': kernels.RULE_ALL_ABOVE}
 
-#: kind -> (gain law, spiking?)
+
+class FilterKind(NamedTuple):
+    """What a filter kind is made of."""
+
+    gain: str            # kalman | msif | sif | msif_hybrid
+    spiking: bool        # the state lives in a spiking network (Eq. 10-15)
+    covariance: str      # riccati (Eq. 6) | gain (the covariance of the gain used) | none
+    twin: str | None     # the non-spiking filter a spiking one implements
+    label: str           # as tables and figures name it
+    summary: str
+
+
+#: The filter kinds, in the order tables list them.
 FILTER_KINDS = {
-    'ekf': ('kalman', False),
-    'emsif': ('msif', False),
-    'esif': ('sif', False),
-    'snn_ekf': ('kalman', True),
-    'snn_emsif': ('msif', True),
-    'snn_emsif_star': ('sif', True),
+    'ekf': FilterKind('kalman', False, 'riccati', None, 'EKF', 'extended Kalman filter (Eq. 3-6)'),
+    'emsif': FilterKind('msif', False, 'riccati', None, 'EMSIF',
+                        'extended modified sliding innovation filter as printed (Eq. 8-9)'),
+    'esif': FilterKind('sif', False, 'none', None, 'ESIF', 'extended sliding innovation filter (Eq. 7)'),
+    'emsif_hybrid': FilterKind('msif_hybrid', False, 'gain', None, 'EMSIF-H',
+                               'EMSIF on the measured states, Kalman gain on the unmeasured ones'),
+    'emsif_weighted': FilterKind('msif_weighted', False, 'gain', None, 'EMSIF-W',
+                                 'EMSIF with the covariance-weighted inverse P C^T (C P C^T)^-1 for C^+'),
+    'snn_ekf': FilterKind('kalman', True, 'riccati', 'ekf', 'SNN-EKF', 'SNN-EKF (Eq. 14-20)'),
+    'snn_emsif': FilterKind('msif', True, 'riccati', 'emsif', 'SNN-EMSIF', 'SNN-EMSIF (Eq. 21-22)'),
+    'snn_emsif_star': FilterKind('sif', True, 'none', 'esif', 'SNN-EMSIF*', 'SNN-EMSIF* (Eq. 23-24)'),
+    'snn_emsif_hybrid': FilterKind('msif_hybrid', True, 'gain', 'emsif_hybrid', 'SNN-EMSIF-H',
+                                   'spiking twin of emsif_hybrid'),
+    'snn_emsif_weighted': FilterKind('msif_weighted', True, 'gain', 'emsif_weighted', 'SNN-EMSIF-W',
+                                     'spiking twin of emsif_weighted'),
 }
 #: The non-spiking filter each spiking filter implements.
-TWIN_OF = {'snn_ekf': 'ekf', 'snn_emsif': 'emsif', 'snn_emsif_star': 'esif'}
+TWIN_OF = {kind: spec.twin for kind, spec in FILTER_KINDS.items() if spec.twin}
+#: Kinds whose every run converges from a dispersed start on the rendezvous (final range below
+#: 0.1 m); the literal (S)EMSIF/ESIF gains have zero velocity rows with position-only
+#: measurements and do not, and the hybrid corrects the velocity too slowly
+#: (results/rendezvous_dispersed.json).
+CONVERGES_FROM_DISPERSION = ('ekf', 'emsif_weighted', 'snn_ekf', 'snn_emsif_weighted')
+#: Filters of the paper (the others are this package's remedies).
+PAPER_KINDS = ('ekf', 'emsif', 'esif', 'snn_ekf', 'snn_emsif', 'snn_emsif_star')
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """A view of ``array`` that callers cannot write through."""
+    view = array.view()
+    view.flags.writeable = False
+    return view
 
 
 def network_rng(seed: int) -> np.random.Generator:
@@ -68,29 +121,63 @@ class Estimator:
         self.model = model
         self.config = config
         self.settings: ResolvedConfig = resolve(config, model)
-        gain_law, self.spiking = FILTER_KINDS[kind]
-        self._gain_code = _GAINS[gain_law]
-        self.has_covariance = gain_law != 'sif'
+        spec = FILTER_KINDS[kind]
+        self.spiking = spec.spiking
+        self.constant_gain = self.settings.gain_schedule == 'steady_state'
+        if self.constant_gain and not model.is_linear:
+            raise ValueError('gain_schedule steady_state needs a linear model (the gain is the '
+                             'fixed point of Eq. 6); use time_varying')
+        #: The gain law of the kind (kalman | msif | sif | msif_hybrid), even when held constant.
+        self.gain_law = spec.gain
+        covariance = spec.covariance
+        if self.constant_gain and covariance == 'riccati':
+            covariance = 'gain'  # a constant gain is not the Kalman gain of the current P
+        self.covariance_law = covariance
+        self.has_covariance = covariance != 'none'
         self.runs = int(runs)
         self.seeds = ([self.settings.seed + b for b in range(self.runs)] if seeds is None
                       else [int(s) for s in seeds])
         if len(self.seeds) != self.runs:
             raise ValueError(f'seeds must have {self.runs} entries, got {len(self.seeds)}')
         n, m = model.n_state, model.n_meas
-        c = np.ascontiguousarray(model.measurement_matrix, dtype=float)
-        self._c = c
-        self._c_pinv = np.linalg.pinv(c)
+        self._c = np.ascontiguousarray(model.measurement_matrix, dtype=float)
+        self._c_pinv = np.linalg.pinv(self._c)
         self._gain = np.zeros((self.runs, n, m))
         self._no_drift = np.zeros((1, n))
         self._no_measurement = np.zeros((self.runs, m))
         self._linear_cache: dict[float, np.ndarray] = {}
-        self._rule_code = _RULES[self.settings.spike_rule]
         self._scale = np.ascontiguousarray(self.settings.state_scale)
-        self._consts_by_dt: dict[float, np.ndarray] = {}
+        self._x_hat = np.zeros((self.runs, n))
+        self._p = np.zeros((self.runs, n, n))
         self.steps = 0
         self.capped_steps = 0
         self._build_network(neurons=self.settings.neuron_count if self.spiking else 0)
+        self._call = self._kernel_call()
+        self._call_dt: float | None = None
+        self._slots = tuple(self._call.slot(name) for name in
+                            ('measured', 'dt', 'dynamics', 'drift', 'use_given_drift', 'z', 'u', 'noise'))
         self.reset()
+
+    def _kernel_call(self) -> kernels.StepCall:
+        """Every argument of the step kernel, by name, shape-checked once (see kernels.StepCall).
+        The dt-dependent ones are set by :meth:`_prepare` before the first step of a dt."""
+        s = self.settings
+        n, m, n_u = self.model.n_state, self.model.n_meas, self.model.n_input
+        dims = {'runs': self.runs, 'n': n, 'm': m, 'nu': n_u, 'N': self._r.shape[1], 'w': 2 * n + n_u}
+        no_gain = np.zeros((n, m))
+        return kernels.StepCall(
+            dims,
+            gain_law=kernels.GAIN_FIXED if self.constant_gain else _GAINS[self.gain_law],
+            covariance_law=_COVARIANCES[self.covariance_law], spiking=self.spiking,
+            spike_rule=_RULES[s.spike_rule], use_given_drift=False, measured=True, dt=0.0,
+            leak=s.leak_rate, max_spikes=s.max_spikes_per_step, c=self._c, c_pinv=self._c_pinv,
+            q_hat=s.q_hat, r_density=np.eye(m), r_density_inv=np.eye(m),
+            r_hat_diag=np.ascontiguousarray(np.diag(s.r_hat)), delta=s.boundary_layer,
+            scale=self._scale, fixed_gain=no_gain, dynamics=np.zeros((1, n, 2 * n + n_u)),
+            drift=self._no_drift, z=self._no_measurement, u=np.zeros((self.runs, n_u)),
+            noise=self._zero_noise, x_hat=self._x_hat, p=self._p, gain=self._gain,
+            decoder=self._decoder, gram=self._gram, thresholds=self._thresholds, alive=self._alive,
+            r=self._r, v=self._v, spikes=self._spikes, total_spikes=self._total_spikes)
 
     # ------------------------------------------------------------------ public state
     def _single(self, array: np.ndarray) -> np.ndarray:
@@ -103,8 +190,25 @@ class Estimator:
 
     @property
     def P(self) -> np.ndarray | None:
-        """Covariance of Eq. 6, shape (n, n) or (runs, n, n); None for the SIF-gain filters."""
+        """Error covariance, shape (n, n) or (runs, n, n): Eq. 6, or that of the gain used
+        (:attr:`covariance_law`); None for the SIF-gain filters, which compute none."""
         return self._single(self._p) if self.has_covariance else None
+
+    @property
+    def batch_x_hat(self) -> np.ndarray:
+        """The estimates of all runs, shape (runs, n), even for one run: a read-only view the
+        filter updates in place (the offline simulator reads it every step)."""
+        return _read_only(self._x_hat)
+
+    @property
+    def batch_P(self) -> np.ndarray | None:
+        """Covariances of all runs, (runs, n, n), read-only view; None without a covariance."""
+        return _read_only(self._p) if self.has_covariance else None
+
+    @property
+    def batch_spikes(self) -> np.ndarray | None:
+        """Spikes per neuron in the last step for all runs, (runs, N), read-only view."""
+        return _read_only(self._spikes) if self.spiking else None
 
     @property
     def gain(self) -> np.ndarray:
@@ -160,6 +264,12 @@ class Estimator:
         return self._single(self._thresholds)
 
     @property
+    def alive(self) -> np.ndarray:
+        """False for silenced neurons, shape (N,) or (runs, N)."""
+        self._require_network()
+        return self._single(self._alive).copy()
+
+    @property
     def silenced(self) -> tuple:
         """Indices of the silenced neurons."""
         return tuple(int(i) for i in np.flatnonzero(~self._alive[0])) if self.spiking else ()
@@ -188,20 +298,38 @@ class Estimator:
         self._total_spikes = np.zeros(self.runs, dtype=np.int64)
         self._zero_noise = np.zeros((self.runs, neurons))
 
+    def initial_states(self) -> np.ndarray:
+        """The configured start of every run, (runs, n): initial_state, or with
+        initial_state_dispersion a draw from N(initial_state, P0) seeded by the run's seed
+        (stream 5), the same on every call and for a run alone or in a batch."""
+        s = self.settings
+        x0 = np.broadcast_to(s.initial_state, (self.runs, s.initial_state.size)).copy()
+        if s.initial_state_dispersion:
+            root = np.linalg.cholesky(s.initial_covariance)
+            for b, seed in enumerate(self.seeds):
+                x0[b] += root @ np.random.default_rng([seed, DISPERSION_STREAM]).standard_normal(x0.shape[1])
+        return x0
+
     def reset(self, x_hat0=None, P0=None) -> None:
-        """Restart from ``x_hat0`` (default: configured) and ``P0``; silenced neurons stay silent.
+        """Restart from ``x_hat0`` (default: :meth:`initial_states`) and ``P0``; silenced
+        neurons stay silent.
 
         Spiking filters set rates r >= 0 that decode to x_hat0 (non-negative least squares)
         and potentials v = D^T (x~0 - D r), i.e. zero coding error.
         """
         n = self.model.n_state
-        x0 = self.settings.initial_state if x_hat0 is None else np.asarray(x_hat0, dtype=float)
+        x0 = self.initial_states() if x_hat0 is None else np.asarray(x_hat0, dtype=float)
         x0 = np.broadcast_to(x0, (self.runs, n)).astype(float)
         if not np.isfinite(x0).all():
             raise ValueError('x_hat0 must be finite')
         p0 = self.settings.initial_covariance if P0 is None else np.asarray(P0, dtype=float)
-        self._p = np.ascontiguousarray(np.broadcast_to(p0, (self.runs, n, n)), dtype=float).copy()
-        self._x_hat = x0.copy()
+        p0 = np.broadcast_to(p0, (self.runs, n, n))
+        if not np.isfinite(p0).all():
+            raise ValueError('P0 must be finite')
+        # in place: the kernel call and the offline simulator hold these arrays
+        self._p[:] = p0
+        self._x_hat[:] = x0
+        self._gain[:] = 0.0
         self.steps = 0
         self.capped_steps = 0
         self.recovery_spikes = 0
@@ -275,7 +403,7 @@ class Estimator:
         # The survivors react on the fast time scale (instantaneous in continuous time), before
         # the slow dynamics of the next step see the decoded estimate.
         self.recovery_spikes += kernels.fire_only(
-            self._rule_code, self.settings.max_spikes_per_step, self._decoder, self._gram,
+            _RULES[self.settings.spike_rule], self.settings.max_spikes_per_step, self._decoder, self._gram,
             self._thresholds, self._alive, self._r, self._v, self._scale, self._spikes,
             self._total_spikes, self._x_hat)
 
@@ -291,9 +419,13 @@ class Estimator:
             raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
         config = self.config.replace(**changes)
         settings = resolve(config, self.model)
-        for dt in self._consts_by_dt:  # the step sizes in use must still work
-            self.check_time_step(dt, settings)
-        self.config, self.settings, self._consts_by_dt = config, settings, {}
+        if self._call_dt is not None:  # the step size in use must still work
+            self.check_time_step(self._call_dt, settings)
+        self.config, self.settings = config, settings
+        self._call.update(leak=settings.leak_rate, q_hat=settings.q_hat,
+                          r_hat_diag=np.ascontiguousarray(np.diag(settings.r_hat)),
+                          delta=settings.boundary_layer)
+        self._call_dt = None  # R of Eq. 5-6 and a constant gain depend on the settings too
 
     def check_time_step(self, dt: float, settings: ResolvedConfig | None = None) -> None:
         """Raise ValueError when steps of ``dt`` cannot work: a network needs leak_rate * dt < 1
@@ -319,18 +451,19 @@ class Estimator:
                 f'initial_covariance (P0) on the measured axes, raise measurement_noise_scale{hint}, '
                 'or use a smaller time step')
 
-    def _constants(self, dt: float) -> np.ndarray:
-        """The kernel's packed constants for steps of ``dt`` (R of Eq. 5-6 may depend on it)."""
-        consts = self._consts_by_dt.get(dt)
-        if consts is None:
-            self.check_time_step(dt)
-            if len(self._consts_by_dt) >= 16:  # a caller varying dt: keep the cache small
-                self._consts_by_dt.clear()
-            s = self.settings
-            consts = self._consts_by_dt[dt] = kernels.pack_constants(
-                self._c, self._c_pinv, s.q_hat, np.linalg.inv(gain_noise_density(s, dt)),
-                np.diag(s.r_hat), s.boundary_layer, self._scale)
-        return consts
+    def _prepare(self, dt: float) -> None:
+        """Set the kernel arguments that depend on the step size: the R of Eq. 5-6 and, for a
+        constant gain, K. Checks dt first (ValueError, nothing changed)."""
+        self.check_time_step(dt)
+        s = self.settings
+        density = gain_noise_density(s, dt)
+        changes = {'r_density': np.ascontiguousarray(density),
+                   'r_density_inv': np.ascontiguousarray(np.linalg.inv(density))}
+        if self.constant_gain:
+            changes['fixed_gain'] = np.ascontiguousarray(
+                steady_state_gain(self.gain_law, self.model, s, dt))
+        self._call.update(**changes)
+        self._call_dt = dt
 
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
@@ -389,19 +522,17 @@ class Estimator:
         if z.shape[1] != self.model.n_meas or u.shape[1] != self.model.n_input:
             raise ValueError(f'z must have {self.model.n_meas} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
-        consts = self._constants(dt)  # checks dt the first time it is used
-        leak = self.settings.leak_rate
+        if dt != self._call_dt:
+            self._prepare(dt)  # checks dt the first time it is used
         dynamics, drift, use_drift = self._dynamics(dt, u)
         noise = self._zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:
             sigma = self.settings.membrane_noise * math.sqrt(dt)
             noise = np.stack([g.normal(0.0, sigma, self.settings.neuron_count)
                               for g in self._noise_rngs])
-        status, capped = kernels.estimator_step(
-            self._gain_code, self.spiking, self._rule_code, self.has_covariance, use_drift,
-            measured, float(dt), leak, self.settings.max_spikes_per_step, consts, dynamics, drift, z, u,
-            self._x_hat, self._p, self._gain, self._decoder, self._gram, self._thresholds,
-            self._alive, self._r, self._v, noise, self._spikes, self._total_spikes)
+        self._call.set_slots(zip(self._slots, (measured, float(dt), dynamics, drift, use_drift,
+                                               np.ascontiguousarray(z), np.ascontiguousarray(u), noise)))
+        status, capped = self._call()
         if status == kernels.STATUS_BAD_INPUT:
             raise ValueError('z and u must be finite')
         self.steps += 1
@@ -416,8 +547,9 @@ class Estimator:
 
         ``F = D^T S^-1 B_d``, ``Omega_s = D^T (S^-1 A_d S + lambda I) D``,
         ``Omega_f = -D^T D``, ``Omega_k = -D^T S^-1 K C S D``, ``F_k = D^T S^-1 K``, thresholds;
-        K is the gain used in the last step. With discretization='euler' and S = I these are
-        exactly the paper's formulas.
+        K is the gain used in the last step (the constant gain with gain_schedule
+        steady_state). With discretization='euler' and S = I these are exactly the paper's
+        formulas.
         """
         self._require_network()
         d = self._decoder[run]
@@ -425,7 +557,9 @@ class Estimator:
         x = self._x_hat[run]
         a_d, b_d = self.model.linearized_increment(x, dt, self.settings.discretization)
         a_scaled = a_d / scale[:, None] * scale[None, :]
-        k_scaled = self._gain[run] / scale[:, None]
+        gain = (steady_state_gain(self.gain_law, self.model, self.settings, dt) if self.constant_gain
+                else self._gain[run])
+        k_scaled = gain / scale[:, None]
         c_scaled = self._c * scale[None, :]
         neurons = d.shape[1]
         return {
@@ -449,3 +583,51 @@ def make_estimator(kind: str, config: EstimatorConfig | None = None,
         from .models import ClohessyWiltshire
         model = ClohessyWiltshire()
     return Estimator(kind, model, config or EstimatorConfig(), runs=runs, seeds=seeds)
+
+
+def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedConfig,
+                      dt: float) -> np.ndarray:
+    """The constant gain of ``gain_law`` at the fixed point P_ss of Eq. 6 (the continuous
+    algebraic Riccati equation J P + P J^T + Q - P C^T R^-1 C P = 0, R the density of Eq. 5-6):
+
+    * kalman: P_ss C^T R^-1;
+    * msif: C^+ sat(diag(C P_ss C^T + R_hat) / delta) (Eq. 8-9);
+    * sif: C^+ diag(E[sat(|nu_j| / delta_j)]) with nu ~ N(0, C P_ss C^T + R_hat): the mean of
+      Eq. 7's saturation over the innovations the filter expects;
+    * msif_hybrid: the msif gain plus (I - C^+ C) P_ss C^T R^-1.
+
+    Linear models only. ValueError when the Riccati equation has no stabilising solution (e.g.
+    Q_hat = 0 with undamped modes).
+    """
+    if not model.is_linear:
+        raise ValueError('a steady-state gain needs a linear model')
+    n, m = model.n_state, model.n_meas
+    c = model.measurement_matrix
+    jac = model.jacobian(np.zeros(n), np.zeros(model.n_input))
+    density = gain_noise_density(settings, dt)
+    try:
+        p_ss = scipy.linalg.solve_continuous_are(jac.T, c.T, settings.q_hat, density)
+    except (np.linalg.LinAlgError, ValueError) as error:
+        raise ValueError(f'no steady-state gain: the Riccati equation of Eq. 6 has no stabilising '
+                         f'solution for this Q_hat and R ({error}); raise process_noise_scale or '
+                         'use gain_schedule time_varying') from None
+    kalman = p_ss @ c.T @ np.linalg.inv(density)
+    if gain_law == 'kalman':
+        return kalman
+    c_pinv = np.linalg.pinv(c)
+    innovation_variance = np.diag(c @ p_ss @ c.T + settings.r_hat)
+    delta = settings.boundary_layer
+    if gain_law == 'sif':
+        sigma = np.sqrt(innovation_variance)
+        inside = 2.0 * sigma / math.sqrt(2.0 * math.pi) * (1.0 - np.exp(-delta ** 2 / (2.0 * sigma ** 2)))
+        mean_saturation = inside / delta + scipy.special.erfc(delta / (sigma * math.sqrt(2.0)))
+        return c_pinv @ np.diag(mean_saturation)
+    saturation = np.diag(np.minimum(innovation_variance / delta, 1.0))
+    msif = c_pinv @ saturation
+    if gain_law == 'msif':
+        return msif
+    if gain_law == 'msif_weighted':
+        return p_ss @ c.T @ np.linalg.inv(c @ p_ss @ c.T) @ saturation
+    if gain_law == 'msif_hybrid':
+        return msif + (np.eye(n) - c_pinv @ c) @ kalman
+    raise ValueError(f'unknown gain law {gain_law!r}')

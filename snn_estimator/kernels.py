@@ -6,11 +6,15 @@ follows the paper without forming an N x N product per step: ``Omega_s r`` is
 ``D^T (A + lambda I) (D r)``, ``Omega_k r + F_k z`` is ``D^T K (z - C D r)``, and a spike of
 neuron i adds the column ``Omega_f[:, i] = -D^T D_i`` of a precomputed Gram matrix.
 
-Constant matrices travel packed in one vector (see :func:`pack_constants`) because every array
-argument costs ~0.15 us of call overhead, a large share of a ~5 us step.
+The step kernel takes ~35 arrays and codes. They are never passed by position from the
+estimator: :class:`StepCall` assembles them by parameter name and checks every shape once,
+when the estimator is built, against :data:`STEP_SHAPES` (a swapped pair of same-shaped arrays
+would otherwise compile and run).
 """
 
 from __future__ import annotations
+
+import inspect
 
 import numba
 import numpy as np
@@ -18,6 +22,15 @@ import numpy as np
 GAIN_KALMAN = 0      # K = P C^T R^-1                               (Eq. 5, 19-20)
 GAIN_MSIF = 1        # K = C^+ diag(sat(diag(C P C^T + R) / delta))  (Eq. 8-9 corrected, 21-22)
 GAIN_SIF = 2         # K = C^+ diag(sat(|z - C x_hat| / delta))      (Eq. 7, 23-24)
+GAIN_MSIF_HYBRID = 3  # MSIF on the measured directions, Kalman on the others:
+#                       K = C^+ sat(...) + (I - C^+ C) P C^T R^-1    (not in the paper)
+GAIN_FIXED = 4       # a constant K (the steady-state gain of any of the above)
+GAIN_MSIF_WEIGHTED = 5  # MSIF with the covariance-weighted right inverse of C instead of C^+:
+#                         K = P C^T (C P C^T)^-1 diag(sat(diag(C P C^T + R) / delta))  (not in the paper)
+
+COVARIANCE_NONE = 0     # no P (the SIF gain needs none)
+COVARIANCE_RICCATI = 1  # P' = J P + P J^T + Q - P C^T R^-1 C P            (Eq. 6)
+COVARIANCE_GAIN = 2     # P' = (J - K C) P + P (J - K C)^T + Q + K R K^T    (any gain K)
 
 RULE_GREEDY = 0        # fire the largest overshoot, reset, repeat until none is above threshold
 RULE_ONE_PER_STEP = 1  # at most one spike (the largest overshoot) per step
@@ -31,31 +44,72 @@ STATUS_OK = 0
 STATUS_BAD_INPUT = 1     # non-finite z or u: nothing was changed
 STATUS_NON_FINITE = 2    # the state became non-finite: reset before stepping again
 
+#: Shape of every array argument of :func:`estimator_step`, in symbols: runs (batch), n
+#: (states), m (measurements), nu (inputs), N (neurons, 0 for a non-spiking filter), d (1, or
+#: runs: a linear model shares one dynamics block) and w (2 n + nu: the packed dynamics).
+STEP_SHAPES = {
+    'c': ('m', 'n'), 'c_pinv': ('n', 'm'), 'q_hat': ('n', 'n'), 'r_density': ('m', 'm'),
+    'r_density_inv': ('m', 'm'), 'r_hat_diag': ('m',), 'delta': ('m',), 'scale': ('n',),
+    'fixed_gain': ('n', 'm'), 'dynamics': ('d', 'n', 'w'), 'drift': ('d', 'n'), 'z': ('runs', 'm'),
+    'u': ('runs', 'nu'), 'noise': ('runs', 'N'), 'x_hat': ('runs', 'n'), 'p': ('runs', 'n', 'n'),
+    'gain': ('runs', 'n', 'm'), 'decoder': ('runs', 'n', 'N'), 'gram': ('runs', 'N', 'N'),
+    'thresholds': ('runs', 'N'), 'alive': ('runs', 'N'), 'r': ('runs', 'N'), 'v': ('runs', 'N'),
+    'spikes': ('runs', 'N'), 'total_spikes': ('runs',),
+}
 
-def pack_constants(c, c_pinv, q_hat, r_hat_inv, r_hat_diag, delta, state_scale) -> np.ndarray:
-    """Concatenate the filter's constant matrices in the order the kernel unpacks them."""
-    return np.ascontiguousarray(np.concatenate([
-        np.ravel(c), np.ravel(c_pinv), np.ravel(q_hat), np.ravel(r_hat_inv),
-        np.ravel(r_hat_diag), np.ravel(delta), np.ravel(state_scale)]).astype(np.float64))
 
+class StepCall:
+    """The argument list of :func:`estimator_step`, assembled by parameter name.
 
-@numba.njit(cache=True)
-def _unpack(consts, n, m):
-    o = 0
-    c = consts[o:o + m * n].reshape((m, n))
-    o += m * n
-    c_pinv = consts[o:o + n * m].reshape((n, m))
-    o += n * m
-    q_hat = consts[o:o + n * n].reshape((n, n))
-    o += n * n
-    r_hat_inv = consts[o:o + m * m].reshape((m, m))
-    o += m * m
-    r_hat_diag = consts[o:o + m]
-    o += m
-    delta = consts[o:o + m]
-    o += m
-    scale = consts[o:o + n]
-    return c, c_pinv, q_hat, r_hat_inv, r_hat_diag, delta, scale
+    ``StepCall(dims, **arrays_and_codes)`` checks that every parameter is given, none is
+    unknown and each array has its :data:`STEP_SHAPES` shape for ``dims`` (ValueError naming the
+    argument otherwise). ``call(**changes)`` replaces some arguments (by name) and runs the
+    kernel; the arrays the kernel updates in place (x_hat, p, gain, r, v, spikes, ...) are the
+    ones given at construction.
+    """
+
+    def __init__(self, dims: dict, **values):
+        names = tuple(inspect.signature(estimator_step.py_func).parameters)
+        missing, unknown = set(names) - set(values), set(values) - set(names)
+        if missing or unknown:
+            raise ValueError(f'estimator_step arguments: missing {sorted(missing)}, unknown {sorted(unknown)}')
+        self._dims = dict(dims)
+        for name, value in values.items():
+            self._check(name, value)
+        self._index = {name: i for i, name in enumerate(names)}
+        self._args = [values[name] for name in names]
+
+    def _check(self, name: str, value) -> None:
+        shape = STEP_SHAPES.get(name)
+        if shape is None:
+            return
+        dims = dict(self._dims, d=value.shape[0] if np.ndim(value) else 0)
+        expected = tuple(dims[symbol] for symbol in shape)
+        if np.shape(value) != expected:
+            raise ValueError(f'estimator_step argument {name}: shape {np.shape(value)}, expected '
+                             f'{expected} ({", ".join(shape)})')
+        if name in ('dynamics', 'drift') and value.shape[0] not in (1, self._dims['runs']):
+            raise ValueError(f'estimator_step argument {name}: leading axis must be 1 or runs')
+
+    def slot(self, name: str) -> int:
+        """Position of argument ``name`` (for :meth:`set_slots` on the hot path)."""
+        return self._index[name]
+
+    def update(self, **changes) -> None:
+        """Replace arguments by name, shape-checked (settings that change between steps)."""
+        for name, value in changes.items():
+            self._check(name, value)
+            self._args[self._index[name]] = value
+
+    def set_slots(self, values) -> None:
+        """Replace arguments by the positions :meth:`slot` gave, without checks: the per-step
+        inputs, whose shapes the estimator has already checked."""
+        args = self._args
+        for index, value in values:
+            args[index] = value
+
+    def __call__(self):
+        return estimator_step(*self._args)
 
 
 @numba.njit(cache=True, fastmath=_FAST)
@@ -125,22 +179,25 @@ def fire_only(spike_rule, max_spikes, decoder, gram, thresholds, alive, r, v, sc
 
 
 @numba.njit(cache=True, fastmath=_FAST)
-def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, measured, dt,
-                   leak, max_spikes, consts, dynamics, drift, z, u, x_hat, P, gain, decoder, gram,
-                   thresholds, alive, r, v, noise, spikes, total_spikes):
+def estimator_step(gain_law, covariance_law, spiking, spike_rule, use_given_drift, measured, dt, leak,
+                   max_spikes, c, c_pinv, q_hat, r_density, r_density_inv, r_hat_diag, delta, scale,
+                   fixed_gain, dynamics, drift, z, u, noise, x_hat, p, gain, decoder, gram, thresholds,
+                   alive, r, v, spikes, total_spikes):
     """Advance every run by dt. Returns (status, runs whose spike loop hit max_spikes).
 
     Per run b, with the estimate x_hat at t_k, z_k and u_k:
-      nu = z - C x_hat; K from P (Kalman, MSIF) or nu (SIF);
+      nu = z - C x_hat; K by ``gain_law`` from P, nu or fixed_gain;
       increment = A_d x_hat + B_d u + K nu (or the given nonlinear drift + K nu): Eq. 3;
-      P += dt (J P + P J^T + Q - P C^T R^-1 C P)                         : Eq. 6 (Euler);
+      P by ``covariance_law`` (forward Euler): Eq. 6, or the covariance of the gain used;
       direct filters:  x_hat += dt increment;
       spiking filters (network on x~ = S^-1 x, Eq. 10-15, forward Euler):
         v = (1 - lambda dt) v + dt D^T (S^-1 increment + lambda D r) + noise,
         r = (1 - lambda dt) r, then spikes by ``spike_rule`` (r_i += 1, v -= D^T D_i),
         x_hat = S D r (Eq. 12).
-    ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + m_u)); a leading axis of 1 is shared.
-    Without a measurement (``measured`` False: a sensor dropout) K = 0 and z is not read.
+    R in Eq. 5-6 is ``r_density`` (see config.gain_noise_density); P^zz of Eq. 9 uses the
+    per-sample ``r_hat_diag``. ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + nu)); a leading
+    axis of 1 is shared. Without a measurement (``measured`` False: a sensor dropout) K = 0 and
+    z is not read.
     """
     runs, n = x_hat.shape
     m = z.shape[1]
@@ -152,12 +209,17 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
         for j in range(n_u):
             if not np.isfinite(u[b, j]):
                 return STATUS_BAD_INPUT, 0
-    c, c_pinv, q_hat, r_hat_inv, r_hat_diag, delta, scale = _unpack(consts, n, m)
+    uses_p = (gain_law == GAIN_KALMAN or gain_law == GAIN_MSIF or gain_law == GAIN_MSIF_HYBRID
+              or gain_law == GAIN_MSIF_WEIGHTED)
     nu = np.empty(m)
     increment = np.empty(n)
     pct = np.empty((n, m))
     pctr = np.empty((n, m))
+    cpctr = np.empty((m, m))
+    cpc = np.empty((m, m))
+    sats = np.empty(m)
     jp = np.empty((n, n))
+    closed = np.empty((n, n))
     drive = np.empty(n)
     input_current = np.empty(decoder.shape[2])
     decay = 1.0 - leak * dt
@@ -172,37 +234,66 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
                 for k in range(n):
                     acc -= c[j, k] * x_hat[b, k]
             nu[j] = acc
-        # P C^T and P C^T R^-1 (needed by the Kalman gain and the Riccati step)
-        if propagate_p:
+        # P C^T and P C^T R^-1 (the Kalman gain and Eq. 6's measurement term)
+        if uses_p or covariance_law == COVARIANCE_RICCATI:
             for i in range(n):
                 for j in range(m):
                     acc = 0.0
                     for k in range(n):
-                        acc += P[b, i, k] * c[j, k]
+                        acc += p[b, i, k] * c[j, k]
                     pct[i, j] = acc
             for i in range(n):
                 for j in range(m):
                     acc = 0.0
                     for k in range(m):
-                        acc += pct[i, k] * r_hat_inv[k, j]
+                        acc += pct[i, k] * r_density_inv[k, j]
                     pctr[i, j] = acc
         # gain
         if gain_law == GAIN_KALMAN:
             for i in range(n):
                 for j in range(m):
                     gain[b, i, j] = pctr[i, j]
+        elif gain_law == GAIN_FIXED:
+            for i in range(n):
+                for j in range(m):
+                    gain[b, i, j] = fixed_gain[i, j]
         else:
             for j in range(m):
-                if gain_law == GAIN_MSIF:
+                if gain_law == GAIN_SIF:
+                    ratio = abs(nu[j]) / delta[j]
+                else:
                     pzz = r_hat_diag[j]
                     for k in range(n):
                         pzz += c[j, k] * pct[k, j]
                     ratio = abs(pzz) / delta[j]
-                else:
-                    ratio = abs(nu[j]) / delta[j]
                 sat = ratio if ratio < 1.0 else 1.0
+                sats[j] = sat
                 for i in range(n):
                     gain[b, i, j] = c_pinv[i, j] * sat
+            if gain_law == GAIN_MSIF_WEIGHTED:  # columns of P C^T (C P C^T)^-1 times sat_j
+                for k in range(m):
+                    for j in range(m):
+                        acc = 0.0
+                        for l in range(n):
+                            acc += c[k, l] * pct[l, j]
+                        cpc[k, j] = acc
+                weighted = pct @ np.linalg.inv(cpc)
+                for j in range(m):
+                    for i in range(n):
+                        gain[b, i, j] = weighted[i, j] * sats[j]
+            if gain_law == GAIN_MSIF_HYBRID:  # + (I - C^+ C) P C^T R^-1 = pctr - C^+ (C pctr)
+                for k in range(m):
+                    for j in range(m):
+                        acc = 0.0
+                        for l in range(n):
+                            acc += c[k, l] * pctr[l, j]
+                        cpctr[k, j] = acc
+                for i in range(n):
+                    for j in range(m):
+                        acc = pctr[i, j]
+                        for k in range(m):
+                            acc -= c_pinv[i, k] * cpctr[k, j]
+                        gain[b, i, j] += acc
         if not measured:
             for i in range(n):
                 for j in range(m):
@@ -220,13 +311,13 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
             for j in range(m):
                 acc += gain[b, i, j] * nu[j]
             increment[i] = acc
-        # covariance, Eq. 6
-        if propagate_p:
+        # covariance
+        if covariance_law == COVARIANCE_RICCATI:  # Eq. 6
             for i in range(n):
                 for j in range(n):
                     acc = 0.0
                     for k in range(n):
-                        acc += dynamics[bd, i, n + n_u + k] * P[b, k, j]
+                        acc += dynamics[bd, i, n + n_u + k] * p[b, k, j]
                     jp[i, j] = acc
             for i in range(n):
                 for j in range(i, n):
@@ -234,9 +325,31 @@ def estimator_step(gain_law, spiking, spike_rule, propagate_p, use_given_drift, 
                     if measured:
                         for k in range(m):
                             acc -= pctr[i, k] * pct[j, k]
-                    value = P[b, i, j] + dt * acc
-                    P[b, i, j] = value
-                    P[b, j, i] = value
+                    value = p[b, i, j] + dt * acc
+                    p[b, i, j] = value
+                    p[b, j, i] = value
+        elif covariance_law == COVARIANCE_GAIN:  # (J - K C) P + P (J - K C)^T + Q + K R K^T
+            for i in range(n):
+                for k in range(n):
+                    acc = dynamics[bd, i, n + n_u + k]
+                    for j in range(m):
+                        acc -= gain[b, i, j] * c[j, k]
+                    closed[i, k] = acc
+            for i in range(n):
+                for j in range(n):
+                    acc = 0.0
+                    for k in range(n):
+                        acc += closed[i, k] * p[b, k, j]
+                    jp[i, j] = acc
+            for i in range(n):
+                for j in range(i, n):
+                    acc = jp[i, j] + jp[j, i] + q_hat[i, j]
+                    for k in range(m):
+                        for l in range(m):
+                            acc += gain[b, i, k] * r_density[k, l] * gain[b, j, l]
+                    value = p[b, i, j] + dt * acc
+                    p[b, i, j] = value
+                    p[b, j, i] = value
         if not spiking:
             for i in range(n):
                 x_hat[b, i] += dt * increment[i]
@@ -283,3 +396,27 @@ def innovation_nis(z, x_hat, c, p, r, has_covariance):
         s = c @ p[b] @ c.T + r if has_covariance else r
         out[b] = nu @ np.linalg.solve(s, nu)
     return out
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's on-disk cache) every kernel with the argument types the
+    estimators use, on a throwaway one-state filter: a node calls this at start-up so that its
+    first step is not its slowest, and ``make`` calls it at install to fill the cache."""
+    n = m = nu = neurons = 1
+    zeros = np.zeros
+    step = StepCall(
+        {'runs': 1, 'n': n, 'm': m, 'nu': nu, 'N': neurons, 'w': 2 * n + nu},
+        gain_law=GAIN_KALMAN, covariance_law=COVARIANCE_RICCATI, spiking=True, spike_rule=RULE_GREEDY,
+        use_given_drift=False, measured=True, dt=0.1, leak=0.0, max_spikes=10, c=np.ones((m, n)),
+        c_pinv=np.ones((n, m)), q_hat=zeros((n, n)), r_density=np.ones((m, m)), r_density_inv=np.ones((m, m)),
+        r_hat_diag=np.ones(m), delta=np.ones(m), scale=np.ones(n), fixed_gain=zeros((n, m)),
+        dynamics=zeros((1, n, 2 * n + nu)), drift=zeros((1, n)), z=zeros((1, m)), u=zeros((1, nu)),
+        noise=zeros((1, neurons)), x_hat=zeros((1, n)), p=np.ones((1, n, n)), gain=zeros((1, n, m)),
+        decoder=np.ones((1, n, neurons)), gram=np.ones((1, neurons, neurons)), thresholds=np.ones((1, neurons)),
+        alive=np.ones((1, neurons), dtype=np.bool_), r=zeros((1, neurons)), v=zeros((1, neurons)),
+        spikes=zeros((1, neurons), dtype=np.int64), total_spikes=zeros(1, dtype=np.int64))
+    step()
+    fire_only(RULE_GREEDY, 10, np.ones((1, n, neurons)), np.ones((1, neurons, neurons)), np.ones((1, neurons)),
+              np.ones((1, neurons), dtype=np.bool_), zeros((1, neurons)), zeros((1, neurons)), np.ones(n),
+              zeros((1, neurons), dtype=np.int64), zeros(1, dtype=np.int64), zeros((1, n)))
+    innovation_nis(zeros((1, m)), zeros((1, n)), np.ones((m, n)), np.ones((1, n, n)), np.ones((m, m)), True)

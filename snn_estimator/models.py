@@ -16,10 +16,7 @@ import scipy.linalg
 
 from .validation import check_choice, check_positive
 
-#: Earth's gravitational parameter, m^3/s^2 (Table 6 gives 398600 km^3/s^2).
-EARTH_MU = 3.986e14
-#: Default target orbit radius, m: a 400 km circular LEO (the paper does not state R_o).
-DEFAULT_ORBIT_RADIUS = 6_778_137.0
+from .defaults import EARTH_MU, ORBIT_RADIUS as DEFAULT_ORBIT_RADIUS  # noqa: F401 (re-exported)
 DISCRETIZATIONS = ('exact', 'euler')
 
 

@@ -11,7 +11,43 @@ from __future__ import annotations
 import numpy as np
 
 from .config import gain_noise_density
-from .estimators import Estimator
+from .estimators import Estimator, steady_state_gain
+
+
+def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, dt: float) -> np.ndarray:
+    """The gain of ``source``'s kind from the formulas (Eq. 5, 7, 8-9 and the hybrid)."""
+    s = source.settings
+    c = source.model.measurement_matrix
+    c_pinv = np.linalg.pinv(c)
+    if source.constant_gain:
+        return steady_state_gain(source.gain_law, source.model, s, dt)
+    kalman = p @ c.T @ np.linalg.inv(gain_noise_density(s, dt))                          # Eq. 5
+    if source.gain_law == 'kalman':
+        return kalman
+    if source.gain_law == 'sif':
+        return c_pinv @ np.diag(np.minimum(np.abs(innovation) / s.boundary_layer, 1.0))  # Eq. 7
+    p_zz = c @ p @ c.T + s.r_hat                                                         # Eq. 9 (corrected)
+    msif = c_pinv @ np.diag(np.minimum(np.diag(p_zz) / s.boundary_layer, 1.0))           # Eq. 8
+    if source.gain_law == 'msif':
+        return msif
+    if source.gain_law == 'msif_weighted':
+        saturation = np.diag(np.minimum(np.diag(p_zz) / s.boundary_layer, 1.0))
+        return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation                        # weighted
+    return msif + (np.eye(c.shape[1]) - c_pinv @ c) @ kalman                            # hybrid
+
+
+def written_out_covariance_step(source: Estimator, p: np.ndarray, jac: np.ndarray, gain: np.ndarray,
+                                dt: float) -> np.ndarray:
+    """One forward-Euler step of the covariance law of ``source`` (Eq. 6, or that of the gain)."""
+    s = source.settings
+    c = source.model.measurement_matrix
+    density = gain_noise_density(s, dt)
+    if source.covariance_law == 'riccati':
+        return p + dt * (jac @ p + p @ jac.T + s.q_hat - p @ c.T @ np.linalg.inv(density) @ c @ p)  # Eq. 6
+    if source.covariance_law == 'gain':
+        closed = jac - gain @ c
+        return p + dt * (closed @ p + p @ closed.T + s.q_hat + gain @ density @ gain.T)
+    return p
 
 
 class DenseSpikingFilter:
@@ -23,22 +59,18 @@ class DenseSpikingFilter:
         self.source = estimator
         self.model = estimator.model
         s = estimator.settings
-        self.decoder = estimator._decoder[0].copy()
+        self.decoder = estimator.decoder.copy()
         self.scale = s.state_scale.copy()
         self.leak = s.leak_rate
         self.rule = s.spike_rule
         self.max_spikes = s.max_spikes_per_step
         self.thresholds = 0.5 * np.sum(self.decoder ** 2, axis=0)
         self.omega_f = -self.decoder.T @ self.decoder                      # Eq. 18
-        self.r = estimator._r[0].copy()
-        self.v = estimator._v[0].copy()
-        self.P = estimator._p[0].copy()
-        self.alive = estimator._alive[0].copy()
-        self.gain_law = {0: 'kalman', 1: 'msif', 2: 'sif'}[estimator._gain_code]
-        self.settings = s
-        self.q_hat = s.q_hat
-        self.r_hat = s.r_hat
-        self.delta = s.boundary_layer
+        self.r = estimator.rates.copy()
+        self.v = estimator.potentials.copy()
+        n = len(self.scale)
+        self.P = estimator.P.copy() if estimator.has_covariance else np.zeros((n, n))
+        self.alive = estimator.alive
         self.method = s.discretization
         self.spikes = np.zeros(self.decoder.shape[1], dtype=np.int64)
 
@@ -46,21 +78,12 @@ class DenseSpikingFilter:
     def x_hat(self) -> np.ndarray:
         return self.scale * (self.decoder @ self.r)                          # Eq. 12
 
-    def gain(self, innovation: np.ndarray, dt: float) -> np.ndarray:
-        c = self.model.measurement_matrix
-        if self.gain_law == 'kalman':
-            return self.P @ c.T @ np.linalg.inv(gain_noise_density(self.settings, dt))  # Eq. 5
-        if self.gain_law == 'msif':
-            p_zz = c @ self.P @ c.T + self.r_hat                              # Eq. 9 (corrected)
-            return np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / self.delta, 1.0))  # Eq. 8
-        return np.linalg.pinv(c) @ np.diag(np.minimum(np.abs(innovation) / self.delta, 1.0))  # Eq. 7
-
     def step(self, z, u, dt: float) -> np.ndarray:
         model = self.model
         d, s_inv = self.decoder, 1.0 / self.scale
         x_hat = self.x_hat
         c = model.measurement_matrix
-        k_gain = self.gain(z - c @ x_hat, dt)
+        k_gain = written_out_gain(self.source, self.P, z - c @ x_hat, dt)
         a_d, b_d = model.linearized_increment(x_hat, dt, self.method)
         a_scaled = s_inv[:, None] * a_d * self.scale[None, :]
         n = len(self.scale)
@@ -68,11 +91,7 @@ class DenseSpikingFilter:
         omega_s = d.T @ (a_scaled + self.leak * np.eye(n)) @ d                 # Eq. 17
         omega_k = -d.T @ (s_inv[:, None] * k_gain) @ (c * self.scale[None, :]) @ d  # Eq. 19/21/23
         f_k = d.T @ (s_inv[:, None] * k_gain)                                  # Eq. 20/22/24
-        if self.gain_law != 'sif':
-            jac = model.jacobian(x_hat, u)
-            self.P = self.P + dt * (jac @ self.P + self.P @ jac.T + self.q_hat
-                                    - self.P @ c.T @ np.linalg.inv(gain_noise_density(self.settings, dt))
-                                    @ c @ self.P)  # Eq. 6
+        self.P = written_out_covariance_step(self.source, self.P, model.jacobian(x_hat, u), k_gain, dt)
         v_dot = -self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z  # Eq. 15
         self.v = self.v + dt * v_dot
         self.r = self.r * (1.0 - self.leak * dt)                               # Eq. 11
@@ -105,29 +124,17 @@ class DenseFilter:
     def __init__(self, estimator: Estimator):
         if estimator.spiking or estimator.runs != 1:
             raise ValueError('needs a single-run non-spiking estimator')
+        self.source = estimator
         self.model = estimator.model
-        s = estimator.settings
-        self.x_hat = estimator._x_hat[0].copy()
-        self.P = estimator._p[0].copy()
-        self.gain_law = {0: 'kalman', 1: 'msif', 2: 'sif'}[estimator._gain_code]
-        self.settings = s
-        self.q_hat, self.r_hat, self.delta = s.q_hat, s.r_hat, s.boundary_layer
-        self.method = s.discretization
+        self.x_hat = estimator.x_hat.copy()
+        n = len(self.x_hat)
+        self.P = estimator.P.copy() if estimator.has_covariance else np.zeros((n, n))
+        self.method = estimator.settings.discretization
 
     def step(self, z, u, dt: float) -> np.ndarray:
         c = self.model.measurement_matrix
         innovation = z - c @ self.x_hat
-        r_density = gain_noise_density(self.settings, dt)  # the R of Eq. 5-6
-        if self.gain_law == 'kalman':
-            gain = self.P @ c.T @ np.linalg.inv(r_density)
-        elif self.gain_law == 'msif':
-            p_zz = c @ self.P @ c.T + self.r_hat
-            gain = np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / self.delta, 1.0))
-        else:
-            gain = np.linalg.pinv(c) @ np.diag(np.minimum(np.abs(innovation) / self.delta, 1.0))
-        if self.gain_law != 'sif':
-            jac = self.model.jacobian(self.x_hat, u)
-            self.P = self.P + dt * (jac @ self.P + self.P @ jac.T + self.q_hat
-                                    - self.P @ c.T @ np.linalg.inv(r_density) @ c @ self.P)
+        gain = written_out_gain(self.source, self.P, innovation, dt)
+        self.P = written_out_covariance_step(self.source, self.P, self.model.jacobian(self.x_hat, u), gain, dt)
         self.x_hat = self.model.transition(self.x_hat, u, dt, self.method) + dt * gain @ innovation
         return self.x_hat

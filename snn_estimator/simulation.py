@@ -15,9 +15,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
-import control
 import numpy as np
+import scipy.stats
 
+from . import defaults as D
 from .config import EstimatorConfig
 from .estimators import TWIN_OF, make_estimator
 from .models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
@@ -115,6 +116,7 @@ def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
     r = check_covariance(as_matrix(input_weight, (m, m), 'lqr_input_weight (Rc)'),
                          'lqr_input_weight (Rc)')
     a = model.jacobian(np.zeros(n), np.zeros(m))
+    import control  # imported here: python-control loads matplotlib, which no other core path needs
     try:
         gain, _, _ = control.lqr(a, model.input_matrix, q, r)
     except Exception as error:  # python-control raises several types for an unsolvable ARE
@@ -178,11 +180,11 @@ def rendezvous_scenario(preset: str = 'default', cw_model: str = 'standard',
     truth = ClohessyWiltshire(orbit_radius=orbit_radius)
     model = truth if cw_model == 'standard' else ClohessyWiltshire(orbit_radius=orbit_radius, form=cw_model)
     return Scenario(
-        name='rendezvous', model=model,
-        x0=np.array([70.0, 30.0, -5.0, -1.7, -0.9, 0.25]), dt=0.1, duration=360.0,
-        process_noise=1e-12 * np.eye(6), measurement_noise=1e-2 * np.eye(3),
-        estimator=config, lqr_state_weight=np.eye(6), lqr_input_weight=1e5 * np.eye(3),
-        metric_window=60.0, truth_model=None if model is truth else truth)
+        name='rendezvous', model=model, x0=np.array(D.RENDEZVOUS_X0), dt=D.RENDEZVOUS_TIME_STEP,
+        duration=D.RENDEZVOUS_DURATION, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
+        measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config,
+        lqr_state_weight=D.LQR_STATE_WEIGHT * np.eye(6), lqr_input_weight=D.LQR_INPUT_WEIGHT * np.eye(3),
+        metric_window=D.RENDEZVOUS_METRIC_WINDOW, truth_model=None if model is truth else truth)
 
 
 def van_der_pol_scenario(preset: str = 'default', **estimator_changes) -> Scenario:
@@ -194,8 +196,8 @@ def van_der_pol_scenario(preset: str = 'default', **estimator_changes) -> Scenar
         state_scale=(0.01, 0.01))
     config = _apply_preset(config, preset, estimator_changes)
     return Scenario(
-        name='van_der_pol', model=VanDerPol(mu=0.005), x0=np.array([2.0, 2.0]), dt=0.01,
-        duration=20.0, process_noise=0.01 * np.eye(2), measurement_noise=np.array([[0.1]]),
+        name='van_der_pol', model=VanDerPol(mu=D.VAN_DER_POL_MU), x0=np.array(D.VAN_DER_POL_X0),
+        dt=D.VAN_DER_POL_TIME_STEP, duration=D.VAN_DER_POL_DURATION, process_noise=0.01 * np.eye(2), measurement_noise=np.array([[0.1]]),
         estimator=config, metric_window=10.0)
 
 
@@ -216,6 +218,12 @@ class SimulationResult:
     wall_time: float
     capped_steps: int = 0
     extra: dict = field(default_factory=dict)
+    #: e^T P^-1 e per run and time (e = truth - estimate, P the filter's covariance), shape
+    #: (runs, steps + 1); None for filters without a covariance.
+    nees: np.ndarray | None = None
+    #: nu^T (C P C^T + R_hat)^-1 nu of each measurement against the prior estimate, (runs,
+    #: steps); None without a covariance.
+    nis: np.ndarray | None = None
 
     @property
     def error(self) -> np.ndarray:
@@ -252,6 +260,34 @@ class SimulationResult:
         """Distance of the chaser from the target at the end, per run, m."""
         return np.linalg.norm(self.truth[:, -1, :3], axis=1)
 
+    def consistency(self, seconds: float | None = None) -> dict:
+        """Average NEES and NIS over the final window against their 95 % chi-square bounds.
+
+        Per step the average over the R runs is compared with chi2(R d)/R at 2.5 % and 97.5 %
+        (d = n states for NEES, m measurements for NIS; Bar-Shalom et al., Sec. 5.4). Reported:
+        the time average of that per-step average, the bounds, the share of steps inside them,
+        and a verdict: consistent (>= 90 % of steps inside), overconfident (the +-3 sigma the
+        filter publishes is too narrow: mostly above) or conservative (mostly below). Empty
+        for a filter without a covariance.
+        """
+        if self.nees is None:
+            return {}
+        window = self.window(seconds)
+        record = {}
+        for name, values, dof in (('nees', self.nees[:, window], self.truth.shape[2]),
+                                  ('nis', self.nis[:, window.start - 1:window.stop - 1],
+                                   self.scenario.model.n_meas)):
+            runs = values.shape[0]
+            per_step = values.mean(axis=0)
+            low, high = (scipy.stats.chi2.ppf(q, runs * dof) / runs for q in (0.025, 0.975))
+            inside = float(np.mean((per_step >= low) & (per_step <= high)))
+            above = float(np.mean(per_step > high))
+            verdict = ('consistent' if inside >= 0.9 else
+                       'overconfident' if above > 0.5 * (1.0 - inside) else 'conservative')
+            record[name] = {'average': float(per_step.mean()), 'dof': dof, 'bounds': [float(low), float(high)],
+                            'fraction_inside': inside, 'verdict': verdict}
+        return record
+
 
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
              config: EstimatorConfig | None = None, on_step: Callable[[int], None] | None = None,
@@ -278,11 +314,16 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     spiking = estimator.spiking
     spikes = np.zeros((runs, steps), dtype=np.int64) if spiking else None
     raster = np.zeros((steps, estimator.neuron_count), dtype=np.int16) if spiking else None
-    x_hat = estimator._x_hat  # (runs, n) view, updated in place by the estimator
+    x_hat = estimator.batch_x_hat  # (runs, n) view, updated in place by the estimator
+    covariance = estimator.batch_P
+    c, r_hat = model.measurement_matrix, estimator.settings.r_hat
+    nees = np.empty((runs, steps + 1)) if covariance is not None else None
+    nis = np.empty((runs, steps)) if covariance is not None else None
     truth[:, 0] = plant.x
     estimate[:, 0] = x_hat
-    if cov is not None:
-        cov[:, 0] = np.diagonal(estimator._p, axis1=1, axis2=2)
+    if covariance is not None:
+        cov[:, 0] = np.diagonal(covariance, axis1=1, axis2=2)
+        nees[:, 0] = normalised_squares(plant.x - x_hat, covariance)
     zero_u = np.zeros((runs, model.n_input))
     started = time.perf_counter()
     for k in range(steps):
@@ -290,15 +331,18 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
             events[k](estimator)
         u = lqr_control(gain, x_hat) if gain is not None else zero_u
         z = sensor.measure(plant.x)
+        if covariance is not None:
+            nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
         estimator.step(z, u, dt)
         plant.step(u, dt)
         controls[:, k] = u
         truth[:, k + 1] = plant.x
         estimate[:, k + 1] = x_hat
-        if cov is not None:
-            cov[:, k + 1] = np.diagonal(estimator._p, axis1=1, axis2=2)
+        if covariance is not None:
+            cov[:, k + 1] = np.diagonal(covariance, axis1=1, axis2=2)
+            nees[:, k + 1] = normalised_squares(plant.x - x_hat, covariance)
         if spiking:
-            step_spikes = estimator._spikes
+            step_spikes = estimator.batch_spikes
             spikes[:, k] = step_spikes.sum(axis=1)
             raster[k] = step_spikes[0]
         if on_step is not None:
@@ -308,7 +352,17 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         kind=kind, scenario=scenario, time=dt * np.arange(steps + 1), truth=truth,
         estimate=estimate, covariance_diag=cov, control=controls, spikes_per_step=spikes,
         raster=raster, neuron_count=estimator.neuron_count, wall_time=wall,
-        capped_steps=estimator.capped_steps)
+        capped_steps=estimator.capped_steps, nees=nees, nis=nis)
+
+
+def normalised_squares(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """e^T P^-1 e per run: ``errors`` (runs, d), ``covariances`` (runs, d, d). A covariance
+    that cannot be inverted gives inf (an overconfident filter, not a crash)."""
+    try:
+        solved = np.linalg.solve(covariances, errors[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.full(errors.shape[0], np.inf)
+    return np.einsum('bi,bi->b', errors, solved)
 
 
 def twin_of(kind: str) -> str | None:
@@ -321,42 +375,3 @@ __all__ = [
     'lqr_gain', 'matrix_sqrt', 'rendezvous_scenario', 'simulate', 'twin_of', 'van_der_pol_scenario',
 ]
 
-
-def batch_initial_state(model: StateSpaceModel, stamps, measurements, controls,
-                        measurement_covariance) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least-squares state from a window of measurements (initial state determination).
-
-    ``stamps`` (K,) in seconds, ``measurements`` (K, m) taken at them, ``controls`` (K, m_u) held
-    from each stamp to the next. Fits the state at the first stamp through the exact linear
-    dynamics and returns it propagated to the *last* stamp as a prior, i.e. using the first
-    K - 1 measurements only, with its covariance (process noise neglected). The last
-    measurement is left for the filter's next step. Linear models only.
-    """
-    if not model.is_linear:
-        raise ValueError('a batch initial state needs a linear model')
-    stamps = np.asarray(stamps, dtype=float)
-    z = np.asarray(measurements, dtype=float)
-    u = np.asarray(controls, dtype=float)
-    n, c = model.n_state, model.measurement_matrix
-    if stamps.size < 2 or z.shape[0] != stamps.size or u.shape[0] != stamps.size:
-        raise ValueError('need at least two stamps with one measurement and one control each')
-    weight = np.linalg.inv(np.asarray(measurement_covariance, dtype=float))
-    transition, offset = np.eye(n), np.zeros(n)
-    normal, rhs = np.zeros((n, n)), np.zeros(n)
-    for k in range(stamps.size):
-        if k:
-            step = float(stamps[k] - stamps[k - 1])
-            if step <= 0.0:
-                raise ValueError('stamps must increase')
-            phi, gamma = model.discrete_matrices(round(step, 9))
-            transition, offset = phi @ transition, phi @ offset + gamma @ u[k - 1]
-        if k == stamps.size - 1:
-            break
-        rows = c @ transition
-        normal += rows.T @ weight @ rows
-        rhs += rows.T @ weight @ (z[k] - c @ offset)
-    covariance = np.linalg.inv(normal)
-    first = covariance @ rhs
-    last = transition @ first + offset
-    propagated = transition @ covariance @ transition.T
-    return last, 0.5 * (propagated + propagated.T)

@@ -64,7 +64,7 @@ def main(argv=None) -> int:
           f'{platform.processor() or platform.machine()}, Python {platform.python_version()}')
     print(f'{"filter":<16}{"N":>5}{"compiled us/step":>18}{"dense us/step":>15}{"ratio":>8}')
     results: dict = {}
-    for kind, (_, spiking) in FILTER_KINDS.items():
+    for kind, spec in FILTER_KINDS.items():
         for neurons in NEURON_COUNTS:
             config = scenario.estimator.replace(neuron_count=neurons)
 
@@ -73,7 +73,7 @@ def main(argv=None) -> int:
 
             time_steps(fresh(), zs[:100], us[:100], dt)  # compile, warm caches
             compiled = best_median(fresh, zs, us, dt)
-            dense_class = DenseSpikingFilter if spiking else DenseFilter
+            dense_class = DenseSpikingFilter if spec.spiking else DenseFilter
             dense = best_median(lambda dense_class=dense_class: dense_class(fresh()), zs[:args.dense_steps],
                                 us[:args.dense_steps], dt, passes=1)
             results.setdefault(kind, {})[str(neurons)] = {

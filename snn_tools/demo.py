@@ -20,6 +20,9 @@ from pathlib import Path
 
 import yaml
 
+from scenario_nodes.parameters import DEFAULT_FILTER
+from snn_estimator.estimators import FILTER_KINDS
+
 from .paths import config_file
 
 NODES = (  # start order: consumers first, the plant (which starts the clock) last
@@ -29,7 +32,6 @@ NODES = (  # start order: consumers first, the plant (which starts the clock) la
     ('position_sensor', 'scenario_nodes.sensor_node'),
     ('cw_plant', 'scenario_nodes.plant_node'),
 )
-FILTERS = ('snn_emsif', 'snn_ekf', 'snn_emsif_star', 'emsif', 'ekf', 'esif')
 #: The exchange that paces a lockstep run (estimate k -> control k -> estimate k+1).
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).
@@ -166,7 +168,7 @@ def pipeline_env(domain_id: int | None = None) -> dict:
     return env
 
 
-def run_pipeline(run_dir: Path, estimator: str = 'snn_emsif', mode: str = 'lockstep',
+def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lockstep',
                  params_file: Path | None = None, duration: float | None = None,
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
@@ -263,7 +265,8 @@ def print_summary(summary: dict, run_dir: Path) -> None:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='snn_demo', description=__doc__.split('\n\n')[0])
-    parser.add_argument('--estimator', default='snn_emsif', choices=FILTERS)
+    parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS),
+                        help=f'filter_type of the estimator (default {DEFAULT_FILTER})')
     parser.add_argument('--mode', default='lockstep', choices=('lockstep', 'realtime'))
     parser.add_argument('--params-file', type=Path, help='parameter file (default: config/rendezvous.yaml)')
     parser.add_argument('--duration', type=float, help='simulated seconds (default: from the file, 360)')

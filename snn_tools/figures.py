@@ -16,11 +16,12 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from snn_estimator.estimators import FILTER_KINDS  # noqa: E402
+
 UNITS = {'x': 'm', 'y': 'm', 'z': 'm', 'vx': 'm/s', 'vy': 'm/s', 'vz': 'm/s', 'x1': '-', 'x2': '-'}
-LABELS = {'ekf': 'EKF', 'emsif': 'EMSIF', 'esif': 'ESIF', 'snn_ekf': 'SNN-EKF',
-          'snn_emsif': 'SNN-EMSIF', 'snn_emsif_star': 'SNN-EMSIF*'}
 COLOURS = {'ekf': 'tab:blue', 'emsif': 'tab:green', 'esif': 'tab:olive', 'snn_ekf': 'tab:orange',
-           'snn_emsif': 'tab:red', 'snn_emsif_star': 'tab:purple'}
+           'snn_emsif': 'tab:red', 'snn_emsif_star': 'tab:purple', 'emsif_hybrid': 'tab:cyan',
+           'snn_emsif_hybrid': 'tab:pink', 'emsif_weighted': 'tab:brown', 'snn_emsif_weighted': 'tab:gray'}
 
 
 @dataclass
@@ -36,7 +37,9 @@ class Track:
 
 
 def label_of(kind: str) -> str:
-    return LABELS.get(kind, kind)
+    """The filter's name in tables and figures (e.g. SNN-EMSIF*); anything else unchanged."""
+    spec = FILTER_KINDS.get(kind)
+    return spec.label if spec else kind
 
 
 def colour_of(kind: str) -> str | None:

@@ -20,7 +20,10 @@ import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
 
-from .demo import FILTERS, SCHEDULING, Pipeline, run_pipeline
+from scenario_nodes.parameters import DEFAULT_FILTER
+from snn_estimator.estimators import FILTER_KINDS
+
+from .demo import SCHEDULING, Pipeline, run_pipeline
 
 #: Part of the stepping interval, at each end, left out of the CPU window.
 WINDOW_MARGIN = 0.2
@@ -118,7 +121,7 @@ def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = T
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='snn_loop_bench', description=__doc__.split('\n\n')[0])
-    parser.add_argument('--estimator', default='snn_emsif', choices=FILTERS)
+    parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS))
     parser.add_argument('--runs', type=int, default=5, help='lockstep runs (default 5)')
     parser.add_argument('--duration', type=float, default=720.0,
                         help='simulated seconds per run (default 720: long enough for a CPU window)')

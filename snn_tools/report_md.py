@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from snn_estimator.estimators import TWIN_OF
+
 from .figures import label_of
 
 ORDER = ('vdp_nominal', 'vdp_process_noise', 'vdp_measurement_noise', 'vdp_neurons',
@@ -112,7 +114,7 @@ def _table_section(name: str, data: dict) -> list[str]:
         spikes = '-' if fraction is None else f'{100 * fraction:.2f}'
         name_cell = (kind if name == 'spike_rules' else label_of(kind)) + (f' @{preset}' if preset else '')
         lines.append(f'| {name_cell} | ' + ' | '.join(cells) + f' | {spikes} |')
-    twins = {'snn_ekf': 'ekf', 'snn_emsif': 'emsif', 'snn_emsif_star': 'esif'}
+    twins = TWIN_OF
     ratios = []
     for spiking, twin in twins.items():
         if spiking in filters and twin in filters:

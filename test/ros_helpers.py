@@ -41,10 +41,14 @@ def overrides(node: str, **changes) -> list[Parameter]:
     return [Parameter(name, value=value) for name, value in values.items()]
 
 
-def make(node_class, context, executor, nodes, name: str, **changes):
+def make(node_class, context, executor, nodes, name: str, start: bool = True, **changes):
+    """Build a node as run_node does: parameters from config/ with ``changes``, added to the
+    executor, then ``start()`` (a managed node configures and activates itself)."""
     node = node_class(context=context, parameter_overrides=overrides(name, **changes))
     executor.add_node(node)
     nodes.append(node)
+    if start:
+        node.start()
     return node
 
 

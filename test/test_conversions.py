@@ -73,9 +73,9 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_msgs.msg import UInt32, UInt32MultiArray  # noqa: E402
 
-from scenario_nodes.conversions import (NS, decode_accel, decode_odometry, decode_point,  # noqa: E402
-                                        encode_accel, encode_clock, encode_odometry, encode_point,
-                                        encode_spikes, encode_uint32)
+from scenario_nodes.codec import (NS, decode_accel, decode_odometry, decode_point,  # noqa: E402
+                                  encode_accel, encode_clock, encode_odometry, encode_point,
+                                  encode_spikes, encode_uint32)
 
 FRAMES = ['', 'a', 'ab', 'abc', 'lvlh', 'lvlh5', 'chaser', 'target_7', 'ünïcode']  # every alignment
 

@@ -12,7 +12,7 @@ from snn_estimator.models import VanDerPol
 from snn_estimator.reference import DenseSpikingFilter
 from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
 
-SPIKING = [kind for kind, (_, spiking) in FILTER_KINDS.items() if spiking]
+SPIKING = [kind for kind, spec in FILTER_KINDS.items() if spec.spiking]
 
 
 def rendezvous_inputs(steps=300, seed=0):
@@ -419,11 +419,13 @@ def test_van_der_pol_network_uses_the_jacobian_form_of_eq_17():
 
 
 @pytest.mark.parametrize('units', ['spectral_density', 'per_sample'])
-@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif'])
-def test_compiled_direct_filters_equal_the_written_out_equations(kind, units):
+@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_hybrid', 'emsif_weighted'])
+@pytest.mark.parametrize('schedule', ['time_varying', 'steady_state'])
+def test_compiled_direct_filters_equal_the_written_out_equations(kind, units, schedule):
     from snn_estimator.reference import DenseFilter
     scenario, zs, us = rendezvous_inputs(steps=200)
-    fast = make_estimator(kind, scenario.estimator.replace(measurement_noise_units=units))
+    fast = make_estimator(kind, scenario.estimator.replace(measurement_noise_units=units,
+                                                           gain_schedule=schedule))
     dense = DenseFilter(fast)
     for z, u in zip(zs, us):
         fast.step(z, u, 0.1)
@@ -494,3 +496,104 @@ def test_compiled_innovation_nis_matches_the_textbook_formula_per_run():
             assert got[b] == pytest.approx(nu @ np.linalg.inv(s) @ nu, rel=1e-10)
     with pytest.raises(ValueError, match='3x3'):
         make_estimator('ekf').innovation_nis(np.zeros(3), np.eye(2))
+
+
+# ---------------------------------------------------------------- remedies for partial measurements
+def test_the_weighted_msif_gain_keeps_the_sliding_rows_and_corrects_the_velocity():
+    """K = P C^T (C P C^T)^-1 sat(diag(Pzz)/delta): C K is the paper's MSIF sat on the measured
+    axes, and the unmeasured rows are P_vp P_pp^-1 times it (with C = [I 0])."""
+    scenario, zs, us = rendezvous_inputs(steps=3)
+    weighted = make_estimator('emsif_weighted', scenario.estimator)
+    p = weighted.P.copy()
+    weighted.step(zs[0], us[0], 0.1)
+    c = weighted.model.measurement_matrix
+    pzz = c @ p @ c.T + weighted.settings.r_hat
+    sat = np.minimum(np.diag(pzz) / weighted.settings.boundary_layer, 1.0)
+    np.testing.assert_allclose(c @ weighted.gain, np.diag(sat), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(weighted.gain[3:], p[3:, :3] @ np.linalg.inv(p[:3, :3]) @ np.diag(sat),
+                               rtol=1e-12, atol=1e-15)
+    literal = make_estimator('emsif', scenario.estimator)
+    literal.step(zs[0], us[0], 0.1)
+    assert np.all(literal.gain[3:] == 0.0)  # Eq. 8 with C^+ never corrects a velocity
+
+
+def test_the_hybrid_gain_is_msif_on_the_measured_rows_and_kalman_on_the_others():
+    scenario, zs, us = rendezvous_inputs(steps=3)
+    hybrid = make_estimator('emsif_hybrid', scenario.estimator)
+    p = hybrid.P.copy()
+    hybrid.step(zs[0], us[0], 0.1)
+    c, s = hybrid.model.measurement_matrix, hybrid.settings
+    sat = np.minimum(np.diag(c @ p @ c.T + s.r_hat) / s.boundary_layer, 1.0)
+    np.testing.assert_allclose(hybrid.gain[:3], np.diag(sat), rtol=1e-12)
+    np.testing.assert_allclose(hybrid.gain[3:], (p @ c.T @ np.linalg.inv(s.r_hat))[3:], rtol=1e-12)
+
+
+def test_the_gain_covariance_is_that_of_the_gain_used_and_equals_eq_6_for_the_kalman_gain():
+    """P' = (J - K C) P + P (J - K C)^T + Q + K R K^T; with K = P C^T R^-1 it is Eq. 6."""
+    from snn_estimator.reference import written_out_covariance_step
+    scenario = rendezvous_scenario()
+    ekf = make_estimator('ekf', scenario.estimator)
+    weighted = make_estimator('emsif_weighted', scenario.estimator)
+    p = np.diag([0.02, 0.03, 0.01, 2e-4, 1e-4, 3e-4]) + 1e-5
+    jac = scenario.model.jacobian(np.zeros(6), np.zeros(3))
+    kalman = p @ scenario.model.measurement_matrix.T @ np.linalg.inv(ekf.settings.r_hat)
+    riccati = written_out_covariance_step(ekf, p, jac, kalman, 0.1)
+    assert weighted.covariance_law == 'gain'
+    np.testing.assert_allclose(written_out_covariance_step(weighted, p, jac, kalman, 0.1), riccati, rtol=1e-12)
+
+
+@pytest.mark.parametrize('gain_law', ['kalman', 'msif', 'sif', 'msif_hybrid', 'msif_weighted'])
+def test_the_steady_state_gain_sits_at_the_fixed_point_of_eq_6(gain_law):
+    from snn_estimator.config import gain_noise_density
+    from snn_estimator.estimators import steady_state_gain
+    scenario = rendezvous_scenario(process_noise_scale=1e3)  # a Q_hat the CARE solves well
+    estimator = make_estimator('ekf', scenario.estimator)
+    s, model = estimator.settings, scenario.model
+    c, a = model.measurement_matrix, model.jacobian(np.zeros(6), np.zeros(3))
+    density = gain_noise_density(s, 0.1)
+    p = scipy.linalg.solve_continuous_are(a.T, c.T, s.q_hat, density)
+    residual = a @ p + p @ a.T + s.q_hat - p @ c.T @ np.linalg.inv(density) @ c @ p
+    assert np.abs(residual).max() < 1e-9 * np.abs(s.q_hat).max()
+    gain = steady_state_gain(gain_law, model, s, 0.1)
+    if gain_law == 'kalman':
+        np.testing.assert_allclose(gain, p @ c.T @ np.linalg.inv(density), rtol=1e-9)
+    else:  # every sliding law: the measured rows are a saturation in [0, 1]
+        measured = np.diag(c @ gain)
+        assert np.all((measured > 0.0) & (measured <= 1.0))
+
+
+def test_a_constant_gain_network_has_constant_weights_equal_to_the_steady_state_gain():
+    from snn_estimator.estimators import steady_state_gain
+    scenario, zs, us = rendezvous_inputs(steps=20)
+    config = scenario.estimator.replace(gain_schedule='steady_state')
+    estimator = make_estimator('snn_emsif_weighted', config)
+    before = estimator.weights(dt=0.1)
+    for z, u in zip(zs, us):
+        estimator.step(z, u, 0.1)
+    after = estimator.weights(dt=0.1)
+    for name in ('F', 'Omega_s', 'Omega_f', 'Omega_k', 'F_k'):
+        np.testing.assert_array_equal(before[name], after[name])
+    gain = steady_state_gain('msif_weighted', scenario.model, estimator.settings, 0.1)
+    np.testing.assert_allclose(estimator.gain, gain, rtol=1e-12)
+    scale = estimator.settings.state_scale
+    np.testing.assert_allclose(after['F_k'], estimator.decoder.T @ (gain / scale[:, None]), rtol=1e-12)
+
+
+def test_a_constant_gain_needs_a_linear_model():
+    with pytest.raises(ValueError, match='linear model'):
+        make_estimator('ekf', van_der_pol_scenario().estimator.replace(gain_schedule='steady_state'),
+                       VanDerPol())
+
+
+def test_a_dispersed_start_is_drawn_from_p0_per_seed_and_the_same_alone_or_in_a_batch():
+    config = EstimatorConfig(initial_state_dispersion=True)
+    batch = make_estimator('ekf', config.replace(seed=10), runs=400)
+    alone = make_estimator('ekf', config.replace(seed=13))
+    np.testing.assert_array_equal(batch.batch_x_hat[3], alone.x_hat)
+    errors = batch.batch_x_hat - np.array(config.initial_state)
+    sigma = np.sqrt(np.array(config.initial_covariance))
+    np.testing.assert_allclose(errors.std(axis=0) / sigma, 1.0, atol=0.12)  # 400 draws: ~3.5 % sd
+    assert np.abs(errors.mean(axis=0) / sigma).max() < 0.2
+    alone.step(np.array([70.0, 30.0, -5.0]), np.zeros(3), 0.1)
+    alone.reset()
+    np.testing.assert_array_equal(alone.x_hat, batch.batch_x_hat[3])  # the same draw again

@@ -1,8 +1,9 @@
 """Multi-process closed loop: every filter type as its own process, recorded, checked from the bag.
 
-Each run is the full 360 s scenario in lockstep, with the package's parameter file; processes
-are always stopped (run_pipeline's finally). Speed is not asserted here (see `make bench` and
-the demo summary); numbers and equality with the offline simulator are.
+Each run is the full 360 s scenario in lockstep, with the package's parameter file (the filter
+starts from a dispersed estimate, as a deployed one would); processes are always stopped
+(run_pipeline's finally). Speed is not asserted here (see `make bench` and the demo summary);
+numbers and equality with the offline simulator are.
 """
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 pytest.importorskip('rclpy')
 
 from snn_estimator import FILTER_KINDS, rendezvous_scenario, simulate  # noqa: E402
+from snn_estimator.estimators import CONVERGES_FROM_DISPERSION  # noqa: E402
 from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from snn_tools.demo import run_pipeline  # noqa: E402
 
@@ -35,9 +37,12 @@ def test_closed_loop_converges_over_ros(runs, kind):
     _, _, summary = runs[kind]
     assert summary['estimator'] == kind
     assert summary['steps'] == 3600 and summary['sim_time_s'] == pytest.approx(360.0)
-    assert summary['final_range_m'] < 0.1
     rmse = summary['rmse_last_60s']
-    assert all(rmse[s] < 0.05 for s in ('x', 'y', 'z')) and all(rmse[s] < 1e-3 for s in ('vx', 'vy', 'vz'))
+    if kind in CONVERGES_FROM_DISPERSION:
+        assert summary['final_range_m'] < 0.1
+        assert all(rmse[s] < 0.05 for s in ('x', 'y', 'z')) and all(rmse[s] < 1e-3 for s in ('vx', 'vy', 'vz'))
+    else:  # the literal sliding-innovation gain never corrects the velocity (README, "Filters")
+        assert summary['final_range_m'] > 0.1 and max(rmse[s] for s in ('vx', 'vy', 'vz')) > 1e-3
     assert summary['control_timeouts'] == 0 and summary['measurements_rejected'] == 0
     assert summary['controls_missing'] == 0
     assert summary['recording_complete'], summary['messages']
@@ -49,7 +54,7 @@ def test_closed_loop_converges_over_ros(runs, kind):
 @pytest.mark.parametrize('kind', KINDS)
 def test_spike_counts_agree_across_topics_and_diagnostics(runs, kind):
     _, data, summary = runs[kind]
-    if FILTER_KINDS[kind][1]:
+    if FILTER_KINDS[kind].spiking:
         assert data.spikes.shape == (len(data.spike_count), 200)
         np.testing.assert_array_equal(data.spikes.sum(axis=1), data.spike_count)
         assert summary['spikes_total'] == summary['estimator_spikes_total'] > 0
@@ -61,7 +66,7 @@ def test_spike_counts_agree_across_topics_and_diagnostics(runs, kind):
 @pytest.mark.parametrize('kind', KINDS)
 def test_ros_lockstep_run_equals_the_offline_simulator(runs, kind):
     _, data, _ = runs[kind]
-    offline = simulate(rendezvous_scenario(), kind)
+    offline = simulate(rendezvous_scenario(initial_state_dispersion=True), kind)
     stamps = np.round(data.estimate_t / 0.1).astype(int)
     inside = stamps <= 3600
     np.testing.assert_allclose(data.estimate[inside], offline.estimate[0, stamps[inside]], rtol=0, atol=1e-9)

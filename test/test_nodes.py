@@ -65,10 +65,14 @@ def run_lockstep(kind, steps):
         make(SensorNode, context, executor, nodes, 'position_sensor')
         plant = make(PlantNode, context, executor, nodes, 'cw_plant', duration=duration,
                      control_timeout=30.0)
-        finished = spin_until(executor, lambda: len(probe.received[qos.TRUTH]) > steps
-                              and len(probe.received[qos.ESTIMATE]) > steps, timeout=120.0)
+        last = steps * 100_000_000
+
+        def stamps(topic):
+            return {stamp_to_ns(m.header.stamp) for m in probe.received[topic]}
+        finished = spin_until(executor, lambda: last in stamps(qos.TRUTH) and last in stamps(qos.ESTIMATE),
+                              timeout=120.0)
         assert finished, 'the in-process loop did not complete'
-        assert plant._timeouts == 0
+        assert plant.values()['control_timeouts'] == 0
         estimates = {stamp_to_ns(m.header.stamp): odometry_to_state(m)[0] for m in probe.received[qos.ESTIMATE]}
         truths = {stamp_to_ns(m.header.stamp): odometry_to_state(m)[0] for m in probe.received[qos.TRUTH]}
         return estimates, truths
@@ -78,7 +82,7 @@ def run_lockstep(kind, steps):
 def test_lockstep_ros_run_equals_the_offline_simulation(kind):
     steps = 300
     estimates, truths = run_lockstep(kind, steps)
-    scenario = rendezvous_scenario()
+    scenario = rendezvous_scenario(initial_state_dispersion=True)  # as config/rendezvous.yaml
     offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), kind)
     for k in range(steps + 1):
         stamp = k * 100_000_000
@@ -89,7 +93,8 @@ def test_lockstep_ros_run_equals_the_offline_simulation(kind):
 def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input():
     with ros_context() as (context, executor, nodes):
         probe = Probe(context, executor, nodes)
-        estimator = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0)
+        estimator = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0,
+                         initial_state_dispersion=False)
         assert spin_until(executor, lambda: probe.node.count_subscribers(qos.MEASUREMENT) > 0)
         x0 = np.array([70.0, 30.0, -5.0])
         probe.publish(qos.MEASUREMENT, measurement_to_point(x0, (0, 1, 2), 0, 'lvlh'))
@@ -107,21 +112,27 @@ def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input
                           and len(probe.received[qos.SPIKES]) == 2)
         assert len(probe.received[qos.SPIKES][1].data) == 200
         assert sum(probe.received[qos.SPIKES][1].data) == probe.received[qos.SPIKE_COUNT][1].data
-        # bad inputs: NaN, stale, duplicate -- each counted, none stepped
+        # bad inputs: NaN, stale -- each counted, none stepped; a repeated measurement is answered
+        # with the estimate it answered before (the lockstep resend), not stepped again
         nan = measurement_to_point(np.array([math.nan, 0.0, 0.0]), (0, 1, 2), 100_000_000, 'lvlh')
         stale = measurement_to_point(x0, (0, 1, 2), 50_000_000, 'lvlh')  # older than the estimate
         for msg in (nan, stale):
             probe.publish(qos.MEASUREMENT, msg)
         good = measurement_to_point(x0, (0, 1, 2), 100_000_000, 'lvlh')
         probe.publish(qos.MEASUREMENT, good)
-        probe.publish(qos.MEASUREMENT, good)  # duplicate
-        probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), 100_000_000, 'lvlh'))
+        probe.publish(qos.MEASUREMENT, good)  # again
         assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 3)
-        assert spin_until(executor, lambda: probe.diagnostics('estimator').get('measurements_rejected') == '3')
+        resent = probe.received[qos.ESTIMATE][2]
+        assert stamp_to_ns(resent.header.stamp) == 100_000_000  # the answer to it, again
+        np.testing.assert_array_equal(odometry_to_state(resent)[0], odometry_to_state(probe.received[qos.ESTIMATE][1])[0])
+        probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), 100_000_000, 'lvlh'))
+        assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 4)
+        assert spin_until(executor, lambda: probe.diagnostics('estimator').get('steps') == '2')
         values = probe.diagnostics('estimator')
+        assert values['measurements_rejected'] == '2'
         assert values['measurements_rejected.non_finite'] == '1'
         assert values['measurements_rejected.stale'] == '1'
-        assert values['measurements_rejected.duplicate'] == '1'
+        assert values['estimates_resent'] == '1'
         assert estimator.estimator.steps == 2
         assert all(np.all(np.isfinite(odometry_to_state(m)[0])) for m in probe.received[qos.ESTIMATE])
 
@@ -168,10 +179,10 @@ def test_lockstep_plant_waits_for_the_control_and_times_out_to_the_last_one():
             probe.publish(qos.CONTROL, control_to_accel(np.array([0.01, 0.0, 0.0]), k * 100_000_000, 'lvlh'))
             assert spin_until(executor, lambda k=k: len(probe.received[qos.TRUTH]) == k + 2)
         assert stamp_to_ns(probe.received[qos.TRUTH][1].header.stamp) == 100_000_000
-        assert plant._timeouts == 0
+        assert plant.values()['control_timeouts'] == 0
         # now no control for step 10: after 0.2 s the plant holds u and goes on
         assert spin_until(executor, lambda: len(probe.received[qos.TRUTH]) >= 12, timeout=5.0)
-        assert plant._timeouts >= 1
+        assert plant.values()['control_timeouts'] >= 1
 
 
 def test_a_plant_stopped_before_its_last_step_publishes_its_totals_so_far():
@@ -191,19 +202,19 @@ def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_tr
     with ros_context() as (context, executor, nodes):
         plant = make(PlantNode, context, executor, nodes, 'cw_plant', min_truth_subscribers=2, duration=0.0)
         executor.spin_once(timeout_sec=0.3)
-        assert plant._truth_published == 0  # nobody listens yet
+        assert plant.values()['truth_published'] == 0  # nobody listens yet
         probe = Probe(context, executor, nodes)
-        assert spin_until(executor, lambda: plant._truth_pub.get_subscription_count() == 1)
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) == 1)
         for _ in range(10):
             executor.spin_once(timeout_sec=0.03)
-        assert plant._truth_published == 0  # one of two: still waiting
+        assert plant.values()['truth_published'] == 0  # one of two: still waiting
         from rclpy.node import Node
         second = Node('second_listener', context=context)
         executor.add_node(second)
         nodes.append(second)
-        second.create_subscription(Odometry, qos.TRUTH, lambda msg: None, qos.SUBSCRIBER_QOS)
+        second.create_subscription(Odometry, qos.TRUTH, lambda msg: None, qos.SUBSCRIPTION_QOS)
         assert spin_until(executor, lambda: probe.received[qos.TRUTH])
-        assert plant._truth_published == 1 and stamp_to_ns(probe.received[qos.TRUTH][0].header.stamp) == 0
+        assert plant.values()['truth_published'] == 1 and stamp_to_ns(probe.received[qos.TRUTH][0].header.stamp) == 0
 
 
 @pytest.mark.parametrize('node_class, name, changes, message', [

@@ -19,8 +19,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.controller_node import ControllerNode  # noqa: E402
-from scenario_nodes.conversions import (control_to_accel, decode_accel, encode_point,  # noqa: E402
-                                        measurement_to_point, ns_to_stamp,
+from scenario_nodes.codec import decode_accel, encode_point  # noqa: E402
+from scenario_nodes.conversions import (control_to_accel, measurement_to_point, ns_to_stamp,  # noqa: E402
                                         odometry_to_state, stamp_to_ns, state_to_odometry)
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
@@ -75,7 +75,7 @@ def estimator_rig():
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
         node = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0,
-                    warm_start_wait=0.0)
+                    history_wait=0.0, initial_state_dispersion=False)
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         harness.clock(0)
         harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
@@ -94,7 +94,6 @@ def step(harness, stamp_ns, count):
 @pytest.mark.parametrize('bad, reason', [
     (lambda: measurement_to_point(np.array([np.inf, 0, 0]), (0, 1, 2), DT, 'lvlh'), 'non_finite'),
     (lambda: measurement_to_point(X0, (0, 1, 2), DT, 'map'), 'wrong_frame'),
-    (lambda: measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'), 'duplicate'),
     (lambda: measurement_to_point(X0, (0, 1, 2), DT // 2, 'lvlh'), 'stale'),
 ])
 def test_estimator_rejects_bad_measurements_and_goes_on(estimator_rig, bad, reason):
@@ -149,7 +148,7 @@ def test_estimator_counts_the_spike_messages_it_publishes_apart_from_the_estimat
     for publish_spikes, spike_messages in ((True, 2), (False, 0)):
         with ros_context() as (context, executor, nodes):
             harness = Harness(context, executor, nodes)
-            node = make(EstimatorNode, context, executor, nodes, 'estimator', warm_start_wait=0.0,
+            node = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0, initial_state_dispersion=False,
                         publish_spikes=publish_spikes)
             assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
             harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
@@ -174,11 +173,11 @@ def test_estimator_rejects_inputs_from_before_its_initialisation():
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
         node = make(EstimatorNode, context, executor, nodes, 'estimator', diagnostics_period=0.0,
-                    warm_start_wait=0.0)
+                    history_wait=0.0, initial_state_dispersion=False)
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 10 * DT, 'lvlh'))
         harness.wait_estimates(1)
-        assert node._init_ns == 10 * DT
+        assert node.runner.start_ns == 10 * DT
         harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 5 * DT, 'lvlh'))
         harness.wait_value('estimator', 'controls_rejected.before_init', 1)
         harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 5 * DT, 'lvlh'))
@@ -196,7 +195,7 @@ def test_a_backwards_time_jump_restarts_the_filter(estimator_rig):
     # the simulation restarts: measurements from t = 0 again
     harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
     harness.wait_value('estimator', 'time_jumps', 1)
-    assert node._init_ns == 0  # initialised again at the new t = 0
+    assert node.runner.start_ns == 0  # initialised again at the new t = 0
     harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
     assert spin_until(harness.executor, lambda: harness.estimates()[-1][0] == DT)
 
@@ -207,7 +206,7 @@ def test_the_clock_going_back_restarts_the_filter(estimator_rig):
     assert spin_until(harness.executor, lambda: node.get_clock().now().nanoseconds == 50 * DT)
     harness.clock(0)
     assert spin_until(harness.executor, lambda: node.values().get('time_jumps') == 1)
-    assert node._t_ns is None
+    assert not node.runner.started
 
 
 def test_sensor_dropout_is_predicted_over_and_a_burst_is_processed_in_order(estimator_rig):
@@ -246,7 +245,7 @@ def test_reset_service_and_set_state_topic(estimator_rig):
     np.testing.assert_allclose(np.diag(node.estimator.P), np.diag(covariance))
     response = harness.call(Trigger, '/estimator/reset', Trigger.Request())
     assert response.success and 'initial_state' in response.message
-    assert node._t_ns is None
+    assert not node.runner.started
     harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 20 * DT, 'lvlh'))
     assert spin_until(harness.executor, lambda: harness.estimates()[-1][0] == 20 * DT)
     np.testing.assert_allclose(harness.estimates()[-1][1], [70, 30, -5, -1.7, -0.9, 0.25], atol=1e-6)
@@ -304,7 +303,13 @@ def test_controller_bad_inputs_safe_mode_and_gain_changes(controller_rig):
         harness.wait_value('lqr_controller', f'estimates_rejected.{reason}', 1)
     harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
     assert spin_until(executor, lambda: len(harness.received[qos.CONTROL]) == 1)
+    # the same estimate again (a lockstep resend): the same control again
     harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT, 'lvlh', 'c'))
+    assert spin_until(executor, lambda: len(harness.received[qos.CONTROL]) == 2)
+    assert harness.received[qos.CONTROL][1] == harness.received[qos.CONTROL][0]
+    harness.wait_value('lqr_controller', 'controls_resent', 1)
+    # an older estimate than the last: rejected
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, DT // 2, 'lvlh', 'c'))
     harness.wait_value('lqr_controller', 'estimates_rejected.not_newer', 1)
     # an estimate newer than the last but more than max_input_age behind the clock
     assert harness.set_parameters('lqr_controller', estimate_timeout=100.0)[0].successful
@@ -317,14 +322,14 @@ def test_controller_bad_inputs_safe_mode_and_gain_changes(controller_rig):
     for k in range(16, 30):
         harness.clock(k * DT)
         executor.spin_once(timeout_sec=0.05)
-    assert spin_until(executor, lambda: controller._safe and
+    assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('safe_mode') == 'True' and
                       harness.received[qos.CONTROL][-1].accel.linear.x == 0.0)
     zero = harness.received[qos.CONTROL][-1]
     assert [zero.accel.linear.x, zero.accel.linear.y, zero.accel.linear.z] == [0.0, 0.0, 0.0]
     assert stamp_to_ns(zero.header.stamp) > 15 * DT
     harness.wait_value('lqr_controller', 'safe_mode', True)
     harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 30 * DT, 'lvlh', 'c'))
-    assert spin_until(executor, lambda: not controller._safe and stamp_to_ns(
+    assert spin_until(executor, lambda: not harness.diagnostics('lqr_controller').get('safe_mode') == 'True' and stamp_to_ns(
         harness.received[qos.CONTROL][-1].header.stamp) == 30 * DT)
     back = harness.received[qos.CONTROL][-1]
     assert stamp_to_ns(back.header.stamp) == 30 * DT and back.accel.linear.x != 0.0
@@ -365,21 +370,24 @@ def test_sensor_starts_over_when_the_clock_or_the_truth_time_goes_back():
         def measured(stamps):
             return [stamp_to_ns(m.header.stamp) for m in harness.received[qos.MEASUREMENT]] == stamps
 
-        # without a clock: truth 2 s back is a restart, truth at the same time a duplicate
+        # without a clock: truth 2 s back is a restart; the same truth again (a lockstep resend)
+        # gets the same measurement again, not a new draw
         for stamp in (50 * DT, 51 * DT, 51 * DT, 30 * DT):
             harness.publish(qos.TRUTH, state_to_odometry(truth, None, stamp, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT]))
-        harness.wait_value('position_sensor', 'truth_rejected.not_newer', 1)
+        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 51 * DT, 30 * DT]))
+        again = harness.received[qos.MEASUREMENT]
+        assert (again[1].point.x, again[1].point.y) == (again[2].point.x, again[2].point.y)
+        harness.wait_value('position_sensor', 'measurements_resent', 1)
         # with a clock, even truth 2 s back is only late: not measured...
         harness.clock(40 * DT)
         assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 40 * DT)
         harness.publish(qos.TRUTH, state_to_odometry(truth, None, 10 * DT, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: sensor._rejected['not_newer'] == 2)
+        harness.wait_value('position_sensor', 'truth_rejected.not_newer', 1)
         # ...but the clock going back (a restarted plant) starts the sensor over
         harness.clock(5 * DT)
         assert spin_until(executor, lambda: sensor.get_clock().now().nanoseconds == 5 * DT)
         harness.publish(qos.TRUTH, state_to_odometry(truth, None, 5 * DT, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 30 * DT, 5 * DT]))
+        assert spin_until(executor, lambda: measured([50 * DT, 51 * DT, 51 * DT, 30 * DT, 5 * DT]))
         harness.wait_value('position_sensor', 'time_jumps', 2)
 
 
@@ -425,10 +433,10 @@ def test_a_realtime_plant_stops_after_its_duration():
         harness = Harness(context, executor, nodes)
         plant = make(PlantNode, context, executor, nodes, 'cw_plant', mode='realtime',
                      real_time_factor=20.0, duration=0.5)  # 5 steps of 0.1 s in 25 ms
-        assert spin_until(executor, lambda: plant._values()['done'])
+        assert spin_until(executor, lambda: plant.values()['done'])
         for _ in range(10):  # 0.5 s more of wall time: the ticker has fired ~100 more times
             executor.spin_once(timeout_sec=0.05)
-        assert plant._values()['steps'] == 5
+        assert plant.values()['steps'] == 5
         assert len(harness.received[qos.TRUTH]) == 6  # the initial state and five steps
 
 
@@ -449,7 +457,7 @@ parameter_values = st.sampled_from([
 def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequence, parameters):
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
-        node = make(EstimatorNode, context, executor, nodes, 'estimator', warm_start_wait=0.0,
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0, initial_state_dispersion=False,
                     diagnostics_period=0.0, neuron_count=40)
         controller = make(ControllerNode, context, executor, nodes, 'lqr_controller')
         controls = []  # what the controller itself publishes
@@ -483,7 +491,7 @@ def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequen
         values = node.values()
         assert values['measurements_received'] == measurements == (
             values['measurements_rejected'] + values['measurements_used'] + values['measurements_dropped']
-            + values['measurements_pending'])
+            + values['measurements_pending'] + values['measurements_repeated'])
         assert sum(v for k, v in values.items() if k.startswith('measurements_rejected.')) == \
             values['measurements_rejected']
         for _, x in harness.estimates():
@@ -499,7 +507,7 @@ def test_a_second_estimator_warm_starts_from_the_running_ones_estimates():
     offers on `estimate`, replays what came since, and continues from there."""
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
-        first = make(EstimatorNode, context, executor, nodes, 'estimator', warm_start_wait=0.0,
+        first = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0, initial_state_dispersion=False,
                      nis_window=0)  # the constant test measurements are not a consistent track
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         for k in range(20):
@@ -509,10 +517,10 @@ def test_a_second_estimator_warm_starts_from_the_running_ones_estimates():
         newest = harness.estimates()[-1]
         assert first.estimator.steps == 20, (first.estimator.steps, first.values())
         second = make(EstimatorNode, context, executor, nodes, 'estimator', filter_type='ekf',
-                      warm_start_wait=5.0, nis_window=0)
+                      history_wait=5.0, nis_window=0)
         harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 20 * DT, 'lvlh'))
-        assert spin_until(executor, lambda: second._t_ns is not None, timeout=10.0)
-        assert second.values()['warm_starts'] == 1 and second._init_ns == newest[0] == 20 * DT
+        assert spin_until(executor, lambda: second.runner.started, timeout=10.0)
+        assert second.values()['warm_starts'] == 1 and second.runner.start_ns == newest[0] == 20 * DT
         np.testing.assert_allclose(second.estimator.x_hat, newest[1], atol=1e-9)  # not stepped yet
         harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 20 * DT, 'lvlh'))
         assert spin_until(executor, lambda: second.estimator.steps == 1 and first.estimator.steps == 21), (

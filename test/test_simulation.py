@@ -123,7 +123,7 @@ def test_van_der_pol_filters_converge_from_the_wrong_initial_state():
 
 
 def test_batch_initial_state_recovers_the_state_from_positions_and_controls():
-    from snn_estimator.simulation import batch_initial_state
+    from snn_estimator.initialization import least_squares_start as batch_initial_state
     model = ClohessyWiltshire()
     plant = Plant(model, [10.0, -4.0, 2.0, -0.3, 0.1, 0.05], np.zeros((6, 6)))
     stamps, zs, us = [], [], []
@@ -143,3 +143,85 @@ def test_batch_initial_state_recovers_the_state_from_positions_and_controls():
     assert np.all(np.abs(x_noisy - plant.x[0]) < 4 * np.sqrt(np.diag(p_noisy)) + 1e-9)
     with pytest.raises(ValueError):
         batch_initial_state(model, [0.0], zs[:1], us[:1], np.eye(3))
+
+
+# ---------------------------------------------------------------- a start that does not know the truth
+@pytest.fixture(scope='module')
+def dispersed():
+    """20 runs of every filter from x_hat0 ~ N(x0, P0) (1 sigma: 0.1 m, 0.01 m/s per axis)."""
+    from snn_estimator.estimators import FILTER_KINDS
+    scenario = rendezvous_scenario(initial_state_dispersion=True)
+    return {kind: simulate(scenario, kind, runs=20) for kind in FILTER_KINDS}
+
+
+def test_filters_that_correct_the_velocity_converge_from_a_dispersed_start(dispersed):
+    from snn_estimator.estimators import CONVERGES_FROM_DISPERSION
+    initial = np.abs(dispersed['ekf'].error[:, 0, 3:]).mean()
+    for kind in CONVERGES_FROM_DISPERSION:
+        result = dispersed[kind]
+        assert result.final_range().max() < 0.1, kind
+        assert result.rmse()[3:].max() < 0.05 * initial, kind
+
+
+@pytest.mark.parametrize('kind', ['emsif', 'snn_emsif', 'esif', 'snn_emsif_star'])
+def test_the_literal_sliding_innovation_filters_never_correct_a_velocity_error(dispersed, kind):
+    """Documented behaviour (README, "Filters"): C^+ has zero velocity rows, so a velocity error
+    stays; the loop then misses the target by decimetres."""
+    result = dispersed[kind]
+    initial = np.abs(result.error[:, 0, 3:]).mean()
+    assert result.rmse()[3:].min() > 0.3 * initial
+    assert np.median(result.final_range()) > 0.1
+
+
+def test_the_consistency_check_calls_an_exact_kalman_filter_consistent(double_integrator):
+    """A linear KF whose Q and R are the truth's: average NEES and NIS inside their bounds."""
+    from snn_estimator import EstimatorConfig
+    from snn_estimator.simulation import Scenario
+    config = EstimatorConfig(
+        neuron_count=1, boundary_layer=1.0, process_noise=0.05, measurement_noise=0.04,
+        process_noise_scale=1.0, measurement_noise_scale=1.0, measurement_noise_units='per_sample',
+        initial_covariance=(0.01, 0.01), initial_state=(0.0, 0.0), initial_state_dispersion=True,
+        state_scale=None, discretization='exact')
+    scenario = Scenario(name='double_integrator', model=double_integrator, x0=np.zeros(2), dt=0.01,
+                        duration=20.0, process_noise=0.05 * np.eye(2), measurement_noise=np.array([[0.04]]),
+                        estimator=config, metric_window=10.0)
+    result = simulate(scenario, 'ekf', runs=200, seed=7)
+    record = result.consistency()
+    assert record['nees']['verdict'] == 'consistent', record
+    assert 1.6 < record['nees']['average'] < 2.4 and record['nees']['dof'] == 2
+    assert record['nis']['bounds'][0] < 1.0 < record['nis']['bounds'][1]
+
+
+def test_the_least_squares_start_covariance_is_honest_over_monte_carlo_runs():
+    """NEES of the least-squares start over 400 noisy windows: its mean is the state dimension
+    within the 95 % chi-square bounds."""
+    import scipy.stats
+    from snn_estimator.initialization import least_squares_start
+    model = ClohessyWiltshire()
+    rng = np.random.default_rng(11)
+    r = 1e-2 * np.eye(3)
+    window = 50
+    stamps = 0.1 * np.arange(window)
+    nees = []
+    for run in range(400):
+        plant = Plant(model, [60.0, 20.0, -3.0, -1.0, -0.5, 0.2], np.zeros((6, 6)), [run])
+        zs, us = [], []
+        for k in range(window):
+            u = rng.normal(0.0, 0.01, 3)
+            zs.append(plant.x[0, :3] + rng.normal(0.0, 0.1, 3))
+            us.append(u)
+            if k < window - 1:
+                plant.step(u, 0.1)
+        x, p = least_squares_start(model, stamps, zs, us, r)
+        error = x - plant.x[0]
+        nees.append(error @ np.linalg.solve(p, error))
+    low, high = (scipy.stats.chi2.ppf(q, 400 * 6) / 400 for q in (0.025, 0.975))
+    assert low < np.mean(nees) < high
+
+
+def test_a_longer_fit_window_leaves_a_smaller_velocity_error():
+    from snn_estimator.initialization import window_standard_deviations
+    model = ClohessyWiltshire()
+    sigmas = [window_standard_deviations(model, seconds, 0.1, 1e-2 * np.eye(3))[3] for seconds in (2, 5, 10, 30)]
+    assert all(a > b for a, b in zip(sigmas, sigmas[1:]))
+    assert 0.002 < sigmas[2] < 0.005  # 10 s: the default window, ~3.5 mm/s

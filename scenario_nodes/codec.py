@@ -1,0 +1,363 @@
+"""The pipeline's messages as CDR bytes <-> arrays: the one codec, free of rclpy.
+
+The nodes read and write the loop's topics as serialized CDR (``raw=True`` subscriptions,
+``publish(bytes)``): building and walking rclpy message objects cost more CPU per step than
+everything else a node does (docs/performance.md). The bag tools decode recorded bags with the
+same functions. The bytes are the standard types' CDR, so ``ros2 topic echo``, bags and any
+other node read them as usual.
+
+Conventions (README, "Topics"):
+
+* state ``[x, y, z, vx, vy, vz]`` in the LVLH frame <-> nav_msgs/Odometry: pose.pose.position and
+  twist.twist.linear; orientation is not estimated (identity). The position block of the 6x6
+  covariance goes to pose.covariance[0:3, 0:3], the velocity block to twist.covariance[0:3, 0:3];
+  the position-velocity cross terms have no place in Odometry and are not published.
+* a partial position measurement <-> geometry_msgs/PointStamped with NaN on unmeasured axes;
+* the control (specific force, m/s^2) <-> geometry_msgs/AccelStamped accel.linear.
+
+Fast path: plain little-endian CDR, recognised by the representation identifier (bytes 0-1 of
+the encapsulation header, 0x0001); the options (bytes 2-3) are ignored, as the XTypes standard
+lets a middleware set them. Any other representation (big-endian CDR, ...) is decoded by the
+rosbags type store (slower, general). Every malformed or out-of-range input raises
+:class:`MessageError` with a reason key for the diagnostics counters.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import struct
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from snn_estimator.gates import NS, seconds_to_ns  # noqa: F401 (re-exported: one time helper)
+
+#: Representation identifier of little-endian plain CDR (bytes 0-1 of the encapsulation header).
+CDR_LE_ID = b'\x00\x01'
+CDR_LE = CDR_LE_ID + b'\x00\x00'
+#: A builtin_interfaces/Time holds int32 seconds.
+MAX_STAMP_NS = (2 ** 31 - 1) * NS + NS - 1
+
+_STAMP_AND_LENGTH = struct.Struct('<iII')  # header.stamp.sec, .nanosec, frame_id length
+_U32 = struct.Struct('<I')
+_STAMP = struct.Struct('<iI')  # builtin_interfaces/Time: sec, nanosec
+# Odometry after its child_frame_id: 85 doubles, in this order
+_POSITION, _POSE_COVARIANCE, _LINEAR, _TWIST_COVARIANCE = slice(0, 3), slice(7, 43), slice(43, 46), slice(49, 85)
+_ORIENTATION_W = 6
+_ODOMETRY_DOUBLES = 85
+
+ODOMETRY = 'nav_msgs/msg/Odometry'
+POINT_STAMPED = 'geometry_msgs/msg/PointStamped'
+ACCEL_STAMPED = 'geometry_msgs/msg/AccelStamped'
+
+
+class MessageError(ValueError):
+    """A message that cannot be used; ``reason`` is a short key for counters."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f'{reason}: {detail}')
+        self.reason = reason
+
+
+def split_stamp(stamp_ns: int) -> tuple[int, int]:
+    """(sec, nanosec) of a builtin_interfaces/Time; MessageError outside int32 seconds."""
+    stamp_ns = int(stamp_ns)
+    if not 0 <= stamp_ns <= MAX_STAMP_NS:
+        raise MessageError('out_of_range', f'stamp {stamp_ns} ns is outside a ROS time (int32 seconds, '
+                           'not negative)')
+    return divmod(stamp_ns, NS)
+
+
+class OdometryRecord(NamedTuple):
+    """A received nav_msgs/Odometry: header, child frame and its 85 doubles (a read-only view
+    of the bytes). ``state`` and ``covariance`` are built when asked for: most readers need only
+    the state."""
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    values: np.ndarray
+
+    @property
+    def state(self) -> np.ndarray:
+        """[x, y, z, vx, vy, vz] as received (may be NaN)."""
+        return np.concatenate((self.values[_POSITION], self.values[_LINEAR]))
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """6x6 with the two published blocks, zeros elsewhere."""
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = self.values[_POSE_COVARIANCE].reshape(6, 6)[:3, :3]
+        covariance[3:, 3:] = self.values[_TWIST_COVARIANCE].reshape(6, 6)[:3, :3]
+        return covariance
+
+
+class StampedVector(NamedTuple):
+    """A stamped 3-vector: PointStamped.point or AccelStamped.accel.linear, as received."""
+    stamp_ns: int
+    frame_id: str
+    vector: np.ndarray
+
+
+# ---------------------------------------------------------------- CDR primitives
+def _body_offset(offset: int, alignment: int) -> int:
+    """``offset`` (from the start of the bytes) moved up to ``alignment``; CDR aligns relative to
+    the end of the 4-byte encapsulation header."""
+    return offset + (-(offset - 4) % alignment)
+
+
+def _pad(out: bytearray, alignment: int) -> None:
+    out += bytes(-(len(out) - 4) % alignment)
+
+
+def _write_string(out: bytearray, text: str) -> None:
+    encoded = text.encode() + b'\0'
+    _pad(out, 4)
+    out += _U32.pack(len(encoded))
+    out += encoded
+
+
+def _read_string(data: bytes, offset: int) -> tuple[str, int]:
+    offset = _body_offset(offset, 4)
+    (length,) = _U32.unpack_from(data, offset)
+    end = offset + 4 + length
+    if length == 0 or end > len(data):
+        raise MessageError('malformed', f'string of {length} bytes at offset {offset} in {len(data)} bytes')
+    return data[offset + 4:end - 1].decode(), end
+
+
+def _header(stamp_ns: int, frame_id: str) -> bytearray:
+    sec, nanosec = split_stamp(stamp_ns)
+    encoded = frame_id.encode() + b'\0'
+    out = bytearray(CDR_LE)
+    out += _STAMP_AND_LENGTH.pack(sec, nanosec, len(encoded))
+    out += encoded
+    return out
+
+
+def _read_header(data: bytes) -> tuple[int, str, int]:
+    """(stamp in ns, frame_id, offset after the header)."""
+    sec, nanosec, length = _STAMP_AND_LENGTH.unpack_from(data, 4)
+    end = 16 + length
+    if length == 0 or end > len(data):
+        raise MessageError('malformed', f'frame_id of {length} bytes in {len(data)} bytes')
+    if sec < 0 or nanosec >= NS:
+        raise MessageError('out_of_range', f'stamp sec={sec} nanosec={nanosec} is not a valid time')
+    return sec * NS + nanosec, data[16:end - 1].decode(), end
+
+
+def _doubles(out: bytearray, values: np.ndarray) -> bytes:
+    _pad(out, 8)
+    out += np.ascontiguousarray(values, dtype='<f8').tobytes()
+    return bytes(out)
+
+
+@functools.lru_cache(maxsize=1)
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _stamp_of(header) -> int:
+    return int(header.stamp.sec) * NS + int(header.stamp.nanosec)
+
+
+def _general(data: bytes, type_name: str):
+    """Decode any CDR representation with the rosbags type store (MessageError if it cannot)."""
+    try:
+        return _typestore().deserialize_cdr(data, type_name)
+    except Exception as error:  # noqa: BLE001 - rosbags raises several types; one error for callers
+        raise MessageError('malformed', f'cannot read {len(data)} bytes as {type_name}: {error}') from None
+
+
+def _decoder(type_name: str, general):
+    """Decorate a little-endian CDR decoder: another representation goes through
+    ``general(message)`` on the rosbags-decoded message; truncated or garbled bytes raise
+    MessageError('malformed')."""
+    def decorate(decode):
+        @functools.wraps(decode)
+        def wrapper(data: bytes):
+            try:
+                if bytes(data[:2]) != CDR_LE_ID:
+                    if len(data) < 4:
+                        raise MessageError('malformed', f'{len(data)} bytes cannot hold a CDR header')
+                    return general(_general(bytes(data), type_name))
+                return decode(data)
+            except MessageError:
+                raise
+            except (struct.error, ValueError, UnicodeDecodeError) as error:
+                raise MessageError('malformed', f'cannot decode {len(data)} bytes as {type_name}: {error}') from None
+        return wrapper
+    return decorate
+
+
+# ---------------------------------------------------------------- messages
+def _padded(block: np.ndarray) -> np.ndarray:
+    """A 3x3 block in the top-left of a flat 6x6 ROS covariance."""
+    full = np.zeros((6, 6))
+    full[:3, :3] = block
+    return full.ravel()
+
+
+def encode_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
+                    frame_id: str, child_frame_id: str) -> bytes:
+    """CDR of the Odometry of a 6-state ``x``; ``covariance`` None publishes zeros (not computed)."""
+    out = _header(stamp_ns, frame_id)
+    _write_string(out, child_frame_id)
+    values = np.zeros(_ODOMETRY_DOUBLES)
+    values[_POSITION] = x[:3]
+    values[_ORIENTATION_W] = 1.0
+    values[_LINEAR] = x[3:6]
+    if covariance is not None:
+        values[_POSE_COVARIANCE] = _padded(covariance[:3, :3])
+        values[_TWIST_COVARIANCE] = _padded(covariance[3:, 3:])
+    return _doubles(out, values)
+
+
+def _odometry_from_message(msg) -> OdometryRecord:
+    values = np.zeros(_ODOMETRY_DOUBLES)
+    pose, twist = msg.pose.pose, msg.twist.twist
+    values[_POSITION] = (pose.position.x, pose.position.y, pose.position.z)
+    values[3:7] = (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w)
+    values[_POSE_COVARIANCE] = msg.pose.covariance
+    values[_LINEAR] = (twist.linear.x, twist.linear.y, twist.linear.z)
+    values[46:49] = (twist.angular.x, twist.angular.y, twist.angular.z)
+    values[_TWIST_COVARIANCE] = msg.twist.covariance
+    return OdometryRecord(_stamp_of(msg.header), msg.header.frame_id, msg.child_frame_id, values)
+
+
+@_decoder(ODOMETRY, _odometry_from_message)
+def decode_odometry(data: bytes) -> OdometryRecord:
+    """The stamp, frames, state and covariance blocks of an Odometry's CDR."""
+    stamp_ns, frame_id, offset = _read_header(data)
+    child, offset = _read_string(data, offset)
+    values = np.frombuffer(data, '<f8', _ODOMETRY_DOUBLES, _body_offset(offset, 8))
+    return OdometryRecord(stamp_ns, frame_id, child, values)
+
+
+def encode_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of a PointStamped with the measured axes filled in and NaN elsewhere."""
+    values = np.full(3, math.nan)
+    values[list(measured_axes)] = z
+    return _doubles(_header(stamp_ns, frame_id), values)
+
+
+def _stamped_vector(data: bytes) -> StampedVector:
+    """A Header followed by (at least) three doubles."""
+    stamp_ns, frame_id, offset = _read_header(data)
+    vector = np.frombuffer(data, '<f8', 3, _body_offset(offset, 8)).copy()
+    return StampedVector(stamp_ns, frame_id, vector)
+
+
+def _point_from_message(msg) -> StampedVector:
+    p = msg.point
+    return StampedVector(_stamp_of(msg.header), msg.header.frame_id, np.array([p.x, p.y, p.z]))
+
+
+def _accel_from_message(msg) -> StampedVector:
+    a = msg.accel.linear
+    return StampedVector(_stamp_of(msg.header), msg.header.frame_id, np.array([a.x, a.y, a.z]))
+
+
+@_decoder(POINT_STAMPED, _point_from_message)
+def decode_point(data: bytes) -> StampedVector:
+    """The stamp, frame and point of a PointStamped's CDR."""
+    return _stamped_vector(data)
+
+
+def encode_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of an AccelStamped: ``u`` in accel.linear, zero angular acceleration."""
+    values = np.zeros(6)
+    values[:3] = u
+    return _doubles(_header(stamp_ns, frame_id), values)
+
+
+@_decoder(ACCEL_STAMPED, _accel_from_message)
+def decode_accel(data: bytes) -> StampedVector:
+    """The stamp, frame and accel.linear (it comes before angular) of an AccelStamped's CDR."""
+    return _stamped_vector(data)
+
+
+def encode_clock(stamp_ns: int) -> bytes:
+    """CDR of a rosgraph_msgs/Clock (what the plant publishes on /clock every step)."""
+    return CDR_LE + _STAMP.pack(*split_stamp(stamp_ns))
+
+
+def encode_uint32(value: int) -> bytes:
+    """CDR of a std_msgs/UInt32."""
+    value = int(value)
+    if not 0 <= value < 2 ** 32:
+        raise MessageError('out_of_range', f'{value} does not fit a UInt32')
+    return CDR_LE + _U32.pack(value)
+
+
+@_decoder('std_msgs/msg/UInt32', lambda msg: int(msg.data))
+def decode_uint32(data: bytes) -> int:
+    return _U32.unpack_from(data, 4)[0]
+
+
+def encode_spikes(spikes: np.ndarray) -> bytes:
+    """CDR of a UInt32MultiArray of per-neuron spike counts of one step (one dimension, label
+    'neuron')."""
+    counts = np.asarray(spikes).ravel()
+    if counts.size and (counts.min() < 0 or counts.max() >= 2 ** 32):
+        raise MessageError('out_of_range', 'spike counts must fit a UInt32')
+    counts = counts.astype('<u4')
+    out = bytearray(CDR_LE)
+    out += _U32.pack(1)  # layout.dim: one dimension
+    _write_string(out, 'neuron')
+    _pad(out, 4)
+    out += struct.pack('<III', counts.size, counts.size, 0)  # size, stride, layout.data_offset
+    out += _U32.pack(counts.size)
+    out += counts.tobytes()
+    return bytes(out)
+
+
+def _spikes_from_message(msg) -> np.ndarray:
+    return np.asarray(msg.data, dtype=np.int64)
+
+
+@_decoder('std_msgs/msg/UInt32MultiArray', _spikes_from_message)
+def decode_spikes(data: bytes) -> np.ndarray:
+    """Per-neuron counts of a UInt32MultiArray's CDR (any layout: read from its data field)."""
+    (dims,) = _U32.unpack_from(data, 4)
+    offset = 8
+    for _ in range(dims):  # MultiArrayDimension: label, size, stride
+        _, offset = _read_string(data, offset)
+        offset = _body_offset(offset, 4) + 8
+    offset = _body_offset(offset, 4) + 4  # data_offset
+    (count,) = _U32.unpack_from(data, offset)
+    if offset + 4 + 4 * count > len(data):
+        raise MessageError('malformed', f'{count} counts in {len(data)} bytes')
+    return np.frombuffer(data, '<u4', count, offset + 4).astype(np.int64)
+
+
+# ---------------------------------------------------------------- records -> arrays, checked
+def check_frame(record, frame_id: str):
+    """``record`` if it is in ``frame_id``; MessageError('wrong_frame') otherwise."""
+    if record.frame_id != frame_id:
+        raise MessageError('wrong_frame', f"frame '{record.frame_id}', expected '{frame_id}'")
+    return record
+
+
+def state_of(record: OdometryRecord) -> np.ndarray:
+    """The state; raises MessageError if it is not finite."""
+    state = record.state
+    if not np.isfinite(state).all():
+        raise MessageError('non_finite', f'state has NaN/Inf: {state.tolist()}')
+    return state
+
+
+def measurement_of(record: StampedVector, measured_axes: Sequence[int]) -> np.ndarray:
+    """The measured axes; raises MessageError if one of them is not finite."""
+    z = record.vector[list(measured_axes)]
+    if not np.isfinite(z).all():
+        raise MessageError('non_finite', f'measured axes {list(measured_axes)} hold {z.tolist()}')
+    return z
+
+
+def control_of(record: StampedVector) -> np.ndarray:
+    """The control; raises MessageError if it is not finite."""
+    if not np.isfinite(record.vector).all():
+        raise MessageError('non_finite', f'control has NaN/Inf: {record.vector.tolist()}')
+    return record.vector

@@ -1,0 +1,88 @@
+"""Read what publishers that keep history still hold on a few topics, once, synchronously.
+
+A node that joins a running loop (a replacement estimator) starts better from the topics'
+history: the newest estimate of the estimator it replaces, the sensor's recent measurements,
+the controller's recent controls. The pipeline's publishers keep it (transient local), but its
+subscriptions are volatile so that any publisher matches them. So the history is read apart, by
+a short-lived transient-local reader per topic, the way ``ros2 topic echo
+--qos-durability transient_local`` reads it, and only from publishers that offer it. It runs
+inside a lifecycle transition (the executor is busy running it), so it waits on its own wait
+set, as ``rclpy.wait_for_message`` does.
+"""
+
+from __future__ import annotations
+
+import time
+
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.qos import DurabilityPolicy
+
+from .qos import HISTORY_QOS
+
+#: Seconds a node that has just started gives discovery to show it the publishers there are.
+DISCOVERY = 0.5
+#: Seconds without a new sample, once every history-keeping publisher matched, after which
+#: the history is taken to be complete (it follows the match at once).
+QUIET = 0.1
+
+
+def keeping_publishers(node, topic: str) -> int:
+    """Publishers of ``topic`` that keep history for late joiners (transient local)."""
+    return sum(1 for info in node.get_publishers_info_by_topic(node.resolve_topic_name(topic))
+               if info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def read_history(node, topics: dict, wait: float) -> dict[str, list[bytes]]:
+    """The serialized samples that ``topics`` (name -> message type) hold, oldest first.
+
+    Looks for history-keeping publishers for DISCOVERY s (at most ``wait``), reads from those
+    it finds until each matched and nothing new came for QUIET s, and gives up after ``wait``
+    wall-clock seconds in all.
+    """
+    samples: dict[str, list[bytes]] = {topic: [] for topic in topics}
+    quiet_events = SubscriptionEventCallbacks(incompatible_qos=lambda event: None)
+    readers = {}
+    started = time.monotonic()
+    deadline = started + wait
+    last_sample = matched_since = None
+    try:
+        while time.monotonic() < deadline:
+            for topic in topics:
+                if topic not in readers and keeping_publishers(node, topic):
+                    readers[topic] = node.create_subscription(
+                        topics[topic], topic, lambda _: None, HISTORY_QOS, raw=True, event_callbacks=quiet_events)
+                    matched_since = None
+            if _take(node, readers, samples):
+                last_sample = time.monotonic()
+            now = time.monotonic()
+            matched = all(reader.get_publisher_count() >= keeping_publishers(node, topic)
+                          for topic, reader in readers.items())
+            if matched and matched_since is None:
+                matched_since = now
+            if (now - started >= min(DISCOVERY, wait) and matched
+                    and now - max(matched_since, last_sample or 0.0) >= QUIET):
+                break
+    finally:
+        for reader in readers.values():
+            node.destroy_subscription(reader)
+    return samples
+
+
+def _take(node, readers: dict, samples: dict) -> int:
+    """Wait up to 20 ms for samples on ``readers``, append all that are there, return how many."""
+    if not readers:
+        time.sleep(0.02)
+        return 0
+    wait_set = _rclpy.WaitSet(len(readers), 0, 0, 0, 0, 0, node.context.handle)
+    for reader in readers.values():
+        wait_set.add_subscription(reader.handle)
+    wait_set.wait(int(0.02 * 1e9))
+    ready = set(wait_set.get_ready_entities('subscription'))
+    taken_now = 0
+    for topic, reader in readers.items():
+        if reader.handle.pointer in ready:
+            while (taken := reader.handle.take_message(reader.msg_type, True)) is not None:
+                samples[topic].append(taken[0])
+                taken_now += 1
+    return taken_now

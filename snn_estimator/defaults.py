@@ -1,0 +1,48 @@
+"""The numbers of the scenarios, written once: the paper's values (Table 6, Sec. 3.2; Table 1,
+Sec. 3.1) and this package's choices where the paper is silent (README, "Decisions").
+
+The core's configuration and scenarios, the ROS parameter tables (and from them the YAML files
+in config/ and the README's tables) all take their defaults from here.
+"""
+
+#: Earth's gravitational parameter, m^3/s^2 (Table 6 gives 398600 km^3/s^2).
+EARTH_MU = 3.986e14
+#: Target orbit radius, m: a 400 km circular LEO (not stated in the paper; Decision 5).
+ORBIT_RADIUS = 6_778_137.0
+
+# ---------------------------------------------------------------- rendezvous (Sec. 3.2, Table 6)
+#: x0 = [r0, v0]: m and m/s in the target's LVLH frame.
+RENDEZVOUS_X0 = (70.0, 30.0, -5.0, -1.7, -0.9, 0.25)
+#: Sample period and duration, s.
+RENDEZVOUS_TIME_STEP = 0.1
+RENDEZVOUS_DURATION = 360.0
+#: Q, process-noise spectral density of the truth, (m/s^2)^2/Hz (Table 6: 1e-12 I6).
+RENDEZVOUS_PROCESS_NOISE = 1e-12
+#: R, position-noise variance per sample, m^2 (Table 6: 1e-2 I3).
+RENDEZVOUS_MEASUREMENT_NOISE = 1e-2
+#: The filters' Q_hat = 0.9 Q and R_hat = 5 R (Sec. 3.2).
+RENDEZVOUS_PROCESS_NOISE_SCALE = 0.9
+RENDEZVOUS_MEASUREMENT_NOISE_SCALE = 5.0
+#: Network (Table 6): N, lambda (1/s), delta (m), decoder variance (Sec. 3.2: 1/15).
+RENDEZVOUS_NEURONS = 200
+RENDEZVOUS_LEAK_RATE = 0.001
+RENDEZVOUS_BOUNDARY_LAYER = 0.1
+RENDEZVOUS_DECODER_VARIANCE = 1.0 / 15.0
+#: P0 (not stated; Decision 6): one sensor sigma in position, 1 cm/s in velocity.
+RENDEZVOUS_INITIAL_COVARIANCE = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
+#: Network state scaling S (Decision 10): 1 cm and 0.1 mm/s per unit.
+RENDEZVOUS_STATE_SCALE = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
+#: LQR weights Qc, Rc (not stated; Decision 7).
+LQR_STATE_WEIGHT = 1.0
+LQR_INPUT_WEIGHT = 1e5
+#: Window of the tables' RMSE (Table 7: the last 60 s).
+RENDEZVOUS_METRIC_WINDOW = 60.0
+#: Seconds of measurements a joining estimator fits its least-squares start to: 10 s leaves
+#: ~2 cm in position and ~3.5 mm/s in velocity (1 sigma) at R = 1e-2 m^2 per 0.1 s sample.
+INITIAL_FIT_WINDOW = 10.0
+
+# ---------------------------------------------------------------- Van der Pol (Sec. 3.1, Table 1)
+VAN_DER_POL_MU = 0.005
+VAN_DER_POL_X0 = (2.0, 2.0)
+VAN_DER_POL_TIME_STEP = 0.01
+VAN_DER_POL_DURATION = 20.0

@@ -1,0 +1,203 @@
+"""The runner that feeds a filter from a message stream, without ROS: pairing, gating,
+start-up strategies and recovery, at unit speed."""
+
+import numpy as np
+import pytest
+
+from snn_estimator import make_estimator, rendezvous_scenario, simulate
+from snn_estimator.runner import NS, FilterRunner, History, RunnerSettings
+from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+
+DT = 100_000_000
+R = 1e-2 * np.eye(3)
+X0 = np.array([70.0, 30.0, -5.0])
+
+
+class Clock:
+    """A wall clock the test moves by hand."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def make_runner(kind='ekf', dispersion=False, **settings):
+    scenario = rendezvous_scenario(initial_state_dispersion=dispersion)
+    estimator = make_estimator(kind, scenario.estimator, scenario.model)
+    published = []
+    wall = Clock()
+    runner = FilterRunner(estimator, RunnerSettings(time_step=0.1, **settings), R,
+                          publish=lambda stamp: published.append((stamp, estimator.x_hat.copy())),
+                          wall_clock=wall)
+    return runner, published, wall
+
+
+def test_the_first_estimate_answers_the_first_measurement_and_steps_pair_z_with_u():
+    runner, published, _ = make_runner()
+    assert runner.start('auto') == 'waiting' and published == []
+    assert runner.measurement(3 * DT, X0) is None
+    assert [stamp for stamp, _ in published] == [3 * DT]  # x_hat0 at t0, from the parameters
+    np.testing.assert_allclose(published[0][1], [70, 30, -5, -1.7, -0.9, 0.25])
+    assert runner.estimator.steps == 0  # no control yet
+    runner.control(3 * DT, np.zeros(3))
+    assert [stamp for stamp, _ in published] == [3 * DT, 4 * DT] and runner.estimator.steps == 1
+
+
+def test_bad_inputs_are_rejected_with_their_reason_and_counted():
+    runner, published, _ = make_runner(max_input_age=0.25)
+    runner.start('auto')
+    runner.measurement(0, X0)
+    for k in range(1, 5):
+        runner.control((k - 1) * DT, np.zeros(3))
+        runner.measurement(k * DT, X0)
+    assert runner.time_ns == 4 * DT
+    assert runner.measurement(4 * DT, X0) == 'duplicate'
+    assert runner.measurement(3 * DT, X0) == 'duplicate'  # z_3 was used
+    assert runner.measurement(2 * DT + DT // 2, X0) == 'stale'
+    assert runner.measurement(5 * DT + DT // 2, X0) == 'misaligned'
+    assert runner.measurement(DT, X0) == 'too_old'
+    assert runner.measurement(100 * DT, X0, now_ns=5 * DT) == 'future'  # 9.5 s ahead of the clock
+    assert runner.control(-DT, np.zeros(3)) == 'before_init'
+    values = runner.values()
+    assert values['measurements_rejected'] == 6 and values['controls_rejected'] == 1
+    assert values['measurements_received'] == (values['measurements_rejected'] + values['measurements_used']
+                                               + values['measurements_dropped'] + values['measurements_pending'])
+
+
+def test_a_control_missing_two_measurements_later_is_held_and_counted():
+    runner, published, _ = make_runner()
+    runner.start('auto')
+    runner.measurement(0, X0)
+    runner.control(0, np.array([0.01, 0.0, 0.0]))
+    runner.measurement(DT, X0)
+    runner.measurement(2 * DT, X0)
+    assert runner.estimator.steps == 1  # u_1 may still come
+    runner.measurement(3 * DT, X0)
+    assert runner.estimator.steps == 2 and runner.controls_missing == 1
+
+
+def test_a_sensor_dropout_is_predicted_over_once_the_clock_is_two_steps_ahead():
+    runner, published, wall = make_runner(dropout_wait=0.25)
+    runner.start('auto')
+    runner.measurement(0, X0)
+    runner.control(0, np.zeros(3))
+    runner.watchdog(now_ns=5 * DT)
+    assert runner.estimator.steps == 1  # a measurement came less than dropout_wait ago
+    wall.now = 1.0
+    runner.watchdog(now_ns=5 * DT)
+    assert runner.time_ns == 5 * DT and runner.dropout_steps == 4
+
+
+def loop_history(steps, seed=3):
+    """What the topics of a running closed loop held after ``steps`` steps: the sensor's
+    measurements, the controller's controls, the estimates of an EKF; and the truth."""
+    scenario = rendezvous_scenario()
+    model = scenario.model
+    plant = Plant(model, scenario.x0, scenario.process_noise, [seed])
+    sensor = PositionSensor(model, scenario.measurement_noise, [seed])
+    gain = lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+    ekf = make_estimator('ekf', scenario.estimator, model)
+    history = History({}, {}, {})
+    for k in range(steps):
+        history.estimates[k * DT] = (ekf.x_hat.copy(), ekf.P.copy())
+        u = lqr_control(gain, ekf.x_hat)
+        z = sensor.measure(plant.x)[0]
+        history.measurements[k * DT] = z
+        history.controls[k * DT] = u
+        ekf.step(z, u, 0.1)
+        plant.step(u, 0.1)
+    return history, plant.x[0], ekf
+
+
+def test_a_hot_swap_starts_from_the_newest_estimate_and_replays_the_measurements_since():
+    history, _, ekf = loop_history(150)
+    newest = max(history.estimates)
+    # the earlier estimator's estimate 5 steps back; the measurements since are replayed
+    estimates = {t: v for t, v in history.estimates.items() if t <= newest - 5 * DT}
+    runner, published, _ = make_runner('ekf')
+    mode = runner.start('auto', History(history.measurements, history.controls, estimates))
+    assert mode == 'last_estimate' and runner.start_ns == newest - 5 * DT
+    assert runner.time_ns == newest + DT  # every queued measurement replayed with its control
+    # the same EKF from the same estimate and covariance on the same inputs: the same estimate
+    np.testing.assert_allclose(runner.estimator.x_hat, ekf.x_hat, rtol=0, atol=1e-9)
+
+
+def test_a_restart_fits_the_measurement_history_and_its_error_is_within_its_covariance():
+    history, truth, _ = loop_history(200)
+    runner, published, _ = make_runner('ekf', initial_fit_window=10.0)
+    mode = runner.start('auto', History(history.measurements, history.controls, {}))
+    assert mode == 'history'
+    assert runner.start_ns == max(history.measurements) and published[0][0] == runner.start_ns
+    assert runner.values()['history_measurements'] == 200 and runner.values()['measurements_dropped'] == 0
+    error = runner.estimator.x_hat - truth  # the truth at the newest stamp, before its step
+    # (plant.x is one step past the newest measurement: compare positions loosely, velocities too)
+    assert np.all(np.abs(error[3:]) < 5 * np.sqrt(np.diag(runner.estimator.P)[3:]) + 0.01)
+
+
+def test_a_short_history_is_a_fresh_loop_that_starts_at_its_first_measurement_and_loses_nothing():
+    history, _, _ = loop_history(12)  # 1.2 s: shorter than the fit window
+    runner, published, _ = make_runner('ekf')
+    mode = runner.start('auto', History(history.measurements, history.controls, {}))
+    assert mode == 'parameters' and runner.start_ns == 0
+    assert runner.time_ns == 12 * DT and runner.estimator.steps == 12  # every step replayed
+
+
+def test_the_runner_fed_the_offline_loop_equals_the_offline_simulator():
+    """One source of truth: the runner steps exactly as simulate() does."""
+    scenario = rendezvous_scenario(initial_state_dispersion=True)
+    steps = 200
+    offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), 'snn_emsif_weighted')
+    model = scenario.model
+    plant = Plant(model, scenario.x0, scenario.process_noise, [0])
+    sensor = PositionSensor(model, scenario.measurement_noise, [0])
+    gain = lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+    runner, published, _ = make_runner('snn_emsif_weighted', dispersion=True)
+    runner.start('auto')
+    for k in range(steps):
+        runner.measurement(k * DT, sensor.measure(plant.x)[0])
+        u = lqr_control(gain, published[-1][1])
+        runner.control(k * DT, u)
+        plant.step(u, 0.1)
+    estimates = np.array([x for _, x in published])
+    np.testing.assert_allclose(estimates, offline.estimate[0], rtol=0, atol=1e-12)
+
+
+def test_a_persistently_inconsistent_innovation_re_initialises_from_the_measurement():
+    runner, published, _ = make_runner('ekf', nis_threshold=25.0, nis_window=3)
+    runner.start('auto')
+    far = X0 + 50.0
+    runner.measurement(0, X0)
+    for k in range(1, 5):
+        runner.control((k - 1) * DT, np.zeros(3))
+        runner.measurement(k * DT, far)
+    assert runner.events['reinitialisations.inconsistent_innovation'] == 1
+    np.testing.assert_allclose(runner.estimator.x_hat[:3], far, atol=1.0)
+
+
+def test_without_a_clock_a_stamp_far_back_restarts_the_filter():
+    runner, published, _ = make_runner(time_jump_threshold=1.0)
+    runner.start('auto')
+    runner.measurement(40 * DT, X0)
+    runner.control(40 * DT, np.zeros(3))
+    assert runner.measurement(0, X0, now_ns=0) is None
+    assert runner.events['time_jumps'] == 1 and runner.start_ns == 0
+
+
+@pytest.mark.parametrize('mode', ['sideways', ''])
+def test_an_unknown_start_mode_is_refused(mode):
+    runner, _, _ = make_runner()
+    with pytest.raises(ValueError, match='start mode'):
+        runner.start(mode)
+
+
+def test_has_measurement_tells_a_resend_from_new_information():
+    runner, _, _ = make_runner()
+    runner.start('auto')
+    runner.measurement(0, X0)
+    assert runner.has_measurement(0) and not runner.has_measurement(DT)
+    runner.control(0, np.zeros(3))
+    runner.measurement(DT, X0)
+    assert runner.has_measurement(0) and runner.has_measurement(DT) and not runner.has_measurement(2 * DT)
+    assert NS == 10 * DT
