@@ -1,35 +1,47 @@
-"""Closed-loop rendezvous: cw_plant, position_sensor, lqr_controller, estimator (and a recorder).
+"""Closed-loop rendezvous: plant, position_sensor, lqr_controller, estimator (and a recorder).
 
-    ros2 launch snn_rendezvous rendezvous.launch.py estimator:=snn_ekf mode:=realtime
+    ros2 launch snn_rendezvous rendezvous.launch.py estimator:=snn_emsif_weighted mode:=realtime
     ros2 launch snn_rendezvous rendezvous.launch.py params_file:=/path/to/my.yaml record:=true
-    ros2 launch snn_rendezvous rendezvous.launch.py scheduling:=batch   # as snn_demo runs them
+    ros2 launch snn_rendezvous rendezvous.launch.py plant:=basilisk   # Basilisk truth (J2)
+    ros2 launch snn_rendezvous rendezvous.launch.py keep_alive:=true  # stay up after the scenario
 
-Each node is its own process; swapping the estimator is only the `estimator` argument.
+Each node is its own process; swapping the estimator is only the `estimator` argument. When
+the plant has flown the scenario it exits and the launch shuts the others down (the recorder
+closes its bag on the way), unless keep_alive:=true.
 """
 
 from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
 from launch.conditions import IfCondition
+from launch.event_handlers import OnProcessExit
+from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 PACKAGE = 'snn_rendezvous'
+FILTERS = ('snn_ekf | snn_emsif_weighted | snn_emsif | snn_emsif_star | snn_emsif_hybrid | ekf | '
+           'emsif_weighted | emsif | esif | emsif_hybrid')
+PLANTS = {'cw': 'cw_plant', 'basilisk': 'basilisk_plant'}
 
 
 def generate_launch_description():
     arguments = [
         DeclareLaunchArgument(
-            'estimator', default_value='snn_emsif',
-            description='filter_type of the estimator: snn_emsif | snn_ekf | snn_emsif_star | emsif | ekf | esif'),
+            'estimator', default_value='',
+            description=f'filter_type of the estimator: {FILTERS} (empty: the parameter file\'s)'),
         DeclareLaunchArgument(
             'params_file',
             default_value=PathJoinSubstitution([FindPackageShare(PACKAGE), 'config', 'rendezvous.yaml']),
             description='Parameter file for all nodes (default: the paper scenario, Table 6)'),
         DeclareLaunchArgument(
+            'plant', default_value='cw', choices=list(PLANTS),
+            description='Truth: cw (the Clohessy-Wiltshire model the filters use) | basilisk '
+                        '(Basilisk orbits with J2 and thrust limits; needs the basilisk extra)'),
+        DeclareLaunchArgument(
             'mode', default_value='lockstep',
-            description='cw_plant mode: lockstep (as fast as the loop allows) | realtime'),
+            description='plant mode: lockstep (as fast as the loop allows) | realtime'),
         DeclareLaunchArgument(
             'real_time_factor', default_value='1.0',
             description='realtime mode: simulated seconds per wall-clock second'),
@@ -37,6 +49,10 @@ def generate_launch_description():
         DeclareLaunchArgument(
             'record', default_value='false',
             description='Also start the recorder (rosbag2 MCAP in ./bag_<date-time>)'),
+        DeclareLaunchArgument(
+            'keep_alive', default_value='false', choices=['true', 'false'],
+            description='true: keep every node up after the plant has flown the scenario; false: the '
+                        'plant exits and the launch shuts down'),
         DeclareLaunchArgument(
             'scheduling', default_value='normal', choices=['normal', 'batch'],
             description='batch: start every node under SCHED_BATCH (chrt --batch 0, Linux; a node '
@@ -47,28 +63,36 @@ def generate_launch_description():
 
 
 def _nodes(context):
-    """The nodes, with ``scheduling`` and ``--launch-prefix`` resolved: with batch each runs as
-    ``chrt --batch 0 [launch-prefix] <executable>``; otherwise launch applies its prefix as usual."""
+    """The nodes, with ``scheduling``, ``--launch-prefix``, the plant and the end of the launch
+    resolved: with batch each runs as ``chrt --batch 0 [launch-prefix] <executable>``."""
     params = LaunchConfiguration('params_file')
     namespace = LaunchConfiguration('namespace')
     prefix = None  # launch's own --launch-prefix handling
     if LaunchConfiguration('scheduling').perform(context) == 'batch':
         user_prefix = LaunchConfiguration('launch-prefix', default='').perform(context)
         prefix = f'chrt --batch 0 {user_prefix}'.strip()
+    end_with_plant = LaunchConfiguration('keep_alive').perform(context) != 'true'
+    plant_name = PLANTS[LaunchConfiguration('plant').perform(context)]
+    estimator = LaunchConfiguration('estimator').perform(context)
 
     def node(executable, extra=None, **kwargs):
         return Node(package=PACKAGE, executable=executable, name=executable, exec_name=executable,
                     namespace=namespace, parameters=[params] + ([extra] if extra else []),
                     output='screen', prefix=prefix, **kwargs)
 
-    return [
+    plant = node(plant_name, {
+        'mode': LaunchConfiguration('mode'), 'exit_when_done': end_with_plant,
+        # typed: launch would pass real_time_factor:=10 as an integer, which a DOUBLE refuses
+        'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'), value_type=float)})
+    actions = [
         node('lqr_controller'),
-        node('estimator', {'filter_type': LaunchConfiguration('estimator')}),
+        node('estimator', {'filter_type': estimator} if estimator else None),
         node('position_sensor'),
-        node('cw_plant', {'mode': LaunchConfiguration('mode'),
-                          # typed: launch would pass real_time_factor:=10 as an integer,
-                          # which a DOUBLE parameter refuses
-                          'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'),
-                                                             value_type=float)}),
+        plant,
         node('recorder', condition=IfCondition(LaunchConfiguration('record'))),
     ]
+    if end_with_plant:
+        actions.append(RegisterEventHandler(OnProcessExit(
+            target_action=plant,
+            on_exit=[EmitEvent(event=Shutdown(reason='the plant has flown the scenario'))])))
+    return actions

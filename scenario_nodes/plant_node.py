@@ -82,6 +82,7 @@ class PlantNode(ProcessHooks, Node):
         self._rejected = Rejections()
         self._truth_published = 0
         self._truth_resent = 0
+        self._late_controls = 0  # realtime: steps taken with a held control
         self._sent_at = 0.0
         self._waiting_since = None
         self._started_wall = None
@@ -159,8 +160,8 @@ class PlantNode(ProcessHooks, Node):
         self._controls_received += 1
         if self._finished:
             return
-        if not self._lockstep:
-            self._control = u
+        if not self._lockstep:  # kept by stamp: the step from t_k applies u_k, as in lockstep
+            self._early[stamp_ns] = u
             return
         if abs(stamp_ns - self._t_ns) * 2 < self._dt_ns and self._waiting_since is not None:
             if self._p['paused']:
@@ -211,8 +212,20 @@ class PlantNode(ProcessHooks, Node):
             self._advance(self._control)
 
     def _on_tick(self) -> None:
-        if self._ready and not self._finished and not self._p['paused']:
-            self._advance(self._control)
+        """realtime: step with the control stamped for this step (the one the estimator pairs
+        with z_k), or, if it is late, hold the newest one and count it."""
+        if not self._ready or self._finished or self._p['paused']:
+            return
+        due = [t for t in self._early if abs(t - self._t_ns) * 2 < self._dt_ns]
+        if due:
+            u = self._early.pop(due[0])
+        else:
+            older = [t for t in self._early if t < self._t_ns]
+            u = self._early[max(older)] if older else self._control
+            self._late_controls += self._step >= 1  # the first step may come before any control
+        for old in [t for t in self._early if t <= self._t_ns]:
+            del self._early[old]
+        self._advance(u)
 
     # ---------------------------------------------------------------- stepping
     def _advance(self, u: np.ndarray) -> None:
@@ -286,6 +299,7 @@ class PlantNode(ProcessHooks, Node):
             'real_time_factor': sim / wall if wall > 0 else 0.0,
             'control_timeouts': self._timeouts, 'controls_received': self._controls_received,
             'truth_published': self._truth_published, 'truth_resent': self._truth_resent,
+            'late_controls': self._late_controls,
             'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished,
             'finished_unix_time': self._finished_unix,
         }

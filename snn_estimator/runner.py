@@ -98,6 +98,7 @@ class FilterRunner:
         self._last_arrival = wall_clock()
         self._held_control = np.zeros(estimator.model.n_input)
         self._high_nis = 0
+        self._clock_agrees: bool | None = None  # stamps on the clock's time base (None: not known)
         self._awaiting_start = False
         self.rejected = Counter()          # measurements, by reason
         self.control_rejected = Counter()  # controls, by reason
@@ -149,6 +150,7 @@ class FilterRunner:
             return reason
         self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
         self._last_arrival = self._wall()
+        self._check_time_base(stamp_ns, now_ns)
         self._pending[stamp_ns] = np.asarray(z, dtype=float)
         if self._awaiting_start and not self.started:
             self._begin(min(self._pending), publish=True)
@@ -204,14 +206,30 @@ class FilterRunner:
 
     def watchdog(self, now_ns: int) -> None:
         """Sensor dropout: with no measurement queued and none arrived for dropout_wait wall
-        seconds, predict up to the clock once it is two steps past the estimate."""
-        if not self.started or self._pending:
+        seconds, predict up to the clock once it is two steps past the estimate. Only while the
+        measurements' stamps agree with the clock: with stamps on another time base (simulated
+        stamps, a wall clock) the clock says nothing about missing samples."""
+        if not self.started or self._pending or self._clock_agrees is False:
             return
         if self._wall() - self._last_arrival < self.settings.dropout_wait:
             return
         if now_ns >= self.time_ns + 2 * self._dt_ns:
             while self.time_ns + self._dt_ns <= now_ns:
                 self._step(None, self.time_ns)
+
+    def _check_time_base(self, stamp_ns: int, now_ns: int) -> None:
+        """Note whether measurement stamps and the clock share a time base (within
+        max_input_age plus two steps); say so once when they do not."""
+        if now_ns <= 0:
+            return  # no clock yet: nothing to compare with
+        lead = seconds_to_ns(self.settings.max_input_age + 2 * self.settings.time_step)
+        agrees = abs(now_ns - stamp_ns) <= lead
+        if not agrees and self._clock_agrees is not False:
+            self.events['stamps_off_the_clock'] += 1
+            self._log('warning', f'measurement stamped {stamp_ns / NS:.3f} s with the clock at '
+                      f'{now_ns / NS:.3f} s: not predicting over sensor dropouts (is use_sim_time set '
+                      'as the sensor stamps?)')
+        self._clock_agrees = agrees
 
     # ---------------------------------------------------------------- start-up
     def start(self, mode: str, history: History | None = None) -> str:

@@ -83,13 +83,15 @@ class Pipeline:
             overrides.setdefault('cw_plant', {}).setdefault('min_truth_subscribers', 2)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
-    def command(self, name: str, module: str) -> list[str]:
+    def command(self, name: str, module: str, node_name: str | None = None) -> list[str]:
         # Run-specific values go in a second parameter file: node-specific entries of the first
         # file would win over '-p' arguments, which rcl files under the /** wildcard.
         command = [sys.executable, '-m', module, '--ros-args', '--params-file', str(self.params_file),
                    '--params-file', str(self.overrides_file)]
         if self.namespace:
             command += ['-r', f'__ns:={self.namespace}']
+        if node_name:
+            command += ['-r', f'__node:={node_name}']
         return command
 
     @property
@@ -100,22 +102,26 @@ class Pipeline:
         for name, module in self.nodes:
             self.start_node(name, module)
 
-    def start_node(self, name: str, module: str, overrides: dict | None = None, log_name: str | None = None):
-        """Start (or restart, e.g. a hot swap) one node; ``overrides`` update its parameters."""
+    def start_node(self, name: str, module: str, overrides: dict | None = None, log_name: str | None = None,
+                   node_name: str | None = None):
+        """Start (or restart, e.g. a hot swap) one node; ``overrides`` update its parameters.
+        ``node_name`` runs a second node of the same kind under another name (a standby
+        estimator: the parameters of ``name`` with the overrides for ``node_name``)."""
+        key = node_name or name
         if overrides:
-            self.overrides.setdefault(name, {}).update(overrides)
+            self.overrides.setdefault(key, {}).update(overrides)
         document = {f'/**/{n}': {'ros__parameters': values} for n, values in self.overrides.items()}
         self.overrides_file.write_text(yaml.safe_dump(document, sort_keys=True))
-        log = open(self.run_dir / 'logs' / f'{log_name or name}.log', 'w')
-        self.processes[name] = subprocess.Popen(
-            self.command(name, module), env=self.env, stdout=log, stderr=subprocess.STDOUT,
+        log = open(self.run_dir / 'logs' / f'{log_name or key}.log', 'w')
+        self.processes[key] = subprocess.Popen(
+            self.command(name, module, node_name), env=self.env, stdout=log, stderr=subprocess.STDOUT,
             start_new_session=True, preexec_fn=_child_setup(self.cpus.get(name), name == 'recorder', self.batch))
-        if self.batch and running_policy(self.processes[name].pid) not in (BATCH, None):
+        if self.batch and running_policy(self.processes[key].pid) not in (BATCH, None):
             if not self.refused_batch:
-                print(f'snn_demo: the kernel refused SCHED_BATCH for {name}; the nodes run under the '
+                print(f'snn_demo: the kernel refused SCHED_BATCH for {key}; the nodes run under the '
                       'normal policy (slower lockstep)', file=sys.stderr)
-            self.refused_batch.append(name)
-        return self.processes[name]
+            self.refused_batch.append(key)
+        return self.processes[key]
 
     @property
     def scheduling(self) -> str:
@@ -150,7 +156,9 @@ class Pipeline:
         return codes
 
     def stop_all(self) -> dict:
-        codes = self.stop([n for n, _ in self.nodes if n not in ('recorder', 'cw_plant')])
+        """Stop every node this pipeline started (extra ones included), the plant after the
+        others and the recorder last, so it records their final diagnostics."""
+        codes = self.stop([n for n in self.processes if n not in ('recorder', 'cw_plant')])
         codes.update(self.stop(['cw_plant']))
         time.sleep(0.3)  # let the recorder take the final diagnostics
         codes.update(self.stop(['recorder']))

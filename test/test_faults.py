@@ -147,6 +147,29 @@ def test_estimator_hot_swap_safe_mode_and_recovery(tmp_path):
     assert np.abs(data.estimate[after, :3]).max() < 50.0
 
 
+def test_a_hot_standby_takes_over_when_the_active_estimator_dies(tmp_path):
+    """A second estimator runs on the same inputs, inactive (standby); the active one is killed
+    at ~100 s; the standby activates itself and the loop goes on with (almost) no safe mode,
+    where kill-and-restart (the test above) flies ~100 steps blind."""
+    def during(pipeline, monitor):
+        pipeline.start_node('estimator', MODULES['estimator'], {'standby': True}, node_name='estimator_standby')
+        monitor.wait_clock(100.0)
+        pipeline.processes['estimator'].send_signal(signal.SIGKILL)
+        pipeline.processes['estimator'].wait(10)
+
+    data, run_dir = run_with(tmp_path, 'standby', {}, during)
+    summary = summarize(data)
+    controller = data.last_diagnostics('lqr_controller')
+    standby_log = (run_dir / 'logs' / 'estimator_standby.log').read_text()
+    print(f"hot standby: final range {summary['final_range_m']:.4f} m, safe-mode steps "
+          f"{controller.get('safe_mode_steps')}, control timeouts {summary['control_timeouts']}")
+    assert summary['steps'] == 3600 and summary['final_range_m'] < 0.1
+    assert int(controller['safe_mode_steps']) <= 5
+    assert 'standby: no estimate newer than' in standby_log and 'active: publishing estimates' in standby_log
+    after = data.estimate_t > 101.0
+    assert np.all(np.diff(data.estimate_t[after]) >= 0) and data.estimate_t[-1] >= 360.0
+
+
 def test_half_the_neurons_silenced_at_100_s_over_ros(tmp_path):
     """silenced_fraction 0.5 set through the parameter service at t = 100 s; RMSE over the last
     60 s stays within 2x of the intact run (the offline run with the same seeds)."""

@@ -30,7 +30,7 @@ from ros_helpers import make, ros_context, spin_until  # noqa: E402
 class Probe:
     """A test node that publishes inputs and collects outputs of the pipeline topics."""
 
-    def __init__(self, context, executor, nodes):
+    def __init__(self, context, executor, nodes, publish=True):
         from rclpy.node import Node
         self.node = Node('probe', context=context)
         executor.add_node(self.node)
@@ -42,7 +42,8 @@ class Probe:
         self.publishers = {}
         for topic, kind in types.items():
             self.node.create_subscription(kind, topic, self.received[topic].append, qos.HISTORY_QOS)
-            self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PUBLISHER_QOS)
+            if publish:
+                self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PUBLISHER_QOS)
 
     def publish(self, topic, msg):
         self.publishers[topic].publish(msg)
@@ -235,3 +236,27 @@ def test_invalid_parameters_refuse_to_build_the_node(node_class, name, changes, 
     with ros_context() as (context, executor, nodes):
         with pytest.raises((ValueError, ParameterException), match=message):
             make(node_class, context, executor, nodes, name, **changes)
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_the_plant_starts_once_the_loop_is_there_and_no_step_is_lost(mode):
+    """Started first, the plant waits (and says for what) until a sensor, an estimator and a
+    controller are in the graph, whatever order they come in; then every truth is measured and
+    the first estimate answers the first measurement."""
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, publish=False)  # a listener plays no role of the loop
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', mode=mode, real_time_factor=10.0,
+                     duration=3.0, control_timeout=30.0)
+        for kind, name in ((ControllerNode, 'lqr_controller'), (SensorNode, 'position_sensor')):
+            make(kind, context, executor, nodes, name)
+            spin_until(executor, lambda: False, timeout=0.5)
+            assert plant.values()['truth_published'] == 0  # no estimator yet: still waiting
+        make(EstimatorNode, context, executor, nodes, 'estimator', initial_state_dispersion=False)
+        assert spin_until(executor, lambda: plant.values()['done'], timeout=60.0)
+        spin_until(executor, lambda: False, timeout=0.3)
+        truths = {stamp_to_ns(m.header.stamp) for m in probe.received[qos.TRUTH]}
+        measurements = {stamp_to_ns(m.header.stamp) for m in probe.received[qos.MEASUREMENT]}
+        estimates = sorted({stamp_to_ns(m.header.stamp) for m in probe.received[qos.ESTIMATE]})
+        assert truths == measurements == {k * 100_000_000 for k in range(31)}
+        assert estimates[0] == 0 and estimates == [k * 100_000_000 for k in range(len(estimates))]
+        assert len(estimates) >= 30

@@ -141,9 +141,10 @@ def test_package_xml_declares_every_runtime_dependency():
         assert f'{key}:' in rosdep
 
 
-def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
+def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant(monkeypatch):
     """Run generate_launch_description() against stand-ins for launch/launch_ros (not
-    installable here) and check what it would start, for both scheduling choices."""
+    installable here) and check what it would start, for both scheduling choices, and that the
+    launch shuts down when the plant exits unless keep_alive:=true."""
     created = {}
 
     def recorder(kind):
@@ -161,8 +162,11 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
     stubs = {
         'launch': {'LaunchDescription': lambda actions: actions},
         'launch.actions': {'DeclareLaunchArgument': recorder('argument'),
-                           'OpaqueFunction': recorder('opaque')},
+                           'OpaqueFunction': recorder('opaque'), 'EmitEvent': recorder('emit'),
+                           'RegisterEventHandler': recorder('handler')},
         'launch.conditions': {'IfCondition': recorder('condition')},
+        'launch.event_handlers': {'OnProcessExit': recorder('on_exit')},
+        'launch.events': {'Shutdown': recorder('shutdown')},
         'launch.substitutions': {'LaunchConfiguration': lambda name, default=None: Config(('config', name, default)),
                                  'PathJoinSubstitution': lambda parts: ('join', tuple(parts))},
         'launch_ros.actions': {'Node': recorder('node')},
@@ -180,26 +184,39 @@ def test_launch_file_starts_the_four_nodes_with_the_arguments(monkeypatch):
     exec(compile(path.read_text(), str(path), 'exec'), namespace)
     namespace['generate_launch_description']()
     arguments = {a.args[0]: a.kwargs for a in created['argument']}
-    assert {'estimator', 'params_file', 'mode', 'scheduling'} <= set(arguments)
+    assert {'estimator', 'params_file', 'mode', 'scheduling', 'plant', 'keep_alive'} <= set(arguments)
     assert all(kwargs.get('description') for kwargs in arguments.values())
     assert arguments['params_file']['default_value'] == ('join', (('share', PACKAGE), 'config', 'rendezvous.yaml'))
     assert arguments['scheduling']['choices'] == ['normal', 'batch']
     assert arguments['scheduling']['default_value'] == 'normal'
     make_nodes = created['opaque'][0].kwargs['function']
+    base = {'keep_alive': 'false', 'plant': 'cw', 'estimator': ''}
     for context, prefix in (({'scheduling': 'normal'}, None),  # launch applies --launch-prefix itself
                             ({'scheduling': 'batch'}, 'chrt --batch 0'),
                             ({'scheduling': 'batch', 'launch-prefix': 'gdb -ex run --args'},
                              'chrt --batch 0 gdb -ex run --args')):
-        created['node'] = []
-        make_nodes(context)
+        created['node'], created['handler'] = [], []
+        actions = make_nodes(dict(base, **context))
         nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
         assert set(nodes) == set(NODES)
         for exe, n in nodes.items():
             assert n['package'] == PACKAGE and n['name'] == exe
             assert n['exec_name'] == exe  # log lines say [estimator-2], not [chrt-2]
             assert n.get('prefix') == prefix, (exe, context)
-        assert nodes['estimator']['parameters'][1] == {'filter_type': ('config', 'estimator', None)}
-        assert nodes['cw_plant']['parameters'][1]['mode'] == ('config', 'mode', None)
+        assert nodes['estimator']['parameters'][1:] == []  # the parameter file's filter_type
+        plant = nodes['cw_plant']['parameters'][1]
+        assert plant['mode'] == ('config', 'mode', None) and plant['exit_when_done'] is True
         # launch turns real_time_factor:=10 into an integer, which the DOUBLE parameter refuses
-        assert nodes['cw_plant']['parameters'][1]['real_time_factor'] == \
-            ('typed', ('config', 'real_time_factor', None), float)
+        assert plant['real_time_factor'] == ('typed', ('config', 'real_time_factor', None), float)
+        # the plant's exit shuts the launch down
+        (handler,) = created['handler']
+        on_exit = handler.args[0]
+        assert on_exit.kwargs['target_action'] is next(n for n in created['node']
+                                                      if n.kwargs['executable'] == 'cw_plant')
+        assert handler in actions
+    created['node'], created['handler'] = [], []
+    make_nodes(dict(base, scheduling='normal', keep_alive='true', estimator='snn_emsif_weighted',
+                    plant='basilisk'))
+    nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
+    assert created['handler'] == [] and nodes['basilisk_plant']['parameters'][1]['exit_when_done'] is False
+    assert nodes['estimator']['parameters'][1] == {'filter_type': 'snn_emsif_weighted'}
