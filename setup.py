@@ -8,6 +8,7 @@ from setuptools import find_packages, setup
 PACKAGE = 'snn_rendezvous'
 EXECUTABLES = {
     'cw_plant': 'scenario_nodes.plant_node:main',
+    'basilisk_plant': 'scenario_nodes.basilisk_plant_node:main',
     'position_sensor': 'scenario_nodes.sensor_node:main',
     'lqr_controller': 'scenario_nodes.controller_node:main',
     'estimator': 'scenario_nodes.estimator_node:main',

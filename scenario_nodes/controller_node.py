@@ -14,7 +14,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from snn_estimator.simulation import lqr_control, lqr_gain
-from snn_estimator.validation import as_matrix
+from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
 from snn_estimator.gates import NewestFirst
@@ -43,6 +43,7 @@ class ControllerNode(ProcessHooks, Node):
         p = declare(self, CONTROLLER)
         self._p = p
         self._gain = design_gain(p)
+        self._setpoint = as_vector(p['setpoint'], 6, 'setpoint')
         self._published = 0
         self._safe_steps = 0
         self._safe = False
@@ -104,7 +105,7 @@ class ControllerNode(ProcessHooks, Node):
         self._last_estimate_ns = stamp_ns
         if self._safe:
             self._leave_safe_mode(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s')
-        self._publish_control(lqr_control(self._gain, x_hat), stamp_ns)
+        self._publish_control(lqr_control(self._gain, x_hat - self._setpoint), stamp_ns)
 
     def _on_watchdog(self) -> None:
         """Wall-clock check: a stale estimate switches safe mode on."""
@@ -156,7 +157,11 @@ class ControllerNode(ProcessHooks, Node):
         if not GAIN_PARAMETERS & set(changes):
             if 'estimate_timeout' in changes and changes['estimate_timeout'] <= 0:
                 return SetParametersResult(successful=False, reason='estimate_timeout must be > 0')
-            self._p = dict(self._p, **changes)
+            try:
+                setpoint = as_vector(changes.get('setpoint', self._p['setpoint']), 6, 'setpoint')
+            except ValueError as error:
+                return SetParametersResult(successful=False, reason=str(error))
+            self._p, self._setpoint = dict(self._p, **changes), setpoint
             self._gate.max_input_age = self._p['max_input_age']
             return SetParametersResult(successful=True)
         values = dict(self._p, **changes)

@@ -133,7 +133,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         axes = self._axes = tuple(int(a) for a in p['measured_axes'])
         estimator = make_estimator(p['filter_type'], estimator_config(p),
                                    cw_model(p, form=p['cw_model'], measured_axes=axes))
-        estimator.check_time_step(p['time_step'])  # leak and P0 against the step: names the fix
+        estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
         kernels.warm_up()
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
         history = self._history() if p['initialization'] != 'parameters' else None

@@ -109,6 +109,22 @@ PLANT = MODEL + (
          read_only=False),
 )
 
+BASILISK_PLANT = PLANT + (
+    Spec('eccentricity', 0.0, "Target orbit's eccentricity (orbit_radius is its semi-major axis; the "
+         'target starts at the true anomaly below)', low=0.0, high=0.9),
+    Spec('inclination', 51.6, "Target orbit's inclination, deg (ISS-like)", low=0.0, high=180.0),
+    Spec('raan', 0.0, 'Right ascension of the ascending node, deg', low=-360.0, high=360.0),
+    Spec('argument_of_perigee', 0.0, 'Argument of perigee, deg', low=-360.0, high=360.0),
+    Spec('true_anomaly', 0.0, "The target's true anomaly at the start, deg", low=-360.0, high=360.0),
+    Spec('j2', True, "Earth's J2 in the gravity field (coefficient 1.08262668e-3, set directly: "
+         'nothing is downloaded)'),
+    Spec('chaser_mass', 500.0, 'Chaser mass, kg', low=1e-3),
+    Spec('thrust_limit', 50.0, 'Thrust limit per LVLH axis, N (0: unlimited); a clipped command is '
+         'counted (saturated_steps) and logged', low=0.0),
+    Spec('cache_dir', '', 'Folder for the caches Basilisk, matplotlib and pooch may write (empty: '
+         'their defaults under ~/.cache)'),
+)
+
 SENSOR = MODEL + (
     Spec('measured_axes', [0, 1, 2], 'Position axes measured (0 x, 1 y, 2 z); the others are '
          'published as NaN'),
@@ -127,6 +143,8 @@ CONTROLLER = MODEL + (
     Spec('gain', None, 'K (3x6, 18 values row-major) to use instead of designing it from Qc, Rc',
          read_only=False, kind=DOUBLE_ARRAY),
     Spec('cw_model', 'standard', 'CW matrix used for the LQR design', choices=('standard', 'as_published')),
+    Spec('setpoint', [0.0] * 6, 'State the LQR steers to, u = -K (x_hat - setpoint), m and m/s (zeros: '
+         'docking; e.g. a V-bar hold point [-100, 0, 0, 0, 0, 0])', read_only=False),
     Spec('estimate_timeout', 0.5, 'Simulated s without a usable estimate before safe mode (zero '
          'thrust)', read_only=False, low=1e-9),
     Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock, or stamped '
@@ -215,8 +233,8 @@ RECORDER = (
 )
 
 #: Node name -> its table, in the order the YAML files and the README list them.
-NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER,
-         'estimator': ESTIMATOR, 'recorder': RECORDER}
+NODES = {'cw_plant': PLANT, 'basilisk_plant': BASILISK_PLANT, 'position_sensor': SENSOR,
+         'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR, 'recorder': RECORDER}
 
 
 def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
@@ -295,6 +313,18 @@ def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
     return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})
 
 
+def orbit_settings(values: dict):
+    """The Basilisk target orbit the basilisk_plant parameters describe (angles in deg)."""
+    import math
+    from snn_estimator.basilisk_truth import OrbitSettings
+    return OrbitSettings(
+        semi_major_axis=values['orbit_radius'], eccentricity=values['eccentricity'],
+        inclination=math.radians(values['inclination']), raan=math.radians(values['raan']),
+        argument_of_perigee=math.radians(values['argument_of_perigee']),
+        true_anomaly=math.radians(values['true_anomaly']), mu=values['gravitational_parameter'],
+        j2=values['j2'])
+
+
 def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
     """The CW model the parameters describe."""
     from snn_estimator import ClohessyWiltshire
@@ -318,15 +348,24 @@ def markdown() -> str:
     shared = {spec.name for spec in MODEL}
     lines = []
     for title, specs in (('all pipeline nodes', MODEL), *NODES.items()):
+        if specs is BASILISK_PLANT:  # only what it adds to cw_plant's
+            lines += ['**basilisk_plant** (cw_plant\'s parameters and these)', '',
+                      '| parameter | default | meaning |', '|---|---|---|']
+            lines += [_row(spec) for spec in BASILISK_PLANT[len(PLANT):]] + ['']
+            continue
         lines += [f'**{title}**', '', '| parameter | default | meaning |', '|---|---|---|']
         for spec in specs:
             if specs is not MODEL and spec.name in shared:
                 continue
-            choices = ' (' + ' \\| '.join(spec.choices) + ')' if spec.choices else ''
-            runtime = '' if spec.read_only else ' **[runtime]**'
-            lines.append(f'| `{spec.name}` | `{_show(spec.default)}` | {spec.description}{choices}{runtime} |')
+            lines.append(_row(spec))
         lines.append('')
     return '\n'.join(lines)
+
+
+def _row(spec: Spec) -> str:
+    choices = ' (' + ' \\| '.join(spec.choices) + ')' if spec.choices else ''
+    runtime = '' if spec.read_only else ' **[runtime]**'
+    return f'| `{spec.name}` | `{_show(spec.default)}` | {spec.description}{choices}{runtime} |'
 
 
 def _yaml_float(value: float) -> str:
@@ -398,7 +437,7 @@ def yaml_document(header: str, estimator_overrides: dict) -> str:
     shared = {spec.name for spec in MODEL}
     for node, specs in NODES.items():
         extra = ({'use_sim_time': ('the plant is the clock: it must not follow /clock itself', False)}
-                 if node == 'cw_plant' else {})
+                 if node.endswith('_plant') else {})
         block(f'/**/{node}', specs, extra, skip=shared)
     return '\n'.join(out)
 

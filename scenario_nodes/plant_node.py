@@ -65,11 +65,13 @@ def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole
 class PlantNode(ProcessHooks, Node):
     """Wraps :class:`snn_estimator.simulation.Plant`; holds no dynamics of its own."""
 
+    NAME, SPECS = 'cw_plant', PLANT
+
     def __init__(self, **kwargs):
-        super().__init__('cw_plant', **kwargs)
-        p = declare(self, PLANT)
+        super().__init__(self.NAME, **kwargs)
+        p = declare(self, self.SPECS)
         self._p = p
-        self._plant = Plant(cw_model(p), p['initial_state'], p['process_noise'], seeds=[p['seed']])
+        self._plant = self.make_plant(p)
         self._dt = p['time_step']
         self._dt_ns = seconds_to_ns(self._dt)
         self._t_ns = self._start_ns = seconds_to_ns(p['start_time'])
@@ -95,7 +97,7 @@ class PlantNode(ProcessHooks, Node):
         self._truth_pub = qos.publisher(self, self._events, Odometry, qos.TRUTH)
         self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
                            if p['publish_clock'] else None)
-        self._diagnostics = DiagnosticsPublisher(self, 'cw_plant', p['diagnostics_period'], self._events)
+        self._diagnostics = DiagnosticsPublisher(self, self.NAME, p['diagnostics_period'], self._events)
         qos.subscription(self, self._events, AccelStamped, qos.CONTROL, self._on_control)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -112,6 +114,10 @@ class PlantNode(ProcessHooks, Node):
         self._loop_since = None  # wall time the loop was first seen complete
         self._notice_at = time.monotonic()
         self._readiness = self.create_timer(0.02, self._check_ready, clock=steady)
+
+    def make_plant(self, p: dict):
+        """The core truth the parameters describe: the CW model with process noise."""
+        return Plant(cw_model(p), p['initial_state'], p['process_noise'], seeds=[p['seed']])
 
     def _check_ready(self) -> None:
         """Start the scenario (publish x0) once the loop is there (wait_for_loop) and
@@ -234,7 +240,12 @@ class PlantNode(ProcessHooks, Node):
             if self._started_wall is None:
                 self._started_wall = time.monotonic()
             self._control = u
+            saturated = int(self._plant.saturated_steps[0])
             self._plant.step(u, self._dt)
+            if self._plant.saturated_steps[0] > saturated:
+                self.get_logger().warning(
+                    f'thrust limit: commanded {np.array2string(u, precision=4)} m/s^2, applied '
+                    f'{np.array2string(self._plant.applied[0], precision=4)} m/s^2', throttle_duration_sec=5.0)
             self._step += 1
             self._t_ns += self._dt_ns
             self._publish_sample()
@@ -300,6 +311,7 @@ class PlantNode(ProcessHooks, Node):
             'control_timeouts': self._timeouts, 'controls_received': self._controls_received,
             'truth_published': self._truth_published, 'truth_resent': self._truth_resent,
             'late_controls': self._late_controls,
+            'saturated_steps': int(self._plant.saturated_steps[0]),
             'range': float(np.linalg.norm(self._plant.x[0, :3])), 'done': self._finished,
             'finished_unix_time': self._finished_unix,
         }
@@ -315,6 +327,7 @@ class PlantNode(ProcessHooks, Node):
 
 def main(args=None) -> int:
     return run_node(PlantNode, args, 'cw_plant')
+
 
 
 if __name__ == '__main__':

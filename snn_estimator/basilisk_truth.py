@@ -133,6 +133,19 @@ class OrbitSettings:
         return math.sqrt(self.mu / self.semi_major_axis ** 3)
 
 
+@dataclass(frozen=True)
+class BasiliskSettings:
+    """What a scenario with Basilisk truth needs besides its initial state and noise."""
+
+    orbit: OrbitSettings = OrbitSettings()
+    #: kg, and N per axis (None or 0: unlimited): 50 N at 500 kg is 0.1 m/s^2, above the paper
+    #: scenario's peak LQR command (0.09 m/s^2), so only a far approach saturates.
+    chaser_mass: float = 500.0
+    thrust_limit: float | None = 50.0
+    #: Where Basilisk / matplotlib / pooch may write caches (None: leave them alone).
+    cache_dir: str | None = None
+
+
 def redirect_caches(folder) -> dict[str, str]:
     """Send the caches Basilisk's utilities can write into ``folder`` instead of ~/.cache.
 

@@ -46,3 +46,20 @@ VAN_DER_POL_MU = 0.005
 VAN_DER_POL_X0 = (2.0, 2.0)
 VAN_DER_POL_TIME_STEP = 0.01
 VAN_DER_POL_DURATION = 20.0
+
+# ---------------------------------------------------------------- far range (not in the paper)
+#: V-bar approach from 5 km behind the target to a hold point 100 m behind it, ~1 orbit.
+FAR_RANGE_X0 = (-5000.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+FAR_RANGE_SETPOINT = (-100.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+FAR_RANGE_TIME_STEP = 1.0
+FAR_RANGE_DURATION = 5600.0
+FAR_RANGE_METRIC_WINDOW = 600.0
+#: LQR weights: reach the hold point in about an orbit with commands far below the thrust limit.
+FAR_RANGE_LQR_STATE_WEIGHT = 1.0
+FAR_RANGE_LQR_INPUT_WEIGHT = 1e10
+#: The filters start from a dispersed estimate with P0 of 0.2 m and 1 cm/s (an Euler step of
+#: Eq. 6 at 1 s allows P0 up to R = 0.05 m^2 on the measured axes); the network's scale 10 cm and
+#: 1 mm/s per unit (5 km of positions in 5e4 units).
+FAR_RANGE_ESTIMATOR = {
+    'initial_state': FAR_RANGE_X0, 'initial_covariance': (0.04, 0.04, 0.04, 1e-4, 1e-4, 1e-4),
+    'initial_state_dispersion': True, 'state_scale': (0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3)}

@@ -160,7 +160,7 @@ class Estimator:
 
     def _kernel_call(self) -> kernels.StepCall:
         """Every argument of the step kernel, by name, shape-checked once (see kernels.StepCall).
-        The dt-dependent ones are set by :meth:`_prepare` before the first step of a dt."""
+        The dt-dependent ones are set by :meth:`prepare` before the first step of a dt."""
         s = self.settings
         n, m, n_u = self.model.n_state, self.model.n_meas, self.model.n_input
         dims = {'runs': self.runs, 'n': n, 'm': m, 'nu': n_u, 'N': self._r.shape[1], 'w': 2 * n + n_u}
@@ -425,7 +425,8 @@ class Estimator:
         self._call.update(leak=settings.leak_rate, q_hat=settings.q_hat,
                           r_hat_diag=np.ascontiguousarray(np.diag(settings.r_hat)),
                           delta=settings.boundary_layer)
-        self._call_dt = None  # R of Eq. 5-6 and a constant gain depend on the settings too
+        if self._call_dt is not None:  # R of Eq. 5-6 and a constant gain depend on the settings too
+            self.prepare(self._call_dt)
 
     def check_time_step(self, dt: float, settings: ResolvedConfig | None = None) -> None:
         """Raise ValueError when steps of ``dt`` cannot work: a network needs leak_rate * dt < 1
@@ -451,9 +452,11 @@ class Estimator:
                 f'initial_covariance (P0) on the measured axes, raise measurement_noise_scale{hint}, '
                 'or use a smaller time step')
 
-    def _prepare(self, dt: float) -> None:
-        """Set the kernel arguments that depend on the step size: the R of Eq. 5-6 and, for a
-        constant gain, K. Checks dt first (ValueError, nothing changed)."""
+    def prepare(self, dt: float) -> None:
+        """Get ready for steps of ``dt``: check it (ValueError naming the fix, nothing changed)
+        and set what depends on it (the R of Eq. 5-6, a constant gain). ``step`` does this the
+        first time it sees a dt; calling it up front makes later :meth:`retune` calls check
+        against that step too."""
         self.check_time_step(dt)
         s = self.settings
         density = gain_noise_density(s, dt)
@@ -523,7 +526,7 @@ class Estimator:
             raise ValueError(f'z must have {self.model.n_meas} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
         if dt != self._call_dt:
-            self._prepare(dt)  # checks dt the first time it is used
+            self.prepare(dt)  # checks dt the first time it is used
         dynamics, drift, use_drift = self._dynamics(dt, u)
         noise = self._zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:

@@ -76,6 +76,10 @@ class Plant:
         self._noise = GaussianStream(seeds, PLANT_STREAM, n)
         self._sqrt_cache: dict[float, np.ndarray] = {}
         self.time = 0.0
+        #: The control applied in the last step and the steps it had to be clipped in (never:
+        #: the CW truth has no thrust limit; the Basilisk truth does).
+        self.applied = np.zeros((self.runs, model.n_input))
+        self.saturated_steps = np.zeros(self.runs, dtype=np.int64)
 
     def step(self, u, dt: float) -> np.ndarray:
         """Advance by ``dt`` with ``u`` held; returns x, shape (runs, n)."""
@@ -86,6 +90,7 @@ class Plant:
             self._sqrt_cache[dt] = root
         self.x = (self.model.transition(self.x, u, dt, 'exact', substeps=self.substeps)
                   + self._noise.draw() @ root.T)
+        self.applied = u
         self.time += dt
         return self.x
 
@@ -148,6 +153,10 @@ class Scenario:
     metric_window: float = 60.0
     #: Model of the truth when it differs from the filters' model (None: the same).
     truth_model: StateSpaceModel | None = None
+    #: The state the LQR regulates to, u = -K (x_hat - setpoint) (None: the origin, docking).
+    setpoint: np.ndarray | None = None
+    #: Truth by Basilisk (basilisk_truth.BasiliskSettings) instead of the model (None: the model).
+    basilisk: object | None = None
 
     @property
     def steps(self) -> int:
@@ -168,13 +177,17 @@ def _apply_preset(config: EstimatorConfig, preset: str, changes: dict) -> Estima
 
 
 def rendezvous_scenario(preset: str = 'default', cw_model: str = 'standard',
-                        orbit_radius: float = DEFAULT_ORBIT_RADIUS, **estimator_changes) -> Scenario:
+                        orbit_radius: float = DEFAULT_ORBIT_RADIUS, plant: str = 'cw', basilisk=None,
+                        **estimator_changes) -> Scenario:
     """Sec. 3.2 / Table 6: CW rendezvous, 360 s at dt = 0.1 s, LQR in the loop.
 
     ``preset='as_published'`` keeps Table 6 literally in the network (decoder variance 1/15,
     no state scaling) and integrates by forward Euler; 'default' uses this package's choices.
     ``cw_model='as_published'`` gives the filters and the LQR design the matrix printed as
     Eq. 41 while the truth stays standard CW, to measure what the misprint costs.
+    ``plant='basilisk'`` flies the truth with Basilisk (two-body gravity, J2, thrust limits:
+    ``basilisk``, a BasiliskSettings; default: J2 on, circular orbit of ``orbit_radius``)
+    while the filters keep the CW model.
     """
     config = _apply_preset(EstimatorConfig(), preset, estimator_changes)
     truth = ClohessyWiltshire(orbit_radius=orbit_radius)
@@ -184,7 +197,40 @@ def rendezvous_scenario(preset: str = 'default', cw_model: str = 'standard',
         duration=D.RENDEZVOUS_DURATION, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
         measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config,
         lqr_state_weight=D.LQR_STATE_WEIGHT * np.eye(6), lqr_input_weight=D.LQR_INPUT_WEIGHT * np.eye(3),
-        metric_window=D.RENDEZVOUS_METRIC_WINDOW, truth_model=None if model is truth else truth)
+        metric_window=D.RENDEZVOUS_METRIC_WINDOW, truth_model=None if model is truth else truth,
+        basilisk=_truth_settings(plant, basilisk, orbit_radius))
+
+
+def _truth_settings(plant: str, basilisk, orbit_radius: float):
+    """None for the CW truth; Basilisk settings (default: J2, circular orbit of orbit_radius)."""
+    if plant == 'cw':
+        return None
+    if plant != 'basilisk':
+        raise ValueError(f"plant must be one of cw, basilisk; got {plant!r}")
+    from .basilisk_truth import BasiliskSettings, OrbitSettings
+    return basilisk or BasiliskSettings(orbit=OrbitSettings(semi_major_axis=orbit_radius))
+
+
+def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: float = DEFAULT_ORBIT_RADIUS,
+                       **estimator_changes) -> Scenario:
+    """A V-bar approach from 5 km behind the target to a hold point 100 m behind it (where the
+    paper's 100 m scenario begins), over about one orbit (not in the paper).
+
+    Here the model the filters use is wrong in earnest: rectilinear CW against a curved orbit
+    (a point 5 km back on the straight V-bar drifts ~70 m per orbit in truth), J2, and the
+    thrust limit. 1 s steps (far-range navigation rates); the LQR weights of defaults.FAR_RANGE_*
+    reach the hold point in about an orbit within the thrust limit. Measurements as in Table 6.
+    """
+    config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, **estimator_changes})
+    model = ClohessyWiltshire(orbit_radius=orbit_radius)
+    return Scenario(
+        name='far_range', model=model, x0=np.array(D.FAR_RANGE_X0), dt=D.FAR_RANGE_TIME_STEP,
+        duration=D.FAR_RANGE_DURATION, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
+        measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config,
+        lqr_state_weight=D.FAR_RANGE_LQR_STATE_WEIGHT * np.eye(6),
+        lqr_input_weight=D.FAR_RANGE_LQR_INPUT_WEIGHT * np.eye(3),
+        metric_window=D.FAR_RANGE_METRIC_WINDOW, setpoint=np.array(D.FAR_RANGE_SETPOINT),
+        basilisk=_truth_settings(plant, basilisk, orbit_radius))
 
 
 def van_der_pol_scenario(preset: str = 'default', **estimator_changes) -> Scenario:
@@ -257,8 +303,15 @@ class SimulationResult:
         return float(self.spikes_per_step.sum() / (self.spikes_per_step.shape[0] * steps * self.neuron_count))
 
     def final_range(self) -> np.ndarray:
-        """Distance of the chaser from the target at the end, per run, m."""
-        return np.linalg.norm(self.truth[:, -1, :3], axis=1)
+        """Distance of the chaser from where the controller steers it (the target, or the
+        scenario's setpoint) at the end, per run, m."""
+        aim = np.zeros(3) if self.scenario.setpoint is None else self.scenario.setpoint[:3]
+        return np.linalg.norm(self.truth[:, -1, :3] - aim, axis=1)
+
+    def delta_v(self) -> np.ndarray:
+        """Velocity change the thrusters delivered, per run, m/s: sum over steps of
+        |u_x| + |u_y| + |u_z| times dt (one thruster pair per axis: propellant goes as this)."""
+        return np.abs(self.control).sum(axis=(1, 2)) * self.scenario.dt
 
     def consistency(self, seconds: float | None = None) -> dict:
         """Average NEES and NIS over the final window against their 95 % chi-square bounds.
@@ -302,8 +355,9 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     model = scenario.model
     estimator = make_estimator(kind, config.replace(seed=seed), model, runs=runs, seeds=seeds)
     truth_model = scenario.truth_model or model
-    plant = Plant(truth_model, scenario.x0, scenario.process_noise, seeds)
+    plant = truth_plant(scenario, seeds)
     sensor = PositionSensor(truth_model, scenario.measurement_noise, seeds)
+    setpoint = np.zeros(model.n_state) if scenario.setpoint is None else scenario.setpoint
     gain = (lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
             if scenario.lqr_state_weight is not None else None)
     steps, dt, n = scenario.steps, scenario.dt, model.n_state
@@ -329,13 +383,13 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     for k in range(steps):
         if events and k in events:
             events[k](estimator)
-        u = lqr_control(gain, x_hat) if gain is not None else zero_u
+        u = lqr_control(gain, x_hat - setpoint) if gain is not None else zero_u
         z = sensor.measure(plant.x)
         if covariance is not None:
             nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
         estimator.step(z, u, dt)
         plant.step(u, dt)
-        controls[:, k] = u
+        controls[:, k] = plant.applied
         truth[:, k + 1] = plant.x
         estimate[:, k + 1] = x_hat
         if covariance is not None:
@@ -352,7 +406,19 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         kind=kind, scenario=scenario, time=dt * np.arange(steps + 1), truth=truth,
         estimate=estimate, covariance_diag=cov, control=controls, spikes_per_step=spikes,
         raster=raster, neuron_count=estimator.neuron_count, wall_time=wall,
-        capped_steps=estimator.capped_steps, nees=nees, nis=nis)
+        capped_steps=estimator.capped_steps, nees=nees, nis=nis,
+        extra={'saturated_steps': plant.saturated_steps.copy()})
+
+
+def truth_plant(scenario: Scenario, seeds: Sequence[int]):
+    """The scenario's truth: the model (exact ZOH with process noise), or Basilisk."""
+    if scenario.basilisk is None:
+        return Plant(scenario.truth_model or scenario.model, scenario.x0, scenario.process_noise, seeds)
+    from .basilisk_truth import BasiliskPlant
+    settings = scenario.basilisk
+    return BasiliskPlant(scenario.x0, scenario.process_noise, seeds, dt=scenario.dt, orbit=settings.orbit,
+                         chaser_mass=settings.chaser_mass, thrust_limit=settings.thrust_limit,
+                         cache_dir=settings.cache_dir)
 
 
 def normalised_squares(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:

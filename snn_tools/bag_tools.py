@@ -140,7 +140,7 @@ def _number(values: dict, key: str, default=0.0) -> float:
 
 def summarize(run: RunData, window: float = 60.0) -> dict:
     """The demo's summary.json, computed from the bag alone."""
-    plant = run.last_diagnostics('cw_plant')
+    plant = run.last_diagnostics('cw_plant') or run.last_diagnostics('basilisk_plant')
     estimator = run.last_diagnostics('estimator')
     sensor = run.last_diagnostics('position_sensor')
     controller = run.last_diagnostics('lqr_controller')
@@ -176,6 +176,8 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'spikes_total': spikes_total,
         'spike_fraction': spikes_total / (neurons * steps) if neurons and steps else 0.0,
         'control_timeouts': int(_number(plant, 'control_timeouts')),
+        'plant': 'basilisk_plant' if run.last_diagnostics('basilisk_plant') else 'cw_plant',
+        'saturated_steps': int(_number(plant, 'saturated_steps')),
         'measurements_rejected': int(_number(estimator, 'measurements_rejected')),
         'controls_missing': int(_number(estimator, 'controls_missing')),
         'estimator_spikes_total': int(_number(estimator, 'spikes_total')),

@@ -32,6 +32,9 @@ NODES = (  # start order: consumers first, the plant (which starts the clock) la
     ('position_sensor', 'scenario_nodes.sensor_node'),
     ('cw_plant', 'scenario_nodes.plant_node'),
 )
+#: The truth plants the demo can fly: --plant choice -> (node name, module).
+PLANTS = {'cw': ('cw_plant', 'scenario_nodes.plant_node'),
+          'basilisk': ('basilisk_plant', 'scenario_nodes.basilisk_plant_node')}
 #: The exchange that paces a lockstep run (estimate k -> control k -> estimate k+1).
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).
@@ -66,9 +69,13 @@ class Pipeline:
     """The node processes of one run, with their logs in ``<run>/logs``."""
 
     def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
-                 namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch'):
+                 namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw'):
         if scheduling not in SCHEDULING:
             raise ValueError(f'scheduling {scheduling!r}: expected one of {SCHEDULING}')
+        if plant not in PLANTS:
+            raise ValueError(f'plant {plant!r}: expected one of {", ".join(PLANTS)}')
+        #: The plant's node name (cw_plant or basilisk_plant): the key of its process.
+        self.plant = PLANTS[plant][0]
         self.namespace = namespace
         self.cpus = cpu_plan() if pin_cpus else {}
         self.batch = scheduling == 'batch'
@@ -78,9 +85,10 @@ class Pipeline:
         self.overrides = overrides
         self.env = env
         self.processes: dict[str, subprocess.Popen] = {}
-        self.nodes = [n for n in NODES if record or n[0] != 'recorder']
+        self.nodes = [PLANTS[plant] if name == 'cw_plant' else (name, module) for name, module in NODES
+                      if record or name != 'recorder']
         if record:  # the first state waits until the sensor and the recorder match 'truth'
-            overrides.setdefault('cw_plant', {}).setdefault('min_truth_subscribers', 2)
+            overrides.setdefault(self.plant, {}).setdefault('min_truth_subscribers', 2)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
     def command(self, name: str, module: str, node_name: str | None = None) -> list[str]:
@@ -131,7 +139,7 @@ class Pipeline:
     def failed(self) -> list[str]:
         """Nodes that exited although they should still run."""
         return [name for name, process in self.processes.items()
-                if name != 'cw_plant' and process.poll() is not None]
+                if name != self.plant and process.poll() is not None]
 
     def stop(self, names, timeout: float = 10.0) -> dict:
         """SIGINT, then SIGTERM, then SIGKILL; returns exit codes."""
@@ -158,8 +166,8 @@ class Pipeline:
     def stop_all(self) -> dict:
         """Stop every node this pipeline started (extra ones included), the plant after the
         others and the recorder last, so it records their final diagnostics."""
-        codes = self.stop([n for n in self.processes if n not in ('recorder', 'cw_plant')])
-        codes.update(self.stop(['cw_plant']))
+        codes = self.stop([n for n in self.processes if n not in ('recorder', self.plant)])
+        codes.update(self.stop([self.plant]))
         time.sleep(0.3)  # let the recorder take the final diagnostics
         codes.update(self.stop(['recorder']))
         return codes
@@ -181,24 +189,26 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
-                 scheduling: str = 'batch') -> dict:
+                 scheduling: str = 'batch', plant: str = 'cw') -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started."""
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
-    plant = {'mode': mode, 'exit_when_done': True}
+    plant_values = {'mode': mode, 'exit_when_done': True}
     if duration is not None:
-        plant['duration'] = float(duration)
+        plant_values['duration'] = float(duration)
     if real_time_factor is not None:
-        plant['real_time_factor'] = float(real_time_factor)
-    overrides = {'cw_plant': plant, 'estimator': {'filter_type': estimator},
+        plant_values['real_time_factor'] = float(real_time_factor)
+    if plant == 'basilisk':
+        plant_values['cache_dir'] = str(run_dir / 'cache')  # nothing of the run outside its folder
+    overrides = {PLANTS[plant][0]: plant_values, 'estimator': {'filter_type': estimator},
                  'recorder': {'output': str(run_dir / 'bag'), 'storage': storage}}
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
-                        pin_cpus=pin_cpus, scheduling=scheduling)
+                        pin_cpus=pin_cpus, scheduling=scheduling, plant=plant)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)
@@ -207,16 +217,16 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     if on_start is not None:
         on_start(pipeline)
     try:
-        plant = pipeline.processes['cw_plant']
-        while plant.poll() is None:
+        plant_process = pipeline.processes[pipeline.plant]
+        while plant_process.poll() is None:
             broken = pipeline.failed()
             if broken:
                 raise RuntimeError(f'node(s) {broken} exited early; see {run_dir / "logs"}')
             if time.monotonic() - started > timeout:
                 raise RuntimeError(f'the run did not finish within {timeout:.0f} s; see {run_dir / "logs"}')
             time.sleep(0.05)
-        if plant.returncode != 0:
-            raise RuntimeError(f'cw_plant exited with {plant.returncode}; see {run_dir / "logs"}')
+        if plant_process.returncode != 0:
+            raise RuntimeError(f'{pipeline.plant} exited with {plant_process.returncode}; see {run_dir / "logs"}')
         time.sleep(0.3)  # the estimator's last step and the controller's answer
     finally:
         codes = pipeline.stop_all()
@@ -276,6 +286,8 @@ def main(argv=None) -> int:
     parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS),
                         help=f'filter_type of the estimator (default {DEFAULT_FILTER})')
     parser.add_argument('--mode', default='lockstep', choices=('lockstep', 'realtime'))
+    parser.add_argument('--plant', default='cw', choices=tuple(PLANTS),
+                        help='truth: cw (the model the filters use) or basilisk (J2, thrust limits)')
     parser.add_argument('--params-file', type=Path, help='parameter file (default: config/rendezvous.yaml)')
     parser.add_argument('--duration', type=float, help='simulated seconds (default: from the file, 360)')
     parser.add_argument('--real-time-factor', type=float, help='realtime mode speed-up (default 1)')
@@ -300,7 +312,8 @@ def main(argv=None) -> int:
     try:
         result = run_pipeline(run_dir, args.estimator, args.mode, params_file, args.duration,
                               args.real_time_factor, args.domain_id, storage=args.storage,
-                              pin_cpus=args.cpu_affinity == 'auto', scheduling=args.scheduling)
+                              pin_cpus=args.cpu_affinity == 'auto', scheduling=args.scheduling,
+                              plant=args.plant)
     except RuntimeError as error:
         print(f'snn_demo: {error}', file=sys.stderr)
         return 1

@@ -56,7 +56,7 @@ class Probe:
         return {}
 
 
-def run_lockstep(kind, steps):
+def run_lockstep(kind, steps, plant_class=PlantNode):
     """The four nodes in one process; returns the estimates by stamp and the truths by stamp."""
     duration = steps * 0.1
     with ros_context() as (context, executor, nodes):
@@ -64,7 +64,7 @@ def run_lockstep(kind, steps):
         make(ControllerNode, context, executor, nodes, 'lqr_controller')
         make(EstimatorNode, context, executor, nodes, 'estimator', filter_type=kind)
         make(SensorNode, context, executor, nodes, 'position_sensor')
-        plant = make(PlantNode, context, executor, nodes, 'cw_plant', duration=duration,
+        plant = make(plant_class, context, executor, nodes, plant_class.NAME, duration=duration,
                      control_timeout=30.0)
         last = steps * 100_000_000
 
@@ -89,6 +89,19 @@ def test_lockstep_ros_run_equals_the_offline_simulation(kind):
         stamp = k * 100_000_000
         np.testing.assert_allclose(estimates[stamp], offline.estimate[0, k], rtol=0, atol=1e-9)
         np.testing.assert_allclose(truths[stamp], offline.truth[0, k], rtol=0, atol=1e-9)
+
+
+def test_lockstep_ros_run_on_basilisk_truth_equals_the_offline_simulation():
+    pytest.importorskip('Basilisk')
+    from scenario_nodes.basilisk_plant_node import BasiliskPlantNode
+    steps = 200
+    estimates, truths = run_lockstep('snn_ekf', steps, BasiliskPlantNode)
+    scenario = rendezvous_scenario(plant='basilisk', initial_state_dispersion=True)
+    offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), 'snn_ekf')
+    for k in range(steps + 1):
+        stamp = k * 100_000_000
+        np.testing.assert_allclose(truths[stamp], offline.truth[0, k], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(estimates[stamp], offline.estimate[0, k], rtol=0, atol=1e-9)
 
 
 def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input():
