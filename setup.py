@@ -18,6 +18,8 @@ EXECUTABLES = {
     'snn_experiments': 'snn_tools.experiments:main',
     'snn_bench': 'snn_tools.bench:main',
     'snn_loop_bench': 'snn_tools.loop_bench:main',
+    'snn_export': 'snn_tools.nir_export:main',
+    'snn_neuromorphic': 'snn_tools.neuromorphic:main',
 }
 
 data_files = [

@@ -10,7 +10,6 @@ the plant has flown the scenario it exits and the launch shuts the others down (
 closes its bag on the way), unless keep_alive:=true.
 """
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
 from launch.conditions import IfCondition
 from launch.event_handlers import OnProcessExit
@@ -19,6 +18,8 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
+
+from launch import LaunchDescription
 
 PACKAGE = 'snn_rendezvous'
 FILTERS = ('snn_ekf | snn_emsif_weighted | snn_emsif | snn_emsif_star | snn_emsif_hybrid | ekf | '

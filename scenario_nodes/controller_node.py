@@ -13,12 +13,11 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from snn_estimator.gates import NewestFirst
 from snn_estimator.simulation import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
-from snn_estimator.gates import NewestFirst
-
 from .codec import MessageError, check_frame, decode_odometry, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
@@ -65,6 +64,11 @@ class ControllerNode(ProcessHooks, Node):
     @property
     def gain(self) -> np.ndarray:
         return self._gain.copy()
+
+    @property
+    def safe_mode(self) -> bool:
+        """True while no usable estimate came for estimate_timeout: zero thrust."""
+        return self._safe
 
     def _log_gain(self) -> None:
         model = cw_model(self._p)

@@ -17,9 +17,21 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import UInt32MultiArray
 
-from .codec import (NS, MessageError, control_of, decode_accel, decode_odometry,  # noqa: F401 (re-exported)
-                    decode_point, encode_accel, encode_odometry, encode_point, encode_spikes,
-                    measurement_of, split_stamp, state_of)
+from .codec import (  # noqa: F401 (re-exported)
+    NS,
+    MessageError,
+    control_of,
+    decode_accel,
+    decode_odometry,
+    decode_point,
+    encode_accel,
+    encode_odometry,
+    encode_point,
+    encode_spikes,
+    measurement_of,
+    split_stamp,
+    state_of,
+)
 
 
 def ns_to_stamp(nanoseconds: int) -> Time:

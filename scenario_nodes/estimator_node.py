@@ -28,11 +28,23 @@ from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from snn_estimator import kernels, make_estimator
+from snn_estimator.costs import CostModel, energy_pj
 from snn_estimator.runner import FilterRunner, History, RunnerSettings
 
 from . import qos
-from .codec import (MessageError, check_frame, control_of, decode_accel, decode_odometry, decode_point,
-                    encode_odometry, encode_spikes, encode_uint32, measurement_of, state_of)
+from .codec import (
+    MessageError,
+    check_frame,
+    control_of,
+    decode_accel,
+    decode_odometry,
+    decode_point,
+    encode_odometry,
+    encode_spikes,
+    encode_uint32,
+    measurement_of,
+    state_of,
+)
 from .diagnostics import DiagnosticsPublisher
 from .history import read_history
 from .parameters import ESTIMATOR, check_choices, cw_model, declare, estimator_config, read, silenced_set
@@ -78,6 +90,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self._log = ThrottledLog(self.get_logger())
         self._events = qos.QosEvents(self)
         self._runner: FilterRunner | None = None
+        self._costs: CostModel | None = None
         self._owned_publishers: list = []
         self._owned_subscriptions: list = []
         self._watchdog = self._monitor = None
@@ -138,6 +151,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
         history = self._history() if p['initialization'] != 'parameters' else None
         self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self._log)
+        self._costs = CostModel.of(estimator) if estimator.spiking else None
         self._make_endpoints()
         started = self._runner.start(p['initialization'], history)
         self.get_logger().info(
@@ -311,6 +325,11 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
 
     def values(self) -> dict:
         values = self._runner.values() if self._runner else {}
+        if self._costs is not None and self._runner.estimator.steps:  # the last step's cost
+            costs = self._costs.step(self._runner.estimator.spike_count)
+            values.update(synops_per_step=int(costs.synops), neuron_updates_per_step=int(costs.neuron_updates),
+                          dense_macs_per_step=int(costs.dense_macs),
+                          energy_per_step_pj_loihi=float(energy_pj(costs, 'loihi')))
         values.update(estimates_published=self._published, estimates_resent=self._answers.resent,
                       spikes_published=self._spikes_published,
                       active=self._active, standby=self._p['standby'])

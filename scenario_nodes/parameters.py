@@ -316,6 +316,7 @@ def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
 def orbit_settings(values: dict):
     """The Basilisk target orbit the basilisk_plant parameters describe (angles in deg)."""
     import math
+
     from snn_estimator.basilisk_truth import OrbitSettings
     return OrbitSettings(
         semi_major_axis=values['orbit_radius'], eccentricity=values['eccentricity'],

@@ -1,12 +1,17 @@
 """QoS of the pipeline, defined once, and the helpers every node creates its endpoints with.
 
-| endpoint | reliability | durability | history | why |
-|---|---|---|---|---|
-| every publisher (truth, measurement, control, estimate, spike_count, spikes, diagnostics) | reliable | transient local | keep last 5000 | matches any subscriber; a lagging recorder never loses a sample; a joining node can read the topic's history (hot swap, crash restart) |
-| every subscription of the loop | best effort | volatile | keep last 100 (estimator inputs 1000) | matches publishers with the default profile (`ros2 topic pub`, robot_localization), the sensor-data profile (drivers) and ours, as nav2 and robot_localization subscribe to sensors |
-| the estimator's start-up history reader | reliable | transient local | keep last 1000 | reads, once, what publishers that keep history still hold |
-| recorder | adapts to the publishers (reliable + transient local for ours) | | keep all | records every sample |
-| /clock | best effort | volatile | keep last 1 | as rclpy's time source subscribes |
+* every publisher (truth, measurement, control, estimate, spike_count, spikes, diagnostics):
+  reliable, transient local, keep last 5000. It matches any subscriber, a lagging recorder
+  never loses a sample, and a node that joins late can read the topic's history (hot swap,
+  restart after a crash).
+* every subscription of the loop: best effort, volatile, keep last 100 (the estimator's
+  inputs 1000). It matches publishers with the default profile (``ros2 topic pub``,
+  robot_localization), the sensor-data profile (drivers) and ours, as nav2 and
+  robot_localization subscribe to sensors.
+* the estimator's start-up history reader: reliable, transient local, keep last 1000: reads,
+  once, what publishers that keep history still hold (scenario_nodes.history).
+* the recorder: adapts to the publishers (reliable and transient local for ours), keep all.
+* /clock: best effort, volatile, keep last 1, as rclpy's time source subscribes.
 
 Every pipeline publisher and subscription accepts the standard QoS overrides, e.g.
 ``-p qos_overrides./measurement.subscription.reliability:=reliable`` (history, depth,
@@ -23,8 +28,18 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 # The topic names live in .topics (no rclpy there); re-exported here beside their QoS.
-from .topics import (CLOCK, CONTROL, DIAGNOSTICS, ESTIMATE, MEASUREMENT, PIPELINE_TOPICS,  # noqa: F401
-                     SET_STATE, SPIKE_COUNT, SPIKES, TRUTH)
+from .topics import (  # noqa: F401
+    CLOCK,
+    CONTROL,
+    DIAGNOSTICS,
+    ESTIMATE,
+    MEASUREMENT,
+    PIPELINE_TOPICS,
+    SET_STATE,
+    SPIKE_COUNT,
+    SPIKES,
+    TRUTH,
+)
 
 
 def _profile(reliability, durability, depth: int) -> QoSProfile:

@@ -21,7 +21,6 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
-
 EXIT_OK = 0
 EXIT_CONFIG = 2
 EXIT_FAILURE = 1

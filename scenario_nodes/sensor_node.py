@@ -6,11 +6,10 @@ from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
+from snn_estimator.gates import NewestFirst
 from snn_estimator.simulation import PositionSensor
 
 from . import qos
-from snn_estimator.gates import NewestFirst
-
 from .codec import MessageError, check_frame, decode_odometry, encode_point, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, cw_model, declare

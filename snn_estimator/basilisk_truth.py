@@ -169,8 +169,7 @@ def _import_basilisk() -> SimpleNamespace:
     try:
         from Basilisk.architecture import sim_model, sys_model_task
         from Basilisk.simulation import extForceTorque, gravityEffector, spacecraft
-        from Basilisk.simulation.sphericalHarmonicsGravityModel import \
-            SphericalHarmonicsGravityModel
+        from Basilisk.simulation.sphericalHarmonicsGravityModel import SphericalHarmonicsGravityModel
         from Basilisk.utilities import orbitalMotion
     except ImportError as error:
         raise ImportError(

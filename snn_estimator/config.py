@@ -148,7 +148,8 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
         neuron_count=neurons, leak_rate=leak, boundary_layer=delta, decoder_variance=variance,
         seed=seed, q_hat=q_scale * q, r_hat=r_scale * r, measurement_noise_units=units,
         initial_covariance=p0,
-        initial_state=x0, initial_state_dispersion=bool(config.initial_state_dispersion), spike_rule=rule, state_scale=scale, discretization=method,
+        initial_state=x0, initial_state_dispersion=bool(config.initial_state_dispersion), spike_rule=rule,
+        state_scale=scale, discretization=method,
         membrane_noise=noise, max_spikes_per_step=cap or 1000 * neurons, silenced_neurons=silenced,
         gain_schedule=schedule)
 

@@ -604,7 +604,7 @@ def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedC
     """
     if not model.is_linear:
         raise ValueError('a steady-state gain needs a linear model')
-    n, m = model.n_state, model.n_meas
+    n = model.n_state
     c = model.measurement_matrix
     jac = model.jacobian(np.zeros(n), np.zeros(model.n_input))
     density = gain_noise_density(settings, dt)

@@ -274,8 +274,8 @@ def estimator_step(gain_law, covariance_law, spiking, spike_rule, use_given_drif
                 for k in range(m):
                     for j in range(m):
                         acc = 0.0
-                        for l in range(n):
-                            acc += c[k, l] * pct[l, j]
+                        for i in range(n):
+                            acc += c[k, i] * pct[i, j]
                         cpc[k, j] = acc
                 weighted = pct @ np.linalg.inv(cpc)
                 for j in range(m):
@@ -285,8 +285,8 @@ def estimator_step(gain_law, covariance_law, spiking, spike_rule, use_given_drif
                 for k in range(m):
                     for j in range(m):
                         acc = 0.0
-                        for l in range(n):
-                            acc += c[k, l] * pctr[l, j]
+                        for i in range(n):
+                            acc += c[k, i] * pctr[i, j]
                         cpctr[k, j] = acc
                 for i in range(n):
                     for j in range(m):
@@ -345,8 +345,8 @@ def estimator_step(gain_law, covariance_law, spiking, spike_rule, use_given_drif
                 for j in range(i, n):
                     acc = jp[i, j] + jp[j, i] + q_hat[i, j]
                     for k in range(m):
-                        for l in range(m):
-                            acc += gain[b, i, k] * r_density[k, l] * gain[b, j, l]
+                        for q in range(m):
+                            acc += gain[b, i, k] * r_density[k, q] * gain[b, j, q]
                     value = p[b, i, j] + dt * acc
                     p[b, i, j] = value
                     p[b, j, i] = value

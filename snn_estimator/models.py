@@ -14,9 +14,10 @@ from typing import Sequence
 import numpy as np
 import scipy.linalg
 
+from .defaults import EARTH_MU  # noqa: F401 (re-exported)
+from .defaults import ORBIT_RADIUS as DEFAULT_ORBIT_RADIUS
 from .validation import check_choice, check_positive
 
-from .defaults import EARTH_MU, ORBIT_RADIUS as DEFAULT_ORBIT_RADIUS  # noqa: F401 (re-exported)
 DISCRETIZATIONS = ('exact', 'euler')
 
 

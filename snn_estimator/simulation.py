@@ -243,7 +243,8 @@ def van_der_pol_scenario(preset: str = 'default', **estimator_changes) -> Scenar
     config = _apply_preset(config, preset, estimator_changes)
     return Scenario(
         name='van_der_pol', model=VanDerPol(mu=D.VAN_DER_POL_MU), x0=np.array(D.VAN_DER_POL_X0),
-        dt=D.VAN_DER_POL_TIME_STEP, duration=D.VAN_DER_POL_DURATION, process_noise=0.01 * np.eye(2), measurement_noise=np.array([[0.1]]),
+        dt=D.VAN_DER_POL_TIME_STEP, duration=D.VAN_DER_POL_DURATION, process_noise=0.01 * np.eye(2),
+        measurement_noise=np.array([[0.1]]),
         estimator=config, metric_window=10.0)
 
 

@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from snn_estimator.estimators import FILTER_KINDS, make_estimator
-from .experiments import time_steps
 from snn_estimator.reference import DenseFilter, DenseSpikingFilter
 from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
+
+from .experiments import time_steps
 
 NEURON_COUNTS = (50, 100, 200, 300)
 

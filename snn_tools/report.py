@@ -14,10 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .figures import (Track, colour_of, control_figure, label_of, raster_figure,
-                                   rmse_figure, tracking_figure)
-
 from .bag_tools import STATES, RunData, matched_errors, read_bag, summarize
+from .figures import Track, colour_of, control_figure, label_of, raster_figure, rmse_figure, tracking_figure
 
 RMS_WINDOW = 10.0  # s, moving window of the RMSE-over-time figure
 
@@ -108,7 +106,7 @@ def _markdown(loaded, figures, out: Path) -> str:
              'RMSE x, y, z [m] | RMSE vx, vy, vz [m/s] | spikes | spike fraction | control timeouts | '
              'measurements rejected |',
              '|---|---|---|---|---|---|---|---|---|---|---|---|']
-    for label, data, s in loaded:
+    for label, _, s in loaded:
         r = s['rmse_last_60s']
         lines.append(
             f"| {label} | {s['steps']} | {s['sim_time_s']:.1f} | {s['wall_time_s']:.2f} | "
@@ -117,7 +115,7 @@ def _markdown(loaded, figures, out: Path) -> str:
             f"{s['spikes_total']} | {100 * s['spike_fraction']:.2f}% | {s['control_timeouts']} | "
             f"{s['measurements_rejected']} |")
     lines += ['', '## Messages recorded / published', '']
-    for label, data, s in loaded:
+    for label, _, s in loaded:
         counts = ', '.join(f"{k} {v['recorded']}/{v['published']}" for k, v in s['messages'].items())
         lines.append(f'- {label}: {counts}' + ('' if s['recording_complete'] else ' (INCOMPLETE)'))
     lines += ['', '## Figures', '']

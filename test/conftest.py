@@ -39,3 +39,14 @@ class DoubleIntegrator(StateSpaceModel):
 @pytest.fixture
 def double_integrator():
     return DoubleIntegrator()
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of modules that need rclpy with ``ros`` (``-m "not ros"``: the core alone)."""
+    needs_ros = {}
+    for item in items:
+        path = item.path
+        if path not in needs_ros:
+            needs_ros[path] = "importorskip('rclpy')" in path.read_text()
+        if needs_ros[path]:
+            item.add_marker(pytest.mark.ros)

@@ -10,10 +10,10 @@ from rclpy.serialization import serialize_message  # noqa: E402
 from rosbags.rosbag2 import Writer  # noqa: E402
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from scenario_nodes.codec import encode_odometry, encode_spikes, encode_uint32  # noqa: E402
 from scenario_nodes.diagnostics import diagnostic_array  # noqa: E402
 from scenario_nodes.recorder_node import KNOWN_TYPES  # noqa: E402
+from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from snn_tools.report import write_report  # noqa: E402
 
 NS = 1_000_000_000

@@ -14,8 +14,7 @@ pytest.importorskip('Basilisk')
 
 from Basilisk.utilities import orbitalMotion  # noqa: E402
 
-from snn_estimator.basilisk_truth import (BasiliskPlant, OrbitSettings,  # noqa: E402
-                                          redirect_caches)
+from snn_estimator.basilisk_truth import BasiliskPlant, OrbitSettings, redirect_caches  # noqa: E402
 from snn_estimator.models import ClohessyWiltshire  # noqa: E402
 from snn_estimator.simulation import Plant  # noqa: E402
 

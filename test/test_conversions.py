@@ -11,10 +11,20 @@ pytest.importorskip('rclpy')
 from diagnostic_msgs.msg import DiagnosticStatus  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 
-from scenario_nodes.conversions import (MessageError, accel_to_control, control_to_accel,  # noqa: E402
-                                        diagnostic_status, diagnostic_values, measurement_to_point,
-                                        ns_to_stamp, odometry_to_state, point_to_measurement,
-                                        spikes_message, stamp_to_ns, state_to_odometry)
+from scenario_nodes.conversions import (  # noqa: E402
+    MessageError,
+    accel_to_control,
+    control_to_accel,
+    diagnostic_status,
+    diagnostic_values,
+    measurement_to_point,
+    ns_to_stamp,
+    odometry_to_state,
+    point_to_measurement,
+    spikes_message,
+    stamp_to_ns,
+    state_to_odometry,
+)
 
 
 def test_state_and_covariance_blocks_round_trip_through_odometry():
@@ -73,9 +83,18 @@ from nav_msgs.msg import Odometry  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_msgs.msg import UInt32, UInt32MultiArray  # noqa: E402
 
-from scenario_nodes.codec import (NS, decode_accel, decode_odometry, decode_point,  # noqa: E402
-                                  encode_accel, encode_clock, encode_odometry, encode_point,
-                                  encode_spikes, encode_uint32)
+from scenario_nodes.codec import (  # noqa: E402
+    NS,
+    decode_accel,
+    decode_odometry,
+    decode_point,
+    encode_accel,
+    encode_clock,
+    encode_odometry,
+    encode_point,
+    encode_spikes,
+    encode_uint32,
+)
 
 FRAMES = ['', 'a', 'ab', 'abc', 'lvlh', 'lvlh5', 'chaser', 'target_7', 'ünïcode']  # every alignment
 

@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from snn_estimator import (EstimatorConfig, FILTER_KINDS, TWIN_OF, make_estimator,
-                           rendezvous_scenario, simulate, van_der_pol_scenario)
+from snn_estimator import (
+    FILTER_KINDS,
+    TWIN_OF,
+    EstimatorConfig,
+    make_estimator,
+    rendezvous_scenario,
+    simulate,
+    van_der_pol_scenario,
+)
 from snn_estimator.models import VanDerPol
 from snn_estimator.reference import DenseSpikingFilter
 from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
@@ -259,6 +266,7 @@ def test_spike_rules_do_what_they_say():
                 assert np.all(estimator.potentials <= estimator.thresholds + 1e-12)
 
 
+@pytest.mark.slow
 def test_a_fine_decoder_reproduces_the_non_spiking_twin():
     scenario = rendezvous_scenario()
     default = scenario.estimator
@@ -402,7 +410,7 @@ def test_any_model_implementing_the_interface_works(double_integrator):
                              initial_covariance=(1.0, 1.0), initial_state=(0.5, 0.0),
                              boundary_layer=0.1, state_scale=(0.01, 0.01))
     estimator = make_estimator('snn_ekf', config, double_integrator)
-    for k in range(500):
+    for _ in range(500):
         estimator.step(np.array([0.0]), np.array([0.0]), 0.01)
     assert abs(estimator.x_hat[0]) < 0.05
 

@@ -9,19 +9,19 @@ import pytest
 pytest.importorskip('rclpy')
 
 import rclpy  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
-from rcl_interfaces.srv import SetParameters  # noqa: E402
-from nav_msgs.msg import Odometry  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from scenario_nodes.conversions import stamp_to_ns  # noqa: E402
 from scenario_nodes.parameters import DEFAULT_FILTER  # noqa: E402
+from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from snn_tools.demo import NODES, Pipeline, pipeline_env  # noqa: E402
 from snn_tools.paths import config_file  # noqa: E402
 

@@ -100,6 +100,7 @@ def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
     assert cpu_plan({3}) == {}  # one CPU: nothing to separate
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not hasattr(os, 'sched_getaffinity') or len(os.sched_getaffinity(0)) < 2
                     or not _batch_allowed(),
                     reason='needs CPU affinity, SCHED_BATCH allowed and two CPUs')
@@ -126,6 +127,7 @@ def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_t
             pipeline.stop_all()
 
 
+@pytest.mark.slow
 def test_a_refused_sched_batch_is_reported_and_recorded_as_normal(tmp_path, monkeypatch, capsys):
     """Where the kernel refuses SCHED_BATCH (the child then stays SCHED_OTHER), the pipeline
     says so once and reports the policy the nodes really run under."""

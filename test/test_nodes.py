@@ -8,52 +8,24 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from geometry_msgs.msg import AccelStamped, PointStamped  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
-from std_msgs.msg import UInt32, UInt32MultiArray  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.exceptions import ParameterException  # noqa: E402
+from ros_helpers import Probe, make, ros_context, spin_until  # noqa: E402
 
-from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
-from snn_estimator.simulation import lqr_control, lqr_gain  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.controller_node import ControllerNode  # noqa: E402
-from scenario_nodes.conversions import (control_to_accel, measurement_to_point, odometry_to_state,  # noqa: E402
-                                        stamp_to_ns, state_to_odometry)
+from scenario_nodes.conversions import (  # noqa: E402
+    control_to_accel,
+    measurement_to_point,
+    odometry_to_state,
+    stamp_to_ns,
+    state_to_odometry,
+)
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
-
-from ros_helpers import make, ros_context, spin_until  # noqa: E402
-
-
-class Probe:
-    """A test node that publishes inputs and collects outputs of the pipeline topics."""
-
-    def __init__(self, context, executor, nodes, publish=True):
-        from rclpy.node import Node
-        self.node = Node('probe', context=context)
-        executor.add_node(self.node)
-        nodes.append(self.node)
-        self.received = {name: [] for name in qos.PIPELINE_TOPICS}
-        types = {qos.TRUTH: Odometry, qos.MEASUREMENT: PointStamped, qos.CONTROL: AccelStamped,
-                 qos.ESTIMATE: Odometry, qos.SPIKE_COUNT: UInt32, qos.SPIKES: UInt32MultiArray,
-                 qos.DIAGNOSTICS: DiagnosticArray}
-        self.publishers = {}
-        for topic, kind in types.items():
-            self.node.create_subscription(kind, topic, self.received[topic].append, qos.HISTORY_QOS)
-            if publish:
-                self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PUBLISHER_QOS)
-
-    def publish(self, topic, msg):
-        self.publishers[topic].publish(msg)
-
-    def diagnostics(self, name):
-        for array in reversed(self.received[qos.DIAGNOSTICS]):
-            for status in array.status:
-                if status.name == name:
-                    return {kv.key: kv.value for kv in status.values}
-        return {}
+from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from snn_estimator.simulation import lqr_control, lqr_gain  # noqa: E402
 
 
 def run_lockstep(kind, steps, plant_class=PlantNode):
@@ -138,7 +110,8 @@ def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input
         assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 3)
         resent = probe.received[qos.ESTIMATE][2]
         assert stamp_to_ns(resent.header.stamp) == 100_000_000  # the answer to it, again
-        np.testing.assert_array_equal(odometry_to_state(resent)[0], odometry_to_state(probe.received[qos.ESTIMATE][1])[0])
+        first_answer = probe.received[qos.ESTIMATE][1]
+        np.testing.assert_array_equal(odometry_to_state(resent)[0], odometry_to_state(first_answer)[0])
         probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), 100_000_000, 'lvlh'))
         assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) == 4)
         assert spin_until(executor, lambda: probe.diagnostics('estimator').get('steps') == '2')
@@ -148,6 +121,10 @@ def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input
         assert values['measurements_rejected.stale'] == '1'
         assert values['estimates_resent'] == '1'
         assert estimator.estimator.steps == 2
+        # the cost of the last estimate, as the core counts it (snn_estimator.costs)
+        from snn_estimator.costs import CostModel
+        costs = CostModel.of(estimator.estimator).step(estimator.estimator.spike_count)
+        assert int(values['synops_per_step']) == costs.synops and int(values['dense_macs_per_step']) == costs.dense_macs
         assert all(np.all(np.isfinite(odometry_to_state(m)[0])) for m in probe.received[qos.ESTIMATE])
 
 

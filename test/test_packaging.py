@@ -63,7 +63,8 @@ def source_files(destination: Path) -> Path:
 def pip_prefix(tmp_path_factory):
     prefix = tmp_path_factory.mktemp('pip_prefix')
     source = source_files(tmp_path_factory.mktemp('pip_source') / PACKAGE)
-    subprocess.run([sys.executable, '-m', 'pip', 'install', '--quiet', '--no-deps', '--ignore-installed', '--prefix', str(prefix),
+    subprocess.run([sys.executable, '-m', 'pip', 'install', '--quiet', '--no-deps', '--ignore-installed',
+                    '--prefix', str(prefix),
                     str(source)], check=True, capture_output=True)
     return prefix
 

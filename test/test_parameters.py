@@ -9,10 +9,15 @@ import yaml
 
 pytest.importorskip('rclpy')
 
+from scenario_nodes.parameters import (  # noqa: E402
+    CONTROLLER,
+    ESTIMATOR,
+    PLANT,
+    RECORDER,  # noqa: E402
+    SENSOR,
+    estimator_config,
+)
 from snn_estimator import EstimatorConfig, rendezvous_scenario  # noqa: E402
-from scenario_nodes.parameters import (CONTROLLER, ESTIMATOR, PLANT, SENSOR,  # noqa: E402
-                                       estimator_config)
-from scenario_nodes.parameters import RECORDER  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR,
@@ -97,6 +102,7 @@ def test_the_readme_ros2_run_lines_set_what_they_say():
     file (a bare `-p name:=value` would lose to the file's node section)."""
     import rclpy
     from rclpy.node import Node
+
     from scenario_nodes.parameters import declare
 
     readme = (CONFIG.parent / 'README.md').read_text()

@@ -10,26 +10,35 @@ import pytest
 pytest.importorskip('rclpy')
 hypothesis = pytest.importorskip('hypothesis')
 
-from hypothesis import HealthCheck, given, settings, strategies as st  # noqa: E402
+from geometry_msgs.msg import AccelStamped  # noqa: E402
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from ros_helpers import Probe, make, ros_context, spin_until  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.codec import encode_point  # noqa: E402
 from scenario_nodes.controller_node import ControllerNode  # noqa: E402
-from scenario_nodes.codec import decode_accel, encode_point  # noqa: E402
-from scenario_nodes.conversions import (control_to_accel, measurement_to_point, ns_to_stamp,  # noqa: E402
-                                        odometry_to_state, stamp_to_ns, state_to_odometry)
+from scenario_nodes.conversions import (  # noqa: E402
+    accel_to_control,
+    control_to_accel,
+    measurement_to_point,
+    ns_to_stamp,
+    odometry_to_state,
+    stamp_to_ns,
+    state_to_odometry,
+)
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 
-from ros_helpers import make, ros_context, spin_until  # noqa: E402
-from test_nodes import Probe  # noqa: E402
-
 DT = 100_000_000
+#: An estimator that starts at once (no history to read) where the tests put it.
+QUIET = {'history_wait': 0.0, 'initial_state_dispersion': False}
 X0 = np.array([70.0, 30.0, -5.0])
 
 
@@ -143,22 +152,21 @@ def test_a_measurement_stamped_far_ahead_of_the_clock_is_rejected_and_does_not_b
     assert values['measurements_rejected'] == 1 and values['dropout_steps'] == 0
 
 
-def test_estimator_counts_the_spike_messages_it_publishes_apart_from_the_estimates():
+@pytest.mark.parametrize('publish_spikes, spike_messages', [(True, 2), (False, 0)])
+def test_estimator_counts_the_spike_messages_it_publishes_apart_from_the_estimates(publish_spikes, spike_messages):
     """The recorder's completeness check compares the bag with these counts."""
-    for publish_spikes, spike_messages in ((True, 2), (False, 0)):
-        with ros_context() as (context, executor, nodes):
-            harness = Harness(context, executor, nodes)
-            node = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0, initial_state_dispersion=False,
-                        publish_spikes=publish_spikes)
-            assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
-            harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
-            harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
-            harness.wait_estimates(2)
-            assert spin_until(executor, lambda: len(harness.received[qos.SPIKES]) >= spike_messages)
-            executor.spin_once(timeout_sec=0.2)
-            assert len(harness.received[qos.SPIKES]) == spike_messages
-            assert node.values()['estimates_published'] == 2
-            assert node.values()['spikes_published'] == spike_messages
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', **QUIET, publish_spikes=publish_spikes)
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
+        harness.wait_estimates(2)
+        assert spin_until(executor, lambda: len(harness.received[qos.SPIKES]) >= spike_messages)
+        executor.spin_once(timeout_sec=0.2)
+        assert len(harness.received[qos.SPIKES]) == spike_messages
+        assert node.values()['estimates_published'] == 2
+        assert node.values()['spikes_published'] == spike_messages
 
 
 def test_estimator_rejects_controls_with_a_wrong_frame(estimator_rig):
@@ -322,14 +330,14 @@ def test_controller_bad_inputs_safe_mode_and_gain_changes(controller_rig):
     for k in range(16, 30):
         harness.clock(k * DT)
         executor.spin_once(timeout_sec=0.05)
-    assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('safe_mode') == 'True' and
+    assert spin_until(executor, lambda: controller.safe_mode and
                       harness.received[qos.CONTROL][-1].accel.linear.x == 0.0)
     zero = harness.received[qos.CONTROL][-1]
     assert [zero.accel.linear.x, zero.accel.linear.y, zero.accel.linear.z] == [0.0, 0.0, 0.0]
     assert stamp_to_ns(zero.header.stamp) > 15 * DT
     harness.wait_value('lqr_controller', 'safe_mode', True)
     harness.publish(qos.ESTIMATE, state_to_odometry(x, None, 30 * DT, 'lvlh', 'c'))
-    assert spin_until(executor, lambda: not harness.diagnostics('lqr_controller').get('safe_mode') == 'True' and stamp_to_ns(
+    assert spin_until(executor, lambda: not controller.safe_mode and stamp_to_ns(
         harness.received[qos.CONTROL][-1].header.stamp) == 30 * DT)
     back = harness.received[qos.CONTROL][-1]
     assert stamp_to_ns(back.header.stamp) == 30 * DT and back.accel.linear.x != 0.0
@@ -357,7 +365,7 @@ def test_controller_rejects_an_estimate_far_ahead_of_the_clock_and_keeps_its_wat
     for k in range(6, 20):  # and when they stop, the watchdog still sees it
         harness.clock(k * DT)
         executor.spin_once(timeout_sec=0.05)
-    assert spin_until(executor, lambda: controller._safe)
+    assert spin_until(executor, lambda: controller.safe_mode)
 
 
 def test_sensor_starts_over_when_the_clock_or_the_truth_time_goes_back():
@@ -452,17 +460,19 @@ parameter_values = st.sampled_from([
     ('silenced_neurons', [1, 2, 3]), ('silenced_neurons', [-1]), ('nis_window', 0)])
 
 
+@pytest.mark.slow
 @settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
 @given(st.lists(messages, min_size=1, max_size=30), st.lists(parameter_values, max_size=3))
 def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequence, parameters):
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
-        node = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0, initial_state_dispersion=False,
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', **QUIET,
                     diagnostics_period=0.0, neuron_count=40)
-        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller')
+        # the controller answers on its own topic, so that its controls are told from ours
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller',
+                          cli_args=['--ros-args', '-r', 'control:=answers'])
         controls = []  # what the controller itself publishes
-        publish = controller._pub.publish
-        controller._pub.publish = lambda msg: (controls.append(msg), publish(msg))
+        harness.node.create_subscription(AccelStamped, 'answers', controls.append, qos.HISTORY_QOS)
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         measurements = 0
         for kind, values, k, frame in sequence:
@@ -496,8 +506,8 @@ def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequen
             values['measurements_rejected']
         for _, x in harness.estimates():
             assert np.all(np.isfinite(x))
-        for data in controls:  # the controller publishes CDR bytes
-            assert np.all(np.isfinite(decode_accel(data).vector))
+        for message in controls:
+            assert np.all(np.isfinite(accel_to_control(message)))
         assert np.all(np.isfinite(node.estimator.x_hat))
         assert controller.gain.shape == (3, 6)
 
@@ -507,7 +517,7 @@ def test_a_second_estimator_warm_starts_from_the_running_ones_estimates():
     offers on `estimate`, replays what came since, and continues from there."""
     with ros_context() as (context, executor, nodes):
         harness = Harness(context, executor, nodes)
-        first = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0, initial_state_dispersion=False,
+        first = make(EstimatorNode, context, executor, nodes, 'estimator', **QUIET,
                      nis_window=0)  # the constant test measurements are not a consistent track
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         for k in range(20):

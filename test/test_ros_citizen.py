@@ -20,19 +20,25 @@ import pytest
 pytest.importorskip('rclpy')
 
 import rclpy  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import AccelStamped, PointStamped  # noqa: E402
 from lifecycle_msgs.msg import State, Transition  # noqa: E402
 from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 from nav_msgs.msg import Odometry  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.qos import QoSProfile, qos_profile_sensor_data  # noqa: E402
+from ros_helpers import latest_status  # noqa: E402
 
 from scenario_nodes import qos  # noqa: E402
-from scenario_nodes.conversions import (control_to_accel, measurement_to_point, odometry_to_state,  # noqa: E402
-                                        stamp_to_ns, state_to_odometry)
+from scenario_nodes.conversions import (  # noqa: E402
+    control_to_accel,
+    measurement_to_point,
+    odometry_to_state,
+    stamp_to_ns,
+    state_to_odometry,
+)
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
@@ -80,11 +86,7 @@ class User:
         return future.result()
 
     def diagnostics(self, name):
-        for array in reversed(self.received[qos.DIAGNOSTICS]):
-            for status in array.status:
-                if status.name == name:
-                    return {kv.key: kv.value for kv in status.values}
-        return {}
+        return latest_status(self.received[qos.DIAGNOSTICS], name)
 
     def close(self):
         self.node.destroy_node()
@@ -156,7 +158,8 @@ def test_a_third_party_estimator_with_the_default_profile_drives_the_controller(
     stamps = []
     for _ in range(5):
         stamps.append(user.node.get_clock().now().nanoseconds)
-        estimates.publish(state_to_odometry(np.array([70.0, 30.0, -5.0, -1.7, -0.9, 0.25]), None, stamps[-1], 'lvlh', 'c'))
+        state = np.array([70.0, 30.0, -5.0, -1.7, -0.9, 0.25])
+        estimates.publish(state_to_odometry(state, None, stamps[-1], 'lvlh', 'c'))
         user.spin_until(lambda: False, timeout=0.05)
     assert user.spin_until(lambda: len(user.received[qos.CONTROL]) >= 5)
     assert sorted(stamp_to_ns(m.header.stamp) for m in user.received[qos.CONTROL])[:5] == stamps
@@ -234,5 +237,6 @@ def test_a_bad_value_fails_the_configure_transition_naming_the_parameter(user, s
     assert lifecycle_state(user) == 'unconfigured'
     assert not change(user, Transition.TRANSITION_CONFIGURE)
     assert lifecycle_state(user) == 'unconfigured'
-    assert user.spin_until(lambda: 'boundary_layer (delta) must be > 0' in next(tmp_path.glob('estimator_*.log')).read_text())
+    log = next(tmp_path.glob('estimator_*.log'))
+    assert user.spin_until(lambda: 'boundary_layer (delta) must be > 0' in log.read_text())
     assert State.PRIMARY_STATE_UNCONFIGURED == 1

@@ -4,10 +4,8 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from snn_estimator import (TWIN_OF, ClohessyWiltshire, rendezvous_scenario, simulate,
-                           van_der_pol_scenario)
-from snn_estimator.simulation import (GaussianStream, Plant, PositionSensor, lqr_control, lqr_gain,
-                                      matrix_sqrt)
+from snn_estimator import TWIN_OF, ClohessyWiltshire, rendezvous_scenario, simulate, van_der_pol_scenario
+from snn_estimator.simulation import GaussianStream, Plant, PositionSensor, lqr_control, lqr_gain, matrix_sqrt
 
 
 def test_scalar_lqr_matches_the_closed_form(double_integrator):
@@ -84,6 +82,7 @@ def test_closed_loop_rendezvous_converges_with_every_filter():
         assert np.abs(result.control).max() < 0.1
 
 
+@pytest.mark.slow
 def test_spiking_filters_stay_within_1_5x_of_their_twins_at_under_10_percent_spikes():
     """Issue acceptance on a 30-run Monte Carlo (make experiments runs 100)."""
     scenario = rendezvous_scenario()
@@ -114,6 +113,7 @@ def test_metrics_are_the_two_readings_of_average_rmse():
     assert result.spike_fraction is None
 
 
+@pytest.mark.slow
 def test_van_der_pol_filters_converge_from_the_wrong_initial_state():
     scenario = van_der_pol_scenario()
     for kind in ('ekf', 'emsif', 'snn_ekf', 'snn_emsif'):
@@ -154,6 +154,7 @@ def dispersed():
     return {kind: simulate(scenario, kind, runs=20) for kind in FILTER_KINDS}
 
 
+@pytest.mark.slow
 def test_filters_that_correct_the_velocity_converge_from_a_dispersed_start(dispersed):
     from snn_estimator.estimators import CONVERGES_FROM_DISPERSION
     initial = np.abs(dispersed['ekf'].error[:, 0, 3:]).mean()
@@ -163,6 +164,7 @@ def test_filters_that_correct_the_velocity_converge_from_a_dispersed_start(dispe
         assert result.rmse()[3:].max() < 0.05 * initial, kind
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('kind', ['emsif', 'snn_emsif', 'esif', 'snn_emsif_star'])
 def test_the_literal_sliding_innovation_filters_never_correct_a_velocity_error(dispersed, kind):
     """Documented behaviour (README, "Filters"): C^+ has zero velocity rows, so a velocity error
@@ -196,6 +198,7 @@ def test_the_least_squares_start_covariance_is_honest_over_monte_carlo_runs():
     """NEES of the least-squares start over 400 noisy windows: its mean is the state dimension
     within the 95 % chi-square bounds."""
     import scipy.stats
+
     from snn_estimator.initialization import least_squares_start
     model = ClohessyWiltshire()
     rng = np.random.default_rng(11)

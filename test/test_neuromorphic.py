@@ -1,0 +1,205 @@
+"""The NIR export, the Brian2 simulation built from it, and the operation counts."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from snn_estimator.costs import CHIPS, Chip, CostModel, StepCosts, energy_pj, filter_macs
+from snn_estimator.estimators import make_estimator
+from snn_estimator.models import VanDerPol
+from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario
+
+nir = pytest.importorskip('nir')
+# brian2 2.9.0 parses with pyparsing names that pyparsing 3.3 deprecates
+pytestmark = [pytest.mark.filterwarnings('ignore::DeprecationWarning:brian2'),
+              pytest.mark.filterwarnings('ignore::DeprecationWarning:pyparsing')]
+
+from snn_tools.nir_export import (  # noqa: E402
+    SPIKING_KINDS,
+    constant_gain_estimator,
+    export,
+    export_setup,
+    main,
+    network_arrays,
+    network_graph,
+    read_parameters,
+)
+
+SCENARIO = rendezvous_scenario()
+
+
+def closed_loop(estimator, steps):
+    """z_k, u_k and per-neuron spikes of the first ``steps`` of a rendezvous that ``estimator``
+    drives (u = -K x_hat); the estimates x_hat_0..x_hat_steps."""
+    model = SCENARIO.model
+    plant = Plant(model, SCENARIO.x0, SCENARIO.process_noise)
+    sensor = PositionSensor(model, SCENARIO.measurement_noise)
+    gain = lqr_gain(model, SCENARIO.lqr_state_weight, SCENARIO.lqr_input_weight)
+    zs, us, raster, estimates = [], [], [], [estimator.x_hat.copy()]
+    for _ in range(steps):
+        u = lqr_control(gain, estimator.x_hat)
+        z = sensor.measure(plant.x)[0]
+        estimates.append(estimator.step(z, u, SCENARIO.dt).copy())
+        plant.step(u, SCENARIO.dt)
+        zs.append(z)
+        us.append(u)
+        raster.append(estimator.spikes.copy())
+    return np.array(zs), np.array(us), np.array(raster), np.array(estimates)
+
+
+@pytest.fixture(scope='module')
+def emsif_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp('nir') / 'snn_emsif.nir'
+    graph = export('snn_emsif', SCENARIO.estimator, SCENARIO.model, SCENARIO.dt, path)
+    return path, graph
+
+
+# ---------------------------------------------------------------- the NIR file
+def test_nir_file_reads_back_the_same_graph(emsif_file):
+    path, written = emsif_file
+    read = nir.read(path)
+    assert set(read.nodes) == set(written.nodes)
+    assert sorted(map(tuple, read.edges)) == sorted(written.edges)
+    for name, node in written.nodes.items():
+        for field in ('weight', 'tau', 'r', 'v_leak', 'v_threshold', 'v_reset'):
+            if hasattr(node, field):
+                np.testing.assert_array_equal(getattr(read.nodes[name], field), getattr(node, field))
+    np.testing.assert_array_equal(read.nodes['neurons'].metadata['initial_v'],
+                                  written.nodes['neurons'].metadata['initial_v'])
+    assert read.metadata['filter_kind'] == 'snn_emsif'
+    assert read.metadata['gain_schedule'] == 'steady_state'
+    assert float(read.metadata['sample_period']) == SCENARIO.dt
+
+
+@pytest.mark.parametrize('kind', SPIKING_KINDS)
+def test_exported_weights_equal_the_estimators_weights(kind):
+    estimator = constant_gain_estimator(kind, SCENARIO.estimator, SCENARIO.model)
+    weights = estimator.weights(dt=SCENARIO.dt)
+    graph = network_graph(estimator, SCENARIO.dt)
+    net = network_arrays(graph)
+    scale = estimator.settings.state_scale
+    np.testing.assert_allclose(net.measurement, weights['F_k'], rtol=1e-12)
+    np.testing.assert_allclose(net.control, weights['F'], rtol=1e-12)
+    np.testing.assert_allclose(net.omega_f, weights['Omega_f'], rtol=1e-12)
+    np.testing.assert_array_equal(graph.nodes['slow_dynamics'].weight, weights['Omega_s'])
+    np.testing.assert_array_equal(graph.nodes['slow_correction'].weight, weights['Omega_k'])
+    np.testing.assert_allclose(net.slow, weights['Omega_s'] + weights['Omega_k'], rtol=1e-12)
+    np.testing.assert_allclose(net.decoder, scale[:, None] * weights['decoder'], rtol=1e-12)
+    np.testing.assert_array_equal(net.threshold, weights['thresholds'])
+    np.testing.assert_allclose(net.tau_v, 1.0 / estimator.settings.leak_rate)
+    np.testing.assert_allclose(net.train_jump, 1.0)
+    np.testing.assert_allclose(net.decoder @ net.initial_r, estimator.x_hat, atol=1e-9)
+
+
+def test_parameter_file_sets_filter_size_and_seed_without_rclpy(tmp_path):
+    params = tmp_path / 'params.yaml'
+    params.write_text("/**:\n  ros__parameters:\n    time_step: 0.1\n"
+                      "/**/estimator:\n  ros__parameters:\n    filter_type: snn_emsif_star\n"
+                      "    neuron_count: 50\n    seed: 3\n")
+    kind, config, _, dt = export_setup(None, params)
+    assert (kind, config.neuron_count, config.seed, dt) == ('snn_emsif_star', 50, 3, 0.1)
+    out = tmp_path / 'net.nir'
+    assert main(['--params-file', str(params), '--out', str(out)]) == 0
+    graph = nir.read(out)
+    assert graph.nodes['neurons'].v_threshold.size == 50 and int(graph.metadata['seed']) == 3
+    probe = ('import sys; from snn_tools.nir_export import export_setup; '
+             'export_setup(None, "config/rendezvous.yaml"); print("rclpy" in sys.modules)')
+    result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == 'False'
+
+
+# ---------------------------------------------------------------- refusals
+def test_a_non_spiking_filter_is_refused():
+    with pytest.raises(ValueError, match='no spiking network to export; choose one of snn_ekf'):
+        constant_gain_estimator('ekf', SCENARIO.estimator, SCENARIO.model)
+
+
+def test_a_nonlinear_model_is_refused():
+    with pytest.raises(ValueError, match='VanDerPol is nonlinear'):
+        constant_gain_estimator('snn_emsif', SCENARIO.estimator, VanDerPol())
+
+
+def test_a_parameter_file_naming_a_non_spiking_filter_fails_with_a_message(tmp_path, capsys):
+    params = tmp_path / 'params.yaml'
+    params.write_text('/**/estimator:\n  ros__parameters:\n    filter_type: ekf\n')
+    assert main(['--params-file', str(params), '--out', str(tmp_path / 'x.nir')]) == 2
+    assert "filter 'ekf' has no spiking network" in capsys.readouterr().err
+
+
+def test_an_unknown_estimator_parameter_is_refused(tmp_path):
+    params = tmp_path / 'params.yaml'
+    params.write_text('/**/estimator:\n  ros__parameters:\n    neuron_cont: 50\n')
+    with pytest.raises(ValueError, match=r"unknown estimator parameters \['neuron_cont'\]"):
+        read_parameters(params)
+
+
+def test_costs_of_a_non_spiking_filter_are_refused():
+    with pytest.raises(ValueError, match='ekf is not a spiking filter'):
+        CostModel.of(make_estimator('ekf', SCENARIO.estimator, SCENARIO.model))
+
+
+# ---------------------------------------------------------------- the independent simulator
+def test_brian2_built_from_the_file_reproduces_our_network_spike_for_spike(emsif_file):
+    pytest.importorskip('brian2')
+    from snn_tools.brian2_sim import run_file
+
+    path, _ = emsif_file
+    ours = constant_gain_estimator('snn_emsif', SCENARIO.estimator, SCENARIO.model)
+    zs, us, raster, estimates = closed_loop(ours, steps=15)
+    run = run_file(path, zs, us, mode='sampled', rule='greedy', substeps=150)
+    assert run.saturated_steps == 0
+    np.testing.assert_array_equal(run.raster, raster)
+    np.testing.assert_allclose(run.estimate, estimates, rtol=0, atol=1e-9)  # m and m/s
+
+
+# ---------------------------------------------------------------- operation counts
+def test_synaptic_operations_equal_a_count_spike_by_spike():
+    estimator = constant_gain_estimator('snn_ekf', SCENARIO.estimator, SCENARIO.model)
+    net = network_arrays(network_graph(estimator, SCENARIO.dt))
+    _, _, raster, _ = closed_loop(estimator, steps=40)
+    counted_synops, counted_dense = [], []
+    for spikes in raster:
+        synops = np.count_nonzero(net.measurement) + np.count_nonzero(net.control)
+        dense = net.slow.size + net.measurement.size + net.control.size + 2 * net.threshold.size + net.decoder.size
+        for neuron in np.flatnonzero(spikes):
+            fan_out = (np.count_nonzero(net.fast[:, neuron]) + np.count_nonzero(net.slow[:, neuron])
+                       + np.count_nonzero(net.decoder[:, neuron]))
+            synops += spikes[neuron] * fan_out
+            dense += spikes[neuron] * net.omega_f[:, neuron].size
+        counted_synops.append(synops)
+        counted_dense.append(dense)
+    costs = CostModel.of(estimator).step(raster.sum(axis=1))
+    assert raster.sum() > 100
+    np.testing.assert_array_equal(costs.synops, counted_synops)
+    np.testing.assert_array_equal(costs.dense_macs, counted_dense)
+    np.testing.assert_array_equal(costs.neuron_updates, 2 * 200 + 6)
+
+
+def test_ekf_step_macs_equal_the_hand_count():
+    # scalar EKF, the kernel's loops: nu = z - c x (1); P C^T, P C^T R^-1 (2); a x + b u + k nu,
+    # x += dt inc (4); J P, P C^T R^-1 C P (2)
+    assert sum(filter_macs(1, 1, 1, 'kalman', 'riccati').values()) == 9
+    assert filter_macs(6, 3, 3, 'kalman', 'riccati') == {
+        'innovation': 18, 'gain': 108 + 54, 'state': 36 + 18 + 18 + 6, 'covariance': 216 + 21 * 3}
+    assert sum(filter_macs(6, 3, 3, 'sif', 'none').values()) == 18 + 18 + 78  # no P at all
+
+
+def test_energy_is_operations_times_the_chips_figures():
+    costs = StepCosts(spikes=10, synops=1000, neuron_updates=406, host_macs=0, dense_macs=0, nonspiking_macs=0)
+    chip = Chip('test', 2.0, 3.0, 5.0, 'none', 'none')
+    assert energy_pj(costs, chip) == 1000 * 2.0 + 406 * 3.0 + 10 * 5.0
+    assert energy_pj(costs, 'truenorth') == 1000 * CHIPS['truenorth'].synop_pj
+    with pytest.raises(ValueError, match="chip 'loihi3' is unknown"):
+        energy_pj(costs, 'loihi3')
+
+
+def test_a_time_varying_gain_adds_the_weight_refresh_on_the_host():
+    constant = CostModel(200, 6, 3, 3, 'kalman', 'riccati', constant_gain=True).step(10)
+    varying = CostModel(200, 6, 3, 3, 'kalman', 'riccati', constant_gain=False).step(10)
+    refresh = 200 * 6 * 3 + 200 * 200 * 3
+    assert constant.host_macs == 0
+    assert varying.host_macs == 162 + 279 + refresh  # gain and covariance of the EKF, then F_k and Omega_k
+    assert varying.dense_macs - constant.dense_macs == varying.host_macs
+    assert varying.synops == constant.synops
