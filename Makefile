@@ -1,21 +1,27 @@
-# snn_rendezvous: every target creates .venv on first use (Python 3.10+ with venv and pip).
-#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime]   closed-loop demo over ROS 2
-#   make test                                              all tests
-#   make experiments [RUNS=100]                            the paper's experiments -> results/
-#   make bench                                             us per estimator step -> results/bench.json
-#   make bench-loop [ESTIMATOR=..] [RUNS=5]                ROS loop: real-time factor, CPU per node
-#   make report RUN=runs/<name>                            figures + report.md from a recorded run
-PYTHON ?= python3
+# snn_rendezvous: every target creates .venv on first use (Python 3.11 with venv and pip).
+#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime] [PLANT=cw|basilisk]   closed-loop demo over ROS 2
+#   make test                 all tests and the linter (what CI runs)
+#   make test-fast            the tests that start no ROS process (< 1 min)
+#   make experiments [RUNS=100]   the paper's experiments and ours -> results/REPORT.md
+#   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
+#   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
+#   make bench | bench-loop | bench-campaign    speed figures -> results/
+#   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
+PYTHON ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.snn_rendezvous-installed
-ESTIMATOR ?= snn_emsif
+ESTIMATOR ?=
 MODE ?= lockstep
+PLANT ?= cw
 RUNS ?= 100
+SPEC ?= config/campaigns/example.yaml
+WORKERS ?= 2
+SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test demo experiments bench bench-loop report clean
+.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign report clean
 
 venv: $(STAMP)
 
@@ -25,23 +31,43 @@ $(STAMP): setup.py pyproject.toml
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
 	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
+	# compile the spiking kernels once, into numba's cache: no node compiles at start-up
+	$(BIN)/python -c "from snn_estimator.kernels import warm_up; warm_up()"
 	touch $(STAMP)
 
-test: $(STAMP)
-	$(BIN)/python -m pytest -q test
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+test: lint
+	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
+	$(BIN)/python -m pytest -q -m slow test
+
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
 
 demo: $(STAMP)
-	$(BIN)/snn_demo --estimator $(ESTIMATOR) --mode $(MODE)
+	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 experiments: $(STAMP)
 	$(BIN)/snn_experiments --runs $(RUNS) --out results
+
+campaign: $(STAMP)
+	$(BIN)/snn_campaign --spec $(SPEC) --out runs/campaign_$(notdir $(basename $(SPEC))) \
+		$(if $(SCHEDULER),--scheduler $(SCHEDULER),--workers $(WORKERS))
+
+neuromorphic: $(STAMP)
+	$(BIN)/snn_neuromorphic --runs $(RUNS) --out results
 
 bench: $(STAMP)
 	$(BIN)/snn_bench --out results/bench.json
 
 # RUNS means Monte-Carlo runs (default 100) for experiments; the loop bench takes 5 unless given
 bench-loop: $(STAMP)
-	$(BIN)/snn_loop_bench --estimator $(ESTIMATOR) --runs $(if $(filter command line,$(origin RUNS)),$(RUNS),5)
+	$(BIN)/snn_loop_bench --runs $(if $(filter command line,$(origin RUNS)),$(RUNS),5) \
+		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+
+bench-campaign: $(STAMP)
+	$(BIN)/snn_campaign_bench --out results/campaign_bench.json
 
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)

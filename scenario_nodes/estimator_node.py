@@ -16,8 +16,6 @@ stamped t_k + time_step.
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 from geometry_msgs.msg import AccelStamped, PointStamped
 from nav_msgs.msg import Odometry
@@ -29,7 +27,7 @@ from std_srvs.srv import Trigger
 
 from snn_estimator import kernels, make_estimator
 from snn_estimator.costs import CostModel, energy_pj
-from snn_estimator.runner import FilterRunner, History, RunnerSettings
+from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
 
 from . import qos
 from .codec import (
@@ -46,7 +44,7 @@ from .codec import (
     state_of,
 )
 from .diagnostics import DiagnosticsPublisher
-from .history import read_history
+from .history import collect_history
 from .parameters import ESTIMATOR, check_choices, cw_model, declare, estimator_config, read, silenced_set
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
@@ -64,21 +62,127 @@ def runner_settings(p: dict) -> RunnerSettings:
                           time_jump_threshold=p['time_jump_threshold'])
 
 
-def decode_history(raw: dict, frame_id: str, axes) -> History:
-    """The history's samples as the runner takes them; malformed ones or ones in another frame
-    are skipped (they are not inputs of this loop)."""
-    readers = {qos.MEASUREMENT: (decode_point, lambda record: measurement_of(record, axes)),
-               qos.CONTROL: (decode_accel, control_of),
-               qos.ESTIMATE: (decode_odometry, lambda record: (state_of(record), record.covariance))}
-    decoded = {topic: {} for topic in readers}
-    for topic, (decode, extract) in readers.items():
-        for data in raw.get(topic, ()):
-            try:
-                record = check_frame(decode(data), frame_id)
-                decoded[topic][record.stamp_ns] = extract(record)
-            except MessageError:
-                continue
-    return History(decoded[qos.MEASUREMENT], decoded[qos.CONTROL], decoded[qos.ESTIMATE])
+class Inputs:
+    """The estimator's subscriptions: measurements, controls and set_state, converted and gated
+    at the edge and handed to the runner; a message that cannot be used is counted by reason,
+    logged (throttled) and reported, never a crash. A measurement that comes again (a lockstep
+    resend) is answered with the estimate it got before."""
+
+    def __init__(self, node, runner: FilterRunner, outputs: 'Outputs', p: dict, report):
+        self._node, self._runner, self._out, self._report = node, runner, outputs, report
+        self._frame, self._axes = p['frame_id'], tuple(int(a) for a in p['measured_axes'])
+        events = node.events
+        self.subscriptions = [
+            qos.subscription(node, events, PointStamped, qos.MEASUREMENT, self.on_measurement, qos.INPUT_QOS),
+            qos.subscription(node, events, AccelStamped, qos.CONTROL, self.on_control, qos.INPUT_QOS),
+            qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
+
+    def on_measurement(self, data: bytes) -> None:
+        runner = self._runner
+        try:
+            record = check_frame(decode_point(data), self._frame)
+            z = measurement_of(record, self._axes)
+        except MessageError as error:
+            runner.measurements_received += 1
+            return self._refuse(runner.rejected, 'measurement', error)
+        if self._node.active and runner.has_measurement(record.stamp_ns) and self._out.resend(record.stamp_ns):
+            runner.repeated()  # the same sample again (a lockstep resend): the same answer
+        elif runner.measurement(record.stamp_ns, z, clock_ns(self._node)) is not None:
+            self._report()
+
+    def on_control(self, data: bytes) -> None:
+        try:
+            record = check_frame(decode_accel(data), self._frame)
+            u = control_of(record)
+        except MessageError as error:
+            return self._refuse(self._runner.control_rejected, 'control', error)
+        if self._runner.control(record.stamp_ns, u) is not None:
+            self._report()
+
+    def on_set_state(self, data: bytes) -> None:
+        try:
+            record = decode_odometry(data)
+            self._runner.set_state(state_of(record), record.covariance)
+        except ValueError as error:  # MessageError included
+            self._runner.events['set_state_rejected'] += 1
+            self._node.log('warning', f'rejected set_state: {error}')
+            return
+        self._node.get_logger().info(f'state set to {np.array2string(self._runner.estimator.x_hat, precision=4)}')
+
+    def _refuse(self, counter, what: str, error: MessageError) -> None:
+        counter[error.reason] += 1
+        self._node.log('warning', f'rejected {what}: {error}')
+        self._report()
+
+
+class Outputs:
+    """What the estimator publishes (estimate, spike counts, diagnostics) and the counts of it:
+    lifecycle publishers, published only while the node is active. Each estimate is kept by
+    stamp (also while inactive) so a repeated input can be answered again after activation."""
+
+    def __init__(self, node, events: qos.QosEvents, p: dict, costs: CostModel | None):
+        self._frame, self._child = p['frame_id'], p['child_frame_id']
+        self.estimate = qos.publisher(node, events, Odometry, qos.ESTIMATE, lifecycle=True)
+        self._count = qos.publisher(node, events, UInt32, qos.SPIKE_COUNT, lifecycle=True)
+        self._spikes = (qos.publisher(node, events, UInt32MultiArray, qos.SPIKES, lifecycle=True)
+                        if p['publish_spikes'] else None)
+        self.diagnostics = DiagnosticsPublisher(node, 'estimator', p['diagnostics_period'], events, True)
+        self.publishers = [self.estimate, self._count, self.diagnostics.publisher] + [self._spikes] * bool(self._spikes)
+        self._costs = costs
+        self.answers = Answers()
+        self.published = self.spikes_published = 0
+
+    def publish(self, estimator, stamp_ns: int, active: bool) -> None:
+        data = encode_odometry(estimator.x_hat, estimator.P, stamp_ns, self._frame, self._child)
+        self.answers.remember(stamp_ns, data)  # inactive too: a resend after activation needs it
+        if not active:
+            return
+        self.estimate.publish(data)
+        self._count.publish(encode_uint32(estimator.spike_count))
+        if self._spikes is not None:
+            self._spikes.publish(encode_spikes(estimator.spikes if estimator.spiking else ()))
+            self.spikes_published += 1
+        self.published += 1
+
+    def resend(self, stamp_ns: int) -> bool:
+        """Publish again the estimate that answered the measurement at ``stamp_ns``."""
+        sent = self.answers.resend(stamp_ns, self.estimate)
+        self.published += sent
+        return sent
+
+    def values(self, estimator) -> dict:
+        values = {'estimates_published': self.published, 'estimates_resent': self.answers.resent,
+                  'spikes_published': self.spikes_published}
+        if self._costs is not None and estimator.steps:  # the last step's cost (snn_estimator.costs)
+            costs = self._costs.step(estimator.spike_count)
+            values.update(synops_per_step=int(costs.synops), neuron_updates_per_step=int(costs.neuron_updates),
+                          dense_macs_per_step=int(costs.dense_macs),
+                          energy_per_step_pj_loihi=float(energy_pj(costs, 'loihi')))
+        return values
+
+
+def apply_runtime_changes(runner: FilterRunner, values: dict, changes: dict) -> dict:
+    """Apply ``changes`` (parameter name -> value) to a running filter, all or none: ValueError
+    with the reason (a read-only parameter, a value the core refuses) changes nothing. Returns
+    the new parameter values."""
+    read_only = sorted(n for n in changes if n not in RUNTIME and n in {s.name for s in ESTIMATOR})
+    if read_only:
+        raise ValueError(f'{read_only[0]} is read-only while configured (ros2 lifecycle set /estimator '
+                         'cleanup, then configure again)')
+    estimator = runner.estimator
+    values = dict(values, **changes)
+    retune = {k: changes[k] for k in estimator.RETUNABLE if k in changes}
+    if 'boundary_layer' in retune:
+        retune['boundary_layer'] = list(retune['boundary_layer'])
+    silenced = silenced_set(values, estimator.neuron_count, estimator.settings.seed)  # validate first
+    settings = runner_settings(values)
+    if retune:
+        estimator.retune(**retune)  # validated (also against the step in use) before it changes anything
+    runner.replace_settings(settings)
+    if estimator.spiking and ('silenced_neurons' in changes or 'silenced_fraction' in changes):
+        estimator.silence(silenced)
+        runner.events['silencing_changes'] += 1
+    return values
 
 
 class EstimatorNode(ProcessHooks, LifecycleNode):
@@ -87,19 +191,14 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     def __init__(self, **kwargs):
         super().__init__('estimator', **kwargs)
         self._p = declare(self, ESTIMATOR, check=False)  # checked by configure
-        self._log = ThrottledLog(self.get_logger())
-        self._events = qos.QosEvents(self)
+        self.log = ThrottledLog(self.get_logger())
+        self.events = qos.QosEvents(self)
         self._runner: FilterRunner | None = None
-        self._costs: CostModel | None = None
-        self._owned_publishers: list = []
+        self._out: Outputs | None = None
         self._owned_subscriptions: list = []
         self._watchdog = self._monitor = None
-        self._active = False
-        self._published = self._spikes_published = 0
-        self._answers = Answers()
-        self._announce = False
-        self._foreign_ns = -1  # newest estimate on `estimate` from another estimator (standby)
-        self._ahead_since: float | None = None
+        self._active = self._announce = False
+        self._standby: Standby | None = None
         self.configure_error: str | None = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -112,6 +211,11 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     @property
     def runner(self) -> FilterRunner | None:
         return self._runner
+
+    @property
+    def active(self) -> bool:
+        """True in the active lifecycle state: estimates are published."""
+        return self._active
 
     def start(self) -> None:
         """autostart: configure (a failure is a configuration error: exit 2), then activate
@@ -128,58 +232,40 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     def on_configure(self, state) -> TransitionCallbackReturn:
         try:
             self._configure()
-        except ValueError as error:  # a bad parameter: the message names it and the fix
-            self.configure_error = str(error)
-            self.get_logger().error(f'configure failed: {error}')
-            self._release()
-            return FAILURE
+            return SUCCESS
         except Exception as error:  # lifecycle would swallow it: say what happened first
-            self.configure_error = f'{type(error).__name__}: {error}'
+            self.configure_error = str(error) if isinstance(error, ValueError) else f'{type(error).__name__}: {error}'
             self.get_logger().error(f'configure failed: {self.configure_error}')
             self._release()
-            raise
-        return SUCCESS
+            if not isinstance(error, ValueError):  # a bad parameter (the message names it) fails
+                raise
+            return FAILURE
 
     def _configure(self) -> None:
         p = self._p = read(self, ESTIMATOR)
         check_choices(p, ESTIMATOR)
-        axes = self._axes = tuple(int(a) for a in p['measured_axes'])
+        axes = tuple(int(a) for a in p['measured_axes'])
         estimator = make_estimator(p['filter_type'], estimator_config(p),
                                    cw_model(p, form=p['cw_model'], measured_axes=axes))
         estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
         kernels.warm_up()
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
-        history = self._history() if p['initialization'] != 'parameters' else None
-        self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self._log)
-        self._costs = CostModel.of(estimator) if estimator.spiking else None
+        history = (collect_history(self, p['frame_id'], axes, p['history_wait'])
+                   if p['initialization'] != 'parameters' else None)
+        self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log)
+        self._out = Outputs(self, self.events, p, CostModel.of(estimator) if estimator.spiking else None)
         self._make_endpoints()
         started = self._runner.start(p['initialization'], history)
         self.get_logger().info(
             f"{p['filter_type']} configured ({estimator.neuron_count} neurons, {p['discretization']} steps "
             f"of {p['time_step']} s, axes {axes}); start: {started}")
 
-    def _history(self) -> History:
-        """What the topics' publishers keep, decoded and gated like live inputs (bad samples skipped)."""
-        raw = read_history(self, {qos.ESTIMATE: Odometry, qos.MEASUREMENT: PointStamped,
-                                  qos.CONTROL: AccelStamped}, self._p['history_wait'])
-        self.get_logger().info('history: ' + ', '.join(f"{len(raw[t])} on '{t}'" for t in raw))
-        return decode_history(raw, self._p['frame_id'], self._axes)
-
     def _make_endpoints(self) -> None:
-        events, p = self._events, self._p
-        self._estimate_pub = qos.publisher(self, events, Odometry, qos.ESTIMATE, lifecycle=True)
-        self._count_pub = qos.publisher(self, events, UInt32, qos.SPIKE_COUNT, lifecycle=True)
-        self._spikes_pub = (qos.publisher(self, events, UInt32MultiArray, qos.SPIKES, lifecycle=True)
-                            if p['publish_spikes'] else None)
-        self._diagnostics = DiagnosticsPublisher(self, 'estimator', p['diagnostics_period'], events, True)
-        self._owned_publishers = [self._estimate_pub, self._count_pub, self._diagnostics.publisher]
-        self._owned_publishers += [self._spikes_pub] if self._spikes_pub else []
-        self._owned_subscriptions = [
-            qos.subscription(self, events, PointStamped, qos.MEASUREMENT, self._on_measurement, qos.INPUT_QOS),
-            qos.subscription(self, events, AccelStamped, qos.CONTROL, self._on_control, qos.INPUT_QOS),
-            qos.subscription(self, events, Odometry, qos.SET_STATE, self._on_set_state)]
+        events, p = self.events, self._p
+        self._owned_subscriptions = Inputs(self, self._runner, self._out, p, self._publish_diagnostics).subscriptions
         self._watchdog = self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         if p['standby']:  # watch the active estimator
+            self._standby = Standby(p['standby_timeout'], p['time_step'])
             self._monitor = qos.subscription(self, events, Odometry, qos.ESTIMATE, self._on_foreign_estimate)
             self._owned_subscriptions.append(self._monitor)
 
@@ -204,142 +290,65 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         return SUCCESS
 
     def on_cleanup(self, state) -> TransitionCallbackReturn:
-        self._release()
-        return SUCCESS
+        return self._release()
 
     def on_shutdown(self, state) -> TransitionCallbackReturn:
         self.close()
-        self._release()
-        return SUCCESS
+        return self._release()
 
     def on_error(self, state) -> TransitionCallbackReturn:
-        self._release()
-        return SUCCESS
+        return self._release()
 
-    def _release(self) -> None:
+    def _release(self) -> TransitionCallbackReturn:
         """Destroy every endpoint and timer and drop the filter."""
         self._active = False
-        for publisher in self._owned_publishers:
+        for publisher in self._out.publishers if self._out else ():
             self.destroy_lifecycle_publisher(publisher)
         for subscription in self._owned_subscriptions:
             self.destroy_subscription(subscription)
         if self._watchdog is not None:
             self.destroy_timer(self._watchdog)
-        self._owned_publishers, self._owned_subscriptions = [], []
-        self._runner = self._watchdog = self._monitor = None
+        self._owned_subscriptions = []
+        self._runner = self._out = self._watchdog = self._monitor = self._standby = None
+        return SUCCESS
 
     # ---------------------------------------------------------------- inputs
-    def _on_measurement(self, data: bytes) -> None:
-        try:
-            record = decode_point(data)
-            if record.frame_id != self._p['frame_id']:
-                raise MessageError('wrong_frame', f"frame '{record.frame_id}', expected '{self._p['frame_id']}'")
-            z = measurement_of(record, self._axes)
-        except MessageError as error:
-            self._runner.measurements_received += 1
-            self._runner.rejected[error.reason] += 1
-            self._log('warning', f'rejected measurement: {error}')
-            self._publish_diagnostics()
-            return
-        if (self._active and self._runner.has_measurement(record.stamp_ns)
-                and self._answers.resend(record.stamp_ns, self._estimate_pub)):
-            self._published += 1  # the same sample again (a lockstep resend): the same answer
-            self._runner.repeated()
-            return
-        if self._runner.measurement(record.stamp_ns, z, clock_ns(self)) is not None:
-            self._publish_diagnostics()
-
-    def _on_control(self, data: bytes) -> None:
-        try:
-            record = decode_accel(data)
-            if record.frame_id != self._p['frame_id']:
-                raise MessageError('wrong_frame', f"frame '{record.frame_id}', expected '{self._p['frame_id']}'")
-            u = control_of(record)
-        except MessageError as error:
-            self._runner.control_rejected[error.reason] += 1
-            self._log('warning', f'rejected control: {error}')
-            self._publish_diagnostics()
-            return
-        if self._runner.control(record.stamp_ns, u) is not None:
-            self._publish_diagnostics()
-
-    def _on_set_state(self, data: bytes) -> None:
-        try:
-            record = decode_odometry(data)
-            self._runner.set_state(state_of(record), record.covariance)
-        except ValueError as error:  # MessageError included
-            self._runner.events['set_state_rejected'] += 1
-            self._log('warning', f'rejected set_state: {error}')
-            return
-        self.get_logger().info(f'state set to {np.array2string(self._runner.estimator.x_hat, precision=4)}')
-
     def _on_foreign_estimate(self, data: bytes) -> None:
         try:
-            self._foreign_ns = max(self._foreign_ns, decode_odometry(data).stamp_ns)
+            self._standby.saw(decode_odometry(data).stamp_ns)
         except MessageError:
             pass
 
     def _on_watchdog(self) -> None:
         runner = self._runner
-        now = clock_ns(self)
-        runner.watchdog(now)
-        if self._announce and runner.started and self._estimate_pub.get_subscription_count() > 0:
+        runner.watchdog(clock_ns(self))
+        if self._announce and runner.started and self._out.estimate.get_subscription_count() > 0:
             self._announce = False  # just activated: the controller can answer at once
             self._publish(runner.time_ns)
-        if self._p['standby'] and not self._active and runner.started:
-            self._standby_check(now)
-
-    def _standby_check(self, now_ns: int) -> None:
-        """Activate when our estimate is newer than the active estimator's for standby_timeout
-        wall seconds, or by two steps of simulated time (it stopped publishing)."""
-        if runner_ahead := self._runner.time_ns > self._foreign_ns:
-            self._ahead_since = self._ahead_since or time.monotonic()
-        else:
-            self._ahead_since = None
-            return
-        lag_ns = self._runner.time_ns - max(self._foreign_ns, self._runner.start_ns)
-        waited = time.monotonic() - self._ahead_since
-        if runner_ahead and (waited >= self._p['standby_timeout'] or lag_ns >= 2 * int(self._p['time_step'] * 1e9)):
-            self.get_logger().warning(
-                f'standby: no estimate newer than t = {self._foreign_ns * 1e-9:.3f} s on '
-                f"'{qos.ESTIMATE}' for {waited:.3f} s: activating")
-            self._runner.events['standby_activations'] += 1
+        if self._standby and not self._active and runner.started and self._standby.due(runner.time_ns, runner.start_ns):
+            self.get_logger().warning(f'standby: no estimate newer than t = {self._standby.foreign_ns * 1e-9:.3f} s '
+                                      f"on '{qos.ESTIMATE}': activating")
+            runner.events['standby_activations'] += 1
             self.trigger_activate()
 
     # ---------------------------------------------------------------- outputs
     def _publish(self, stamp_ns: int) -> None:
-        est = self._runner.estimator
-        data = encode_odometry(est.x_hat, est.P, stamp_ns, self._p['frame_id'], self._p['child_frame_id'])
-        self._answers.remember(stamp_ns, data)  # inactive too: a resend after activation needs it
-        if not self._active:
-            return
-        self._announce = False
-        self._estimate_pub.publish(data)
-        self._count_pub.publish(encode_uint32(est.spike_count))
-        if self._spikes_pub is not None:
-            self._spikes_pub.publish(encode_spikes(est.spikes if est.spiking else ()))
-            self._spikes_published += 1
-        self._published += 1
-        if self._diagnostics.due(stamp_ns):
+        self._out.publish(self._runner.estimator, stamp_ns, self._active)
+        self._announce = self._announce and not self._active
+        if self._active and self._out.diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
 
     def values(self) -> dict:
-        values = self._runner.values() if self._runner else {}
-        if self._costs is not None and self._runner.estimator.steps:  # the last step's cost
-            costs = self._costs.step(self._runner.estimator.spike_count)
-            values.update(synops_per_step=int(costs.synops), neuron_updates_per_step=int(costs.neuron_updates),
-                          dense_macs_per_step=int(costs.dense_macs),
-                          energy_per_step_pj_loihi=float(energy_pj(costs, 'loihi')))
-        values.update(estimates_published=self._published, estimates_resent=self._answers.resent,
-                      spikes_published=self._spikes_published,
-                      active=self._active, standby=self._p['standby'])
-        return values
+        """Everything the diagnostics report: the runner's counters, the outputs, the state."""
+        if self._runner is None:
+            return {'active': False, 'standby': self._p['standby']}
+        return {**self._runner.values(), **self._out.values(self._runner.estimator),
+                'active': self._active, 'standby': self._p['standby']}
 
     def _publish_diagnostics(self, stamp_ns: int | None = None) -> None:
-        runner = self._runner
-        stamp_ns = stamp_ns if stamp_ns is not None else runner.time_ns
+        stamp_ns = stamp_ns if stamp_ns is not None else self._runner.time_ns
         if stamp_ns is not None and self._active:
-            self._diagnostics.publish(stamp_ns, self.values(), runner.problems())
+            self._out.diagnostics.publish(stamp_ns, self.values(), self._runner.problems())
 
     # ---------------------------------------------------------------- services, parameters, time
     def _on_reset(self, request, response):
@@ -359,29 +368,12 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         """Validate all changes together and apply them between two steps, or none of them.
         Before configure, every parameter may change (configure reads them)."""
         changes = {p.name: p.value for p in parameters if not p.name.startswith('qos_overrides.')}
-        if self._runner is None or not changes:  # before configure: configure reads them
+        if self._runner is None or not changes:
             return SetParametersResult(successful=True)
-        read_only = sorted(n for n in changes if n not in RUNTIME and n in {s.name for s in ESTIMATOR})
-        if read_only:
-            return SetParametersResult(successful=False, reason=f'{read_only[0]} is read-only while configured '
-                                       '(ros2 lifecycle set /estimator cleanup, then configure again)')
-        estimator = self._runner.estimator
-        values = dict(self._p, **changes)
-        retune = {k: changes[k] for k in estimator.RETUNABLE if k in changes}
-        if 'boundary_layer' in retune:
-            retune['boundary_layer'] = list(retune['boundary_layer'])
-        try:  # validate everything before changing anything
-            silenced = silenced_set(values, estimator.neuron_count, estimator.settings.seed)
-            settings = runner_settings(values)
-            if retune:  # validated first (also against time_step); raises without changing
-                estimator.retune(**retune)
+        try:
+            self._p = apply_runtime_changes(self._runner, self._p, changes)
         except ValueError as error:
             return SetParametersResult(successful=False, reason=str(error))
-        self._runner.replace_settings(settings)
-        if estimator.spiking and ('silenced_neurons' in changes or 'silenced_fraction' in changes):
-            estimator.silence(silenced)
-            self._runner.events['silencing_changes'] += 1
-        self._p = values
         self.get_logger().info(f'parameters changed: {changes}')
         return SetParametersResult(successful=True)
 
@@ -389,7 +381,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         """Final diagnostics, so the totals of the run are on record."""
         if self._runner is not None and self._runner.started and self._active:
             self._publish_diagnostics()
-            self._diagnostics.flush()
+            self._out.diagnostics.flush()
 
 
 def main(args=None) -> int:

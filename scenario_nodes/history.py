@@ -14,10 +14,25 @@ from __future__ import annotations
 
 import time
 
+from geometry_msgs.msg import AccelStamped, PointStamped
+from nav_msgs.msg import Odometry
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.qos import DurabilityPolicy
 
+from snn_estimator.runner import History
+
+from . import qos
+from .codec import (
+    MessageError,
+    check_frame,
+    control_of,
+    decode_accel,
+    decode_odometry,
+    decode_point,
+    measurement_of,
+    state_of,
+)
 from .qos import HISTORY_QOS
 
 #: Seconds a node that has just started gives discovery to show it the publishers there are.
@@ -86,3 +101,29 @@ def _take(node, readers: dict, samples: dict) -> int:
                 samples[topic].append(taken[0])
                 taken_now += 1
     return taken_now
+
+
+def collect_history(node, frame_id: str, axes, wait: float) -> History:
+    """What the pipeline's topics hold for a joining estimator (an earlier estimator's
+    estimates, the sensor's measurements, the controller's controls), decoded and logged."""
+    raw = read_history(node, {qos.ESTIMATE: Odometry, qos.MEASUREMENT: PointStamped,
+                              qos.CONTROL: AccelStamped}, wait)
+    node.get_logger().info('history: ' + ', '.join(f"{len(raw[t])} on '{t}'" for t in raw))
+    return decode_history(raw, frame_id, axes)
+
+
+def decode_history(raw: dict, frame_id: str, axes) -> History:
+    """The history's samples as the runner takes them; malformed ones or ones in another frame
+    are skipped (they are not inputs of this loop)."""
+    readers = {qos.MEASUREMENT: (decode_point, lambda record: measurement_of(record, axes)),
+               qos.CONTROL: (decode_accel, control_of),
+               qos.ESTIMATE: (decode_odometry, lambda record: (state_of(record), record.covariance))}
+    decoded = {topic: {} for topic in readers}
+    for topic, (decode, extract) in readers.items():
+        for data in raw.get(topic, ()):
+            try:
+                record = check_frame(decode(data), frame_id)
+                decoded[topic][record.stamp_ns] = extract(record)
+            except MessageError:
+                continue
+    return History(decoded[qos.MEASUREMENT], decoded[qos.CONTROL], decoded[qos.ESTIMATE])

@@ -493,3 +493,30 @@ class FilterRunner:
             problems.append(f'{reinit} re-initialisations')
         return problems
 
+
+
+class Standby:
+    """When a standby estimator should take over: its own estimate is newer than the newest one
+    the active estimator published for ``timeout`` wall-clock seconds, or by two steps of
+    simulated time (the active one died or was deactivated; in lockstep the clock stops with
+    it, so the wall clock decides; in realtime the clock runs on, so it does)."""
+
+    def __init__(self, timeout: float, time_step: float, wall_clock: Callable[[], float] = time.monotonic):
+        self.timeout = timeout
+        self._lag_ns = 2 * seconds_to_ns(time_step)
+        self._wall = wall_clock
+        self.foreign_ns = -1  # newest estimate another estimator published
+        self._ahead_since: float | None = None
+
+    def saw(self, stamp_ns: int) -> None:
+        """An estimate another estimator published."""
+        self.foreign_ns = max(self.foreign_ns, stamp_ns)
+
+    def due(self, own_ns: int, start_ns: int) -> bool:
+        """True when the standby, whose estimate is at ``own_ns``, should activate."""
+        if own_ns <= self.foreign_ns:
+            self._ahead_since = None
+            return False
+        self._ahead_since = self._ahead_since or self._wall()
+        lag_ns = own_ns - max(self.foreign_ns, start_ns)
+        return self._wall() - self._ahead_since >= self.timeout or lag_ns >= self._lag_ns

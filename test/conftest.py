@@ -2,8 +2,15 @@
 
 import os
 
-# Every test run talks on its own DDS domain, on this host only (set before rclpy loads).
-os.environ.setdefault('ROS_DOMAIN_ID', str(101 + os.getpid() % 100))
+# Every test run talks on its own DDS domain, on this host only (set before rclpy loads), and
+# each pytest-xdist worker (gw0, gw1) on one beside its controller's. Domains stay within 1-101,
+# whose ports lie below Linux's ephemeral range.
+if 'PYTEST_XDIST_WORKER' in os.environ:
+    os.environ['ROS_DOMAIN_ID'] = str(int(os.environ['SNN_TEST_DOMAIN']) + 1
+                                      + int(os.environ['PYTEST_XDIST_WORKER'][2:]) % 2)
+else:
+    os.environ.setdefault('SNN_TEST_DOMAIN', str(1 + (os.getpid() % 33) * 3))
+    os.environ.setdefault('ROS_DOMAIN_ID', os.environ['SNN_TEST_DOMAIN'])
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 
 import numpy as np  # noqa: E402
