@@ -67,7 +67,7 @@ bench-loop: $(STAMP)
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 bench-campaign: $(STAMP)
-	$(BIN)/snn_campaign_bench --out results/campaign_bench.json
+	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json
 
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)

@@ -20,6 +20,8 @@ EXECUTABLES = {
     'snn_loop_bench': 'snn_tools.loop_bench:main',
     'snn_export': 'snn_tools.nir_export:main',
     'snn_neuromorphic': 'snn_tools.neuromorphic:main',
+    'snn_campaign': 'snn_tools.campaign:main',
+    'snn_campaign_bench': 'snn_tools.campaign_bench:main',
 }
 
 data_files = [
@@ -27,6 +29,7 @@ data_files = [
     (f'share/{PACKAGE}', ['package.xml']),
     (f'share/{PACKAGE}/launch', glob('launch/*.launch.py')),
     (f'share/{PACKAGE}/config', glob('config/*.yaml')),
+    (f'share/{PACKAGE}/config/campaigns', glob('config/campaigns/*.yaml')),
     (f'share/{PACKAGE}/rosdep', glob('rosdep/*.yaml')),
 ]
 # `ros2 run` looks for executables in <prefix>/lib/<package>. colcon puts the console scripts
