@@ -52,6 +52,7 @@ class RunData:
     receive_times: dict = field(default_factory=dict)  # pipeline topic -> (k,) ns, in bag order
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
     namespace: str = ''
+    repeats: dict = field(default_factory=dict)      # series -> resent samples left out of it
 
     def last_diagnostics(self, name: str) -> dict:
         entries = self.diagnostics.get(name)
@@ -99,6 +100,8 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
                     values = {kv.key: kv.value for kv in status.values}
                     run.diagnostics.setdefault(status.name, []).append((stamp, values))
     run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}
+    for name in ('truth', 'estimate', 'measurement', 'control'):
+        series[name], run.repeats[name] = _first_per_stamp(series[name])
     if series['truth']:
         run.truth_t = np.array([s[0] for s in series['truth']]) / NS
         run.truth = np.stack([s[1] for s in series['truth']])
@@ -117,6 +120,18 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
         for row, counts in zip(run.spikes, series['spikes']):
             row[:len(counts)] = counts
     return run
+
+
+def _first_per_stamp(samples: list) -> tuple[list, int]:
+    """Samples with a stamp already seen dropped (a lockstep resend repeats a sample when its
+    answer is late, docs/decisions.md 21; the copy is on record in the bag, once in the series),
+    and how many were dropped."""
+    seen, kept = set(), []
+    for sample in samples:
+        if sample[0] not in seen:
+            seen.add(sample[0])
+            kept.append(sample)
+    return kept, len(samples) - len(kept)
 
 
 def matched_errors(run: RunData) -> tuple[np.ndarray, np.ndarray]:

@@ -124,13 +124,22 @@ def _markdown(loaded, figures, out: Path) -> str:
     return '\n'.join(lines) + '\n'
 
 
+def default_output(runs: list[Path]) -> Path:
+    """Where the report goes unless --out says: into a run folder (it has bag/), beside a bare
+    bag as <bag>_report (never inside the bag, which ros2 bag owns), ./report for several."""
+    if len(runs) != 1:
+        return Path('report')
+    run = runs[0].resolve()
+    return run if (run / 'bag').exists() else run.parent / f'{run.name}_report'
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='report', description=__doc__.split('\n\n')[0])
     parser.add_argument('runs', nargs='+', type=Path, help='run folders (with bag/) or bag directories')
-    parser.add_argument('--out', type=Path, help='output folder (default: the single run, or ./report)')
+    parser.add_argument('--out', type=Path, help='output folder (default: a run folder itself, '
+                        '<bag>_report beside a bare bag, ./report for several)')
     args = parser.parse_args(argv)
-    out = args.out or (args.runs[0] if len(args.runs) == 1 and (args.runs[0] / 'bag').exists()
-                       else Path('report'))
+    out = args.out or default_output(args.runs)
     try:
         report = write_report(args.runs, out)
     except FileNotFoundError as error:

@@ -1,6 +1,8 @@
 """bag_tools on small bags written here with rosbags: bags the pipeline can produce besides the
 demo's (a hot swap, publish_spikes false, ``ros2 bag record -a`` with custom types)."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from scenario_nodes.codec import encode_odometry, encode_spikes, encode_uint32  
 from scenario_nodes.diagnostics import diagnostic_array  # noqa: E402
 from scenario_nodes.recorder_node import KNOWN_TYPES  # noqa: E402
 from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
-from snn_tools.report import write_report  # noqa: E402
+from snn_tools.report import default_output, write_report  # noqa: E402
 
 NS = 1_000_000_000
 STEP_NS = NS // 10
@@ -59,6 +61,28 @@ def test_spike_arrays_of_different_lengths_are_padded_with_zeros_and_reported(tm
     np.testing.assert_array_equal(run.spikes, [[1, 0, 2, 0, 0], [0, 0, 0, 0, 0], [0, 3, 0, 0, 1]])
     write_report([bag], tmp_path / 'report')
     assert (tmp_path / 'report' / 'spikes.png').stat().st_size > 10_000
+
+
+def test_a_resent_sample_is_on_record_once_per_stamp_and_counted(tmp_path):
+    # a lockstep plant resends x0 while the loop warms up, the estimator resends its answer
+    messages = steps(3)
+    resent = messages[:2] * 3  # truth and estimate of step 0, twice more
+    bag = write_bag(tmp_path / 'bag', messages[:3] + resent[2:] + messages[3:])
+    run = read_bag(bag)
+    assert run.counts['/truth'] == 5 and run.truth.shape == (3, 6)
+    np.testing.assert_array_equal(run.truth_t, [0.0, 0.1, 0.2])
+    np.testing.assert_array_equal(run.estimate[:, 0], [0.5, 1.5, 2.5])
+    assert run.repeats == {'truth': 2, 'estimate': 2, 'measurement': 0, 'control': 0}
+
+
+def test_the_report_goes_beside_a_bare_bag_into_a_run_folder_and_to_report_for_several(tmp_path):
+    bare = tmp_path / 'flights' / 'my_bag'
+    (bare).mkdir(parents=True)
+    run = tmp_path / 'runs' / 'demo'
+    (run / 'bag').mkdir(parents=True)
+    assert default_output([bare]) == tmp_path / 'flights' / 'my_bag_report'  # never inside the bag
+    assert default_output([run]) == run
+    assert default_output([bare, run]) == Path('report')
 
 
 def test_a_topic_of_a_type_the_typestore_does_not_know_is_counted_not_decoded(tmp_path):

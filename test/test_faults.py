@@ -70,9 +70,17 @@ class Monitor:
             self.executor.spin_once(timeout_sec=0.05)
         request = SetParameters.Request(parameters=[Parameter(k, value=v).to_parameter_msg()
                                                     for k, v in values.items()])
-        future = client.call_async(request)
-        while not future.done():
-            self.executor.spin_once(timeout_sec=0.05)
+        # setting the same values again is harmless: resent every 2 s, as a response the
+        # server writes before it has matched our reader is lost
+        while True:
+            future = client.call_async(request)
+            answer_by = time.monotonic() + 2.0
+            while not future.done() and time.monotonic() < answer_by:
+                self.executor.spin_once(timeout_sec=0.05)
+            if future.done():
+                break
+            client.remove_pending_request(future)
+            assert time.monotonic() < deadline, f'/{node_name}/set_parameters did not answer'
         results = future.result().results
         assert all(r.successful for r in results), [r.reason for r in results]
 
