@@ -13,8 +13,8 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from snn_estimator.blocks import lqr_control, lqr_gain
 from snn_estimator.gates import NewestFirst
-from snn_estimator.simulation import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
@@ -35,7 +35,7 @@ def design_gain(values: dict) -> np.ndarray:
 
 
 class ControllerNode(ProcessHooks, Node):
-    """Wraps :func:`snn_estimator.simulation.lqr_control`."""
+    """Wraps :func:`snn_estimator.blocks.lqr_control`."""
 
     def __init__(self, **kwargs):
         super().__init__('lqr_controller', **kwargs)

@@ -21,7 +21,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMessage
 
-from snn_estimator.simulation import Plant
+from snn_estimator.blocks import Plant
 
 from . import qos
 from .codec import MessageError, control_of, decode_accel, encode_clock, encode_odometry, seconds_to_ns
@@ -63,7 +63,7 @@ def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole
 
 
 class PlantNode(ProcessHooks, Node):
-    """Wraps :class:`snn_estimator.simulation.Plant`; holds no dynamics of its own."""
+    """Wraps :class:`snn_estimator.blocks.Plant`; holds no dynamics of its own."""
 
     NAME, SPECS = 'cw_plant', PLANT
 
@@ -201,7 +201,7 @@ class PlantNode(ProcessHooks, Node):
         waited = now - self._waiting_since
         if now - self._sent_at > self._p['resend_period']:
             # a sample lost on a best-effort link would stall the lockstep loop: send it again;
-            # every node answers a repeated input with its answer to it (README, "Lockstep")
+            # every node answers a repeated input with its answer to it (docs/decisions.md, 21)
             self._truth_resent += 1
             self._publish_sample(resend=True)
         if self._step < STARTUP_STEPS:  # processes still warming up: no timeouts yet

@@ -6,8 +6,8 @@ from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
+from snn_estimator.blocks import PositionSensor
 from snn_estimator.gates import NewestFirst
-from snn_estimator.simulation import PositionSensor
 
 from . import qos
 from .codec import MessageError, check_frame, decode_odometry, encode_point, state_of
@@ -17,7 +17,7 @@ from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_no
 
 
 class SensorNode(ProcessHooks, Node):
-    """Wraps :class:`snn_estimator.simulation.PositionSensor`: one measurement per truth sample,
+    """Wraps :class:`snn_estimator.blocks.PositionSensor`: one measurement per truth sample,
     stamped with the truth's time, NaN on the axes it does not measure."""
 
     def __init__(self, **kwargs):

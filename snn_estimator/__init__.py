@@ -14,11 +14,11 @@ import importlib
 
 _EXPORTS = {
     'EstimatorConfig': 'config', 'SPIKE_RULES': 'config',
-    'FILTER_KINDS': 'estimators', 'TWIN_OF': 'estimators', 'Estimator': 'estimators',
+    'FILTER_KINDS': 'catalog', 'TWIN_OF': 'catalog', 'Estimator': 'estimators',
     'make_estimator': 'estimators',
     'ClohessyWiltshire': 'models', 'StateSpaceModel': 'models', 'VanDerPol': 'models',
-    'Plant': 'simulation', 'PositionSensor': 'simulation', 'Scenario': 'simulation',
-    'lqr_control': 'simulation', 'lqr_gain': 'simulation', 'rendezvous_scenario': 'simulation',
+    'Plant': 'blocks', 'PositionSensor': 'blocks', 'Scenario': 'simulation',
+    'lqr_control': 'blocks', 'lqr_gain': 'blocks', 'rendezvous_scenario': 'simulation',
     'simulate': 'simulation', 'van_der_pol_scenario': 'simulation',
 }
 

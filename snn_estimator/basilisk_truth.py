@@ -1,6 +1,6 @@
 """Basilisk truth plant: the chaser's motion relative to the target integrated by Basilisk.
 
-A drop-in for :class:`snn_estimator.simulation.Plant` (same ``runs``, ``x``, ``time`` and
+A drop-in for :class:`snn_estimator.blocks.Plant` (same ``runs``, ``x``, ``time`` and
 ``step(u, dt)``) whose truth is not the CW model but two-body gravity, optionally with Earth's
 J2, integrated by Basilisk (``bsk==2.12.1``, the ``basilisk`` extra). One Basilisk simulation
 holds the uncontrolled target and one chaser per run; every spacecraft has its own integrator
@@ -60,10 +60,11 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Sequence
 
+import numba
 import numpy as np
 
+from .blocks import PLANT_STREAM, GaussianStream, matrix_sqrt
 from .models import DEFAULT_ORBIT_RADIUS, EARTH_MU, ClohessyWiltshire
-from .simulation import PLANT_STREAM, GaussianStream, matrix_sqrt
 from .validation import as_matrix, check_covariance, check_positive
 
 #: Earth's unnormalised J2 and the equatorial radius it refers to, m.
@@ -182,36 +183,100 @@ def _import_basilisk() -> SimpleNamespace:
         SphericalHarmonicsGravityModel=SphericalHarmonicsGravityModel)
 
 
+@numba.njit(cache=True)
 def _apply(matrix: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     """``matrix @ v`` for every row ``v`` of ``vectors``.
 
     Summed in the same order for every row: a BLAS product may block differently for
     different batch sizes, and run b must not depend on how many runs share the batch.
     """
-    return (vectors[:, None, :] * matrix).sum(axis=2)
+    out = np.zeros((vectors.shape[0], matrix.shape[0]))
+    for b in range(vectors.shape[0]):
+        for i in range(matrix.shape[0]):
+            total = 0.0
+            for j in range(matrix.shape[1]):
+                total += matrix[i, j] * vectors[b, j]
+            out[b, i] = total
+    return out
 
 
-def _cross(a, b) -> tuple[float, float, float]:
-    """a x b for 3-sequences of floats (np.cross costs ~10x more on single vectors)."""
-    return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+_NO_GRAVITY = np.zeros(3)
 
 
-def _skew(w) -> np.ndarray:
-    """The matrix W with W v = w x v."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+@numba.njit(cache=True)
+def _frame_matrices(target, gravity, j2, half_dt):
+    """From the target's inertial state [r, v] (and, under J2, its gravity acceleration):
+    the 6x6 taking an inertial relative state to LVLH, its inverse, and the 3x3 taking an
+    LVLH vector to inertial along the LVLH axes rotated by omega half_dt (compiled: a ROS
+    plant step is otherwise dominated by this bookkeeping on 3-vectors)."""
+    r, v = target[:3], target[3:]
+    h = np.cross(r, v)
+    radius, h_norm = np.sqrt(r @ r), np.sqrt(h @ h)
+    r_hat, h_hat = r / radius, h / h_norm
+    # rows: the LVLH x (V-bar), y (H-bar) and z (R-bar) axes in inertial components
+    axes = np.empty((3, 3))
+    axes[0], axes[1], axes[2] = np.cross(h_hat, r_hat), -h_hat, -r_hat
+    normal_rate = radius * (gravity @ h_hat) / h_norm if j2 else 0.0
+    omega = np.array([0.0, -h_norm / radius ** 2, -normal_rate])  # LVLH components
+    omega_cross = np.array([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]],
+                            [-omega[1], omega[0], 0.0]])
+    # rho = C dr, rho' = C dv - omega x rho; back: dr = C^T rho, dv = C^T (rho' + omega x rho)
+    to_frame = np.zeros((6, 6))
+    to_frame[:3, :3] = axes
+    to_frame[3:, 3:] = axes
+    to_frame[3:, :3] = -(omega_cross @ axes)
+    from_frame = np.zeros((6, 6))
+    from_frame[:3, :3] = axes.T
+    from_frame[3:, 3:] = axes.T
+    from_frame[3:, :3] = axes.T @ omega_cross
+    # Rodrigues: rotation by the vector omega half_dt
+    w = omega * half_dt
+    angle = np.sqrt(w @ w)
+    rotation = np.eye(3)
+    if angle > 0.0:
+        x, y, z = w / angle
+        s, c = np.sin(angle), np.cos(angle)
+        t = 2.0 * np.sin(0.5 * angle) ** 2  # 1 - cos(angle) without cancellation
+        rotation = np.array([[c + x * x * t, x * y * t - z * s, x * z * t + y * s],
+                             [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
+                             [z * x * t - y * s, z * y * t + x * s, c + z * z * t]])
+    return to_frame, from_frame, axes.T @ rotation
 
 
-def _rotation(rotation_vector) -> np.ndarray:
-    """Rotation matrix of a rotation vector: angle |w| about w / |w| (Rodrigues)."""
-    angle = math.hypot(*rotation_vector)
-    if angle == 0.0:
-        return np.eye(3)
-    x, y, z = (component / angle for component in rotation_vector)
-    s, c = math.sin(angle), math.cos(angle)
-    t = 2.0 * math.sin(0.5 * angle) ** 2  # 1 - cos(angle) without cancellation
-    return np.array([[c + x * x * t, x * y * t - z * s, x * z * t + y * s],
-                     [y * x * t + z * s, c + y * y * t, y * z * t - x * s],
-                     [z * x * t - y * s, z * y * t + x * s, c + z * z * t]])
+@numba.njit(cache=True)
+def _forces_of(command, limit, mid_step_axes, mass, previous):
+    """The step's command clipped per axis at ``limit`` (inf: no limit), which runs were
+    clipped, the inertial forces along the mid-step LVLH axes and which runs' force changed
+    (one compiled call: in a ROS plant, between DDS callbacks, numpy's per-call overhead on
+    3-vectors was most of the step)."""
+    applied = np.minimum(np.maximum(command, -limit), limit)
+    saturated = np.zeros(command.shape[0], dtype=np.int64)
+    for b in range(command.shape[0]):
+        for i in range(3):
+            if applied[b, i] != command[b, i]:
+                saturated[b] = 1
+    forces = mass * _apply(mid_step_axes, applied)
+    changed = np.zeros(command.shape[0], dtype=np.bool_)
+    for b in range(command.shape[0]):
+        for i in range(3):
+            if forces[b, i] != previous[b, i]:
+                changed[b] = True
+    return applied, saturated, forces, changed
+
+
+@numba.njit(cache=True)
+def _after_step(states, gravity, j2, half_dt, noisy, noise_root, draw):
+    """From the inertial states after a step (target first): the chasers' LVLH states (plus
+    process noise when ``noisy``), the noisy states back in inertial components, and the
+    frame matrices of :func:`_frame_matrices` for the new target state."""
+    target = states[0]
+    to_frame, from_frame, mid_step_axes = _frame_matrices(target, gravity, j2, half_dt)
+    x = _apply(to_frame, states[1:] - target)
+    inertial = states[1:]
+    if noisy:
+        x = x + _apply(noise_root, draw)
+        inertial = target + _apply(from_frame, x)
+    return x, inertial, to_frame, from_frame, mid_step_axes
 
 
 class BasiliskPlant:
@@ -250,6 +315,7 @@ class BasiliskPlant:
         self.q = check_covariance(as_matrix(process_noise, (6, 6), 'process_noise (Q)'),
                                   'process_noise (Q)', allow_singular=True)
         self._noise = None
+        self._noise_root, self._no_draw = np.zeros((6, 6)), np.zeros((self.runs, 6))
         if np.any(self.q):
             self._noise = GaussianStream(seeds, PLANT_STREAM, 6)
             self._noise_root = matrix_sqrt(self.model.process_noise_discrete(self.q, self.dt))
@@ -261,6 +327,18 @@ class BasiliskPlant:
         self.time = 0.0
         self.applied = np.zeros((self.runs, 3))
         self.saturated_steps = np.zeros(self.runs, dtype=np.int64)
+        self._compile_step()
+
+    def _compile_step(self) -> None:
+        """Compile the step's kernels for this plant's argument types (or load them from
+        numba's cache), changing nothing: the first step of a ROS plant is then not seconds
+        long. The noise draw is a view like GaussianStream's rows."""
+        _forces_of(np.zeros((self.runs, 3)), self.acceleration_limit, self._mid_step_axes, self.chaser_mass,
+                   self._forces)
+        states = self._read()
+        draw = np.zeros((self.runs, 2, 6))[:, 0, :] if self._noise is not None else self._no_draw
+        _after_step(states, self._gravity(states[0]), self.orbit.j2, 0.5 * self.dt, self._noise is not None,
+                    self._noise_root, draw)
 
     @property
     def acceleration_limit(self) -> float:
@@ -281,19 +359,21 @@ class BasiliskPlant:
         """Advance by ``dt`` (the task period) with the specific force ``u`` (m/s^2, LVLH,
         shape (3,) or (runs, 3)) held; returns x, shape (runs, 6)."""
         self._check_step(dt)
-        command = self._command(u)
-        applied = (command if self.thrust_limit is None
-                   else np.clip(command, -self.acceleration_limit, self.acceleration_limit))
-        self.saturated_steps += (applied != command).any(axis=1)
-        self.applied = applied
-        self._set_forces(self.chaser_mass * _apply(self._mid_step_axes, applied))
+        self.applied, saturated, forces, changed = _forces_of(
+            self._command(u), self.acceleration_limit, self._mid_step_axes, self.chaser_mass, self._forces)
+        self.saturated_steps += saturated
+        for b in np.flatnonzero(changed):
+            self._effectors[b].extForce_N = forces[b]
+        self._forces = forces
         self._sim.SingleStepProcesses()
         states = self._read()
-        self._set_frame(states[0])
-        x = self._to_lvlh(states[1:])
-        if self._noise is not None:
-            x = x + _apply(self._noise_root, self._noise.draw())
-            self._write_chasers(x)
+        noisy = self._noise is not None
+        x, inertial, self._to_frame, self._from_frame, self._mid_step_axes = _after_step(
+            states, self._gravity(states[0]), self.orbit.j2, 0.5 * self.dt, noisy,
+            self._noise_root, self._noise.draw() if noisy else self._no_draw)
+        self._target = states[0]
+        if noisy:
+            self._set_chaser_states(inertial)
         self.x = x
         self.time = self._sim.CurrentNanos * 1e-9
         return x
@@ -416,45 +496,36 @@ class BasiliskPlant:
         """From the target's inertial state: ``_to_frame`` (6x6) taking an inertial relative
         state to LVLH, its inverse ``_from_frame``, and ``_mid_step_axes`` (3x3) taking an LVLH
         vector to inertial along the LVLH axes of the next step's middle."""
-        r, v = target[:3].tolist(), target[3:].tolist()
-        h = _cross(r, v)
-        radius, h_norm = math.hypot(*r), math.hypot(*h)
-        r_hat = [component / radius for component in r]
-        h_hat = [component / h_norm for component in h]
-        # rows: the LVLH x (V-bar), y (H-bar) and z (R-bar) axes in inertial components
-        axes = np.array([_cross(h_hat, r_hat), [-c for c in h_hat], [-c for c in r_hat]])
-        normal_rate = 0.0
-        if self.orbit.j2:  # point-mass gravity is radial and cannot turn the orbit plane
-            gravity = self._earth.computeGravityInertial(r, self._sim.CurrentNanos)
-            normal_rate = radius * sum(g * n for (g,), n in zip(gravity, h_hat)) / h_norm
-        omega = (0.0, -h_norm / radius ** 2, -normal_rate)  # LVLH components
-        omega_cross = _skew(omega)
-        # rho = C dr, rho' = C dv - omega x rho; back: dr = C^T rho, dv = C^T (rho' + omega x rho)
-        to_frame = np.zeros((6, 6))
-        to_frame[:3, :3] = to_frame[3:, 3:] = axes
-        to_frame[3:, :3] = -omega_cross @ axes
-        from_frame = np.zeros((6, 6))
-        from_frame[:3, :3] = from_frame[3:, 3:] = axes.T
-        from_frame[3:, :3] = axes.T @ omega_cross
-        self._to_frame, self._from_frame = to_frame, from_frame
-        self._mid_step_axes = axes.T @ _rotation([0.5 * self.dt * w for w in omega])
+        self._to_frame, self._from_frame, self._mid_step_axes = _frame_matrices(
+            target, self._gravity(target), self.orbit.j2, 0.5 * self.dt)
         self._target = target
 
-    def _to_lvlh(self, chasers: np.ndarray) -> np.ndarray:
-        return _apply(self._to_frame, chasers - self._target)
+    def _gravity(self, target: np.ndarray) -> np.ndarray:
+        """The field's acceleration at the target (J2 only: point-mass gravity is radial and
+        cannot turn the orbit plane)."""
+        if not self.orbit.j2:
+            return _NO_GRAVITY
+        return np.array(self._earth.computeGravityInertial(target[:3].tolist(), self._sim.CurrentNanos),
+                        dtype=float).reshape(3)
 
     def _write_chasers(self, x: np.ndarray) -> None:
-        """Set every chaser's inertial state to the LVLH state ``x`` (inverse of _to_lvlh)."""
-        states = self._target + _apply(self._from_frame, x)
+        """Set every chaser's inertial state to the LVLH state ``x``."""
+        self._set_chaser_states(self._target + _apply(self._from_frame, x))
+
+    def _set_chaser_states(self, states: np.ndarray) -> None:
+        """Set every chaser's inertial [r, v], (runs, 6)."""
         for b in range(self.runs):
             self._states[2 * b + 2].setState(states[b, :3])
             self._states[2 * b + 3].setState(states[b, 3:])
 
-    def _set_forces(self, forces: np.ndarray) -> None:
-        for b in np.flatnonzero((forces != self._forces).any(axis=1)):
-            self._effectors[b].extForce_N = forces[b]
-        self._forces = forces
+
+
+def warm_up() -> None:
+    """Fill numba's cache with the step kernels for the plants the package builds (one run
+    and a batch, with and without process noise); ``make`` calls this at install."""
+    for runs, noise in ((1, 1e-12), (2, 1e-12), (1, 0.0)):
+        BasiliskPlant(np.zeros(6), noise * np.eye(6), seeds=list(range(runs)), dt=0.1)
 
 
 __all__ = ['BASILISK_REQUIREMENT', 'BasiliskPlant', 'EARTH_EQUATORIAL_RADIUS', 'EARTH_J2',
-           'OrbitSettings', 'redirect_caches']
+           'OrbitSettings', 'redirect_caches', 'warm_up']

@@ -15,7 +15,7 @@ kind                  gain                                            state inte
 ====================  ==============================================  ====================
 
 With C = [I 0] (positions measured) the MSIF/SIF gain C^+ sat(.) has zero velocity rows: the
-literal (S)EMSIF never corrects a velocity error (README, "Decisions"). The hybrid keeps the
+literal (S)EMSIF never corrects a velocity error (docs/decisions.md, 16). The hybrid keeps the
 sliding gain on the measured directions and adds the Kalman gain projected on the unmeasured
 ones, (I - C^+ C) P C^T R^-1, with P the covariance of the gain actually used.
 
@@ -31,7 +31,7 @@ at t_k and the control u_k held over [t_k, t_k + dt) to the estimate at t_k + dt
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from typing import Sequence
 
 import numpy as np
 import scipy.linalg
@@ -39,10 +39,11 @@ import scipy.special
 from scipy.optimize import nnls
 
 from . import kernels
+from .catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind  # noqa: F401 (re-exported)
 from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from .models import StateSpaceModel
 
-NETWORK_STREAM = 3  # rng stream id of the decoder and membrane noise (see seeding in README)
+NETWORK_STREAM = 3  # rng stream id of the decoder and membrane noise (README, "Time and seeds")
 DISPERSION_STREAM = 5  # rng stream id of the dispersed initial estimate
 
 _GAINS = {'kalman': kernels.GAIN_KALMAN, 'msif': kernels.GAIN_MSIF, 'sif': kernels.GAIN_SIF,
@@ -53,44 +54,6 @@ _RULES = {'greedy': kernels.RULE_GREEDY, 'one_per_step': kernels.RULE_ONE_PER_ST
           'all_above': kernels.RULE_ALL_ABOVE}
 
 
-class FilterKind(NamedTuple):
-    """What a filter kind is made of."""
-
-    gain: str            # kalman | msif | sif | msif_hybrid
-    spiking: bool        # the state lives in a spiking network (Eq. 10-15)
-    covariance: str      # riccati (Eq. 6) | gain (the covariance of the gain used) | none
-    twin: str | None     # the non-spiking filter a spiking one implements
-    label: str           # as tables and figures name it
-    summary: str
-
-
-#: The filter kinds, in the order tables list them.
-FILTER_KINDS = {
-    'ekf': FilterKind('kalman', False, 'riccati', None, 'EKF', 'extended Kalman filter (Eq. 3-6)'),
-    'emsif': FilterKind('msif', False, 'riccati', None, 'EMSIF',
-                        'extended modified sliding innovation filter as printed (Eq. 8-9)'),
-    'esif': FilterKind('sif', False, 'none', None, 'ESIF', 'extended sliding innovation filter (Eq. 7)'),
-    'emsif_hybrid': FilterKind('msif_hybrid', False, 'gain', None, 'EMSIF-H',
-                               'EMSIF on the measured states, Kalman gain on the unmeasured ones'),
-    'emsif_weighted': FilterKind('msif_weighted', False, 'gain', None, 'EMSIF-W',
-                                 'EMSIF with the covariance-weighted inverse P C^T (C P C^T)^-1 for C^+'),
-    'snn_ekf': FilterKind('kalman', True, 'riccati', 'ekf', 'SNN-EKF', 'SNN-EKF (Eq. 14-20)'),
-    'snn_emsif': FilterKind('msif', True, 'riccati', 'emsif', 'SNN-EMSIF', 'SNN-EMSIF (Eq. 21-22)'),
-    'snn_emsif_star': FilterKind('sif', True, 'none', 'esif', 'SNN-EMSIF*', 'SNN-EMSIF* (Eq. 23-24)'),
-    'snn_emsif_hybrid': FilterKind('msif_hybrid', True, 'gain', 'emsif_hybrid', 'SNN-EMSIF-H',
-                                   'spiking twin of emsif_hybrid'),
-    'snn_emsif_weighted': FilterKind('msif_weighted', True, 'gain', 'emsif_weighted', 'SNN-EMSIF-W',
-                                     'spiking twin of emsif_weighted'),
-}
-#: The non-spiking filter each spiking filter implements.
-TWIN_OF = {kind: spec.twin for kind, spec in FILTER_KINDS.items() if spec.twin}
-#: Kinds whose every run converges from a dispersed start on the rendezvous (final range below
-#: 0.1 m); the literal (S)EMSIF/ESIF gains have zero velocity rows with position-only
-#: measurements and do not, and the hybrid corrects the velocity too slowly
-#: (results/rendezvous_dispersed.json).
-CONVERGES_FROM_DISPERSION = ('ekf', 'emsif_weighted', 'snn_ekf', 'snn_emsif_weighted')
-#: Filters of the paper (the others are this package's remedies).
-PAPER_KINDS = ('ekf', 'emsif', 'esif', 'snn_ekf', 'snn_emsif', 'snn_emsif_star')
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -407,7 +370,7 @@ class Estimator:
             self._thresholds, self._alive, self._r, self._v, self._scale, self._spikes,
             self._total_spikes, self._x_hat)
 
-    #: Settings that may change between steps (Sec. "Parameters" of the README).
+    #: Settings that may change between steps (the [runtime] parameters of docs/parameters.md).
     RETUNABLE = ('leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
                  'membrane_noise')
 

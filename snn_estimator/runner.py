@@ -32,12 +32,11 @@ from typing import Callable, Mapping
 
 import numpy as np
 
+from .catalog import START_MODES  # noqa: F401 (re-exported)
 from .estimators import Estimator
 from .gates import NS, seconds_ahead, seconds_to_ns
 from .initialization import least_squares_start
 
-#: Start-up strategies of :meth:`FilterRunner.start`.
-START_MODES = ('auto', 'parameters', 'last_estimate', 'history')
 #: Controls kept for pairing and replay.
 CONTROL_MEMORY = 2000
 
@@ -233,7 +232,7 @@ class FilterRunner:
 
     # ---------------------------------------------------------------- start-up
     def start(self, mode: str, history: History | None = None) -> str:
-        """Choose how to start (see :data:`START_MODES`) and do it; returns what was done:
+        """Choose how to start (see :data:`snn_estimator.catalog.START_MODES`) and do it; returns what was done:
         'last_estimate' (warm start, replaying the queued measurements), 'history'
         (least-squares fit), or 'waiting' (the configured initial state at the next
         measurement). 'auto' takes the first that the history allows, in that order."""

@@ -1,4 +1,4 @@
-"""Truth, sensor, LQR and the offline closed loop: the same objects the ROS nodes wrap.
+"""The offline closed loop on the blocks the ROS nodes wrap (truth, sensor, LQR: blocks.py).
 
 One step of the loop at t_k (identical in the ROS pipeline):
 ``u_k = -K x_hat_k``; ``z_k = C x_k + v_k``; ``x_hat_{k+1} = estimator.step(z_k, u_k, dt)``;
@@ -19,119 +19,19 @@ import numpy as np
 import scipy.stats
 
 from . import defaults as D
+from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the loop)
+    PLANT_STREAM,
+    SENSOR_STREAM,
+    GaussianStream,
+    Plant,
+    PositionSensor,
+    lqr_control,
+    lqr_gain,
+    matrix_sqrt,
+)
 from .config import EstimatorConfig
 from .estimators import TWIN_OF, make_estimator
 from .models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
-from .validation import as_matrix, as_vector, check_covariance
-
-PLANT_STREAM = 1
-SENSOR_STREAM = 2
-
-
-def matrix_sqrt(covariance: np.ndarray) -> np.ndarray:
-    """A square root L with L L^T = covariance (works for singular PSD matrices)."""
-    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
-    return vectors * np.sqrt(np.clip(values, 0.0, None))
-
-
-class GaussianStream:
-    """Per-run N(0, I) draws, taken from each run's generator in blocks.
-
-    Drawing a block of k rows gives the same numbers as k single draws, so a single ROS node
-    and an offline batch see the same noise for the same seed.
-    """
-
-    def __init__(self, seeds: Sequence[int], stream: int, width: int, block: int = 512):
-        self._rngs = [np.random.default_rng([int(s), stream]) for s in seeds]
-        self._width = width
-        self._block = block
-        self._buffer = np.empty((len(self._rngs), 0, width))
-        self._next = 0
-
-    def draw(self) -> np.ndarray:
-        """One row per run, shape (runs, width)."""
-        if self._next >= self._buffer.shape[1]:
-            self._buffer = np.stack([g.standard_normal((self._block, self._width))
-                                     for g in self._rngs])
-            self._next = 0
-        row = self._buffer[:, self._next, :]
-        self._next += 1
-        return row
-
-
-class Plant:
-    """Truth propagation: exact (ZOH) for linear models, RK4 otherwise, plus process noise
-    of spectral density Q (Van Loan discretisation)."""
-
-    #: RK4 steps per sample for nonlinear truth models.
-    substeps = 4
-
-    def __init__(self, model: StateSpaceModel, x0, process_noise, seeds: Sequence[int] = (0,)):
-        self.model = model
-        n = model.n_state
-        self.runs = len(seeds)
-        self.x = np.broadcast_to(as_vector(x0, n, 'x0'), (self.runs, n)).copy()
-        self.q = check_covariance(as_matrix(process_noise, (n, n), 'process_noise (Q)'),
-                                  'process_noise (Q)', allow_singular=True)
-        self._noise = GaussianStream(seeds, PLANT_STREAM, n)
-        self._sqrt_cache: dict[float, np.ndarray] = {}
-        self.time = 0.0
-        #: The control applied in the last step and the steps it had to be clipped in (never:
-        #: the CW truth has no thrust limit; the Basilisk truth does).
-        self.applied = np.zeros((self.runs, model.n_input))
-        self.saturated_steps = np.zeros(self.runs, dtype=np.int64)
-
-    def step(self, u, dt: float) -> np.ndarray:
-        """Advance by ``dt`` with ``u`` held; returns x, shape (runs, n)."""
-        u = np.asarray(u, dtype=float).reshape(self.runs, -1)
-        root = self._sqrt_cache.get(dt)
-        if root is None:
-            root = matrix_sqrt(self.model.process_noise_discrete(self.q, dt))
-            self._sqrt_cache[dt] = root
-        self.x = (self.model.transition(self.x, u, dt, 'exact', substeps=self.substeps)
-                  + self._noise.draw() @ root.T)
-        self.applied = u
-        self.time += dt
-        return self.x
-
-
-class PositionSensor:
-    """Noisy partial measurement ``z = C x + v``, v ~ N(0, R) per sample."""
-
-    def __init__(self, model: StateSpaceModel, measurement_noise, seeds: Sequence[int] = (0,)):
-        self.model = model
-        m = model.n_meas
-        self.r = check_covariance(as_matrix(measurement_noise, (m, m), 'measurement_noise (R)'),
-                                  'measurement_noise (R)')
-        self._root = matrix_sqrt(self.r)
-        self._noise = GaussianStream(seeds, SENSOR_STREAM, m)
-
-    def measure(self, x) -> np.ndarray:
-        x = np.asarray(x, dtype=float)
-        return x @ self.model.measurement_matrix.T + self._noise.draw() @ self._root.T
-
-
-def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
-    """Continuous-time LQR gain K (u = -K x, Eq. 42) from python-control, for a linear model."""
-    if not model.is_linear:
-        raise ValueError('LQR design needs a linear model')
-    n, m = model.n_state, model.n_input
-    q = check_covariance(as_matrix(state_weight, (n, n), 'lqr_state_weight (Qc)'),
-                         'lqr_state_weight (Qc)', allow_singular=True)
-    r = check_covariance(as_matrix(input_weight, (m, m), 'lqr_input_weight (Rc)'),
-                         'lqr_input_weight (Rc)')
-    a = model.jacobian(np.zeros(n), np.zeros(m))
-    import control  # imported here: python-control loads matplotlib, which no other core path needs
-    try:
-        gain, _, _ = control.lqr(a, model.input_matrix, q, r)
-    except Exception as error:  # python-control raises several types for an unsolvable ARE
-        raise ValueError(f'LQR design failed for these weights: {error}') from error
-    return np.asarray(gain, dtype=float)
-
-
-def lqr_control(gain: np.ndarray, x_hat) -> np.ndarray:
-    """u = -K x_hat (Eq. 42), batched."""
-    return -(np.asarray(x_hat, dtype=float) @ gain.T)
 
 
 @dataclass(frozen=True)
@@ -315,32 +215,32 @@ class SimulationResult:
         return np.abs(self.control).sum(axis=(1, 2)) * self.scenario.dt
 
     def consistency(self, seconds: float | None = None) -> dict:
-        """Average NEES and NIS over the final window against their 95 % chi-square bounds.
-
-        Per step the average over the R runs is compared with chi2(R d)/R at 2.5 % and 97.5 %
-        (d = n states for NEES, m measurements for NIS; Bar-Shalom et al., Sec. 5.4). Reported:
-        the time average of that per-step average, the bounds, the share of steps inside them,
-        and a verdict: consistent (>= 90 % of steps inside), overconfident (the +-3 sigma the
-        filter publishes is too narrow: mostly above) or conservative (mostly below). Empty
-        for a filter without a covariance.
-        """
+        """Average NEES and NIS over the final window against their 95 % chi-square bounds
+        (:func:`consistency_check`); empty for a filter without a covariance."""
         if self.nees is None:
             return {}
         window = self.window(seconds)
-        record = {}
-        for name, values, dof in (('nees', self.nees[:, window], self.truth.shape[2]),
-                                  ('nis', self.nis[:, window.start - 1:window.stop - 1],
-                                   self.scenario.model.n_meas)):
-            runs = values.shape[0]
-            per_step = values.mean(axis=0)
-            low, high = (scipy.stats.chi2.ppf(q, runs * dof) / runs for q in (0.025, 0.975))
-            inside = float(np.mean((per_step >= low) & (per_step <= high)))
-            above = float(np.mean(per_step > high))
-            verdict = ('consistent' if inside >= 0.9 else
-                       'overconfident' if above > 0.5 * (1.0 - inside) else 'conservative')
-            record[name] = {'average': float(per_step.mean()), 'dof': dof, 'bounds': [float(low), float(high)],
-                            'fraction_inside': inside, 'verdict': verdict}
-        return record
+        runs = self.nees.shape[0]
+        return {'nees': consistency_check(self.nees[:, window].mean(axis=0), runs, self.truth.shape[2]),
+                'nis': consistency_check(self.nis[:, window.start - 1:window.stop - 1].mean(axis=0), runs,
+                                         self.scenario.model.n_meas)}
+
+
+def consistency_check(per_step: np.ndarray, runs: int, dof: int) -> dict:
+    """Judge a filter's covariance from the per-step average over ``runs`` runs of its NEES
+    (dof = states) or NIS (dof = measurements): each step's average is compared with
+    chi2(runs dof)/runs at 2.5 % and 97.5 % (Bar-Shalom et al., Sec. 5.4). Returns the time
+    average, the bounds, the share of steps inside them and a verdict: consistent (>= 90 % of
+    steps inside), overconfident (the +-3 sigma the filter publishes is too narrow: mostly
+    above) or conservative (mostly below)."""
+    per_step = np.asarray(per_step, dtype=float)
+    low, high = (scipy.stats.chi2.ppf(q, runs * dof) / runs for q in (0.025, 0.975))
+    inside = float(np.mean((per_step >= low) & (per_step <= high)))
+    above = float(np.mean(per_step > high))
+    verdict = ('consistent' if inside >= 0.9 else
+               'overconfident' if above > 0.5 * (1.0 - inside) else 'conservative')
+    return {'average': float(per_step.mean()), 'dof': dof, 'bounds': [float(low), float(high)],
+            'fraction_inside': inside, 'verdict': verdict}
 
 
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,

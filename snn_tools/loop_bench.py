@@ -5,7 +5,7 @@ run, the real-time factor and the CPU time each node's process used per step. Th
 from /proc (Linux) over the middle 60 % of the plant's stepping (its diagnostics say when the
 stepping ended and how long it took), so start-up and shut-down are left out; steps in that
 window are counted at the run's mean rate. Reading /proc every 50 ms
-costs the machine a little itself. The README's "Performance" figures come from this tool.
+costs the machine a little itself. The figures of docs/performance.md come from this tool.
 """
 
 from __future__ import annotations
@@ -93,7 +93,7 @@ class CpuSampler:
 
 
 def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = True,
-              scheduling: str = 'batch') -> dict:
+              scheduling: str = 'batch', plant: str = 'cw') -> dict:
     """One lockstep run; returns its real-time factor and CPU per step by node."""
     from .bag_tools import read_bag, summarize
 
@@ -105,13 +105,13 @@ def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = T
 
     try:
         result = run_pipeline(run_dir, estimator, 'lockstep', duration=duration, on_start=watch,
-                              pin_cpus=pin_cpus, scheduling=scheduling)
+                              pin_cpus=pin_cpus, scheduling=scheduling, plant=plant)
     finally:
         for sampler in samplers:
             sampler.stop()
     run = read_bag(result['bag'])
     summary = summarize(run)
-    stepping_end = float(run.last_diagnostics('cw_plant').get('finished_unix_time', 0.0))
+    stepping_end = float(run.last_diagnostics(f'{plant}_plant').get('finished_unix_time', 0.0))
     cpu = samplers[0].cpu_per_step(stepping_end, summary['wall_time_s'], summary['steps'])
     return {'real_time_factor': summary['real_time_factor'], 'steps': summary['steps'],
             'scheduling': result['scheduling'],
@@ -122,6 +122,7 @@ def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = T
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='snn_loop_bench', description=__doc__.split('\n\n')[0])
     parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS))
+    parser.add_argument('--plant', default='cw', choices=('cw', 'basilisk'), help='truth plant (default cw)')
     parser.add_argument('--runs', type=int, default=5, help='lockstep runs (default 5)')
     parser.add_argument('--duration', type=float, default=720.0,
                         help='simulated seconds per run (default 720: long enough for a CPU window)')
@@ -133,14 +134,15 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.runs < 1 or args.duration <= 0:
         parser.error('--runs must be >= 1 and --duration > 0')
-    print(f'snn_loop_bench: {args.runs} lockstep runs of {args.duration:.0f} s with {args.estimator}, '
+    print(f'snn_loop_bench: {args.runs} lockstep runs of {args.duration:.0f} s with {args.estimator} '
+          f'and the {args.plant} plant, '
           f'{os.cpu_count()} CPUs, scheduling {args.scheduling}, CPU affinity {args.cpu_affinity}')
     runs = []
     with TemporaryDirectory(prefix='snn_loop_bench_') as folder:
         for index in range(args.runs):
             try:
                 run = bench_run(Path(folder) / f'run_{index}', args.estimator, args.duration,
-                                args.cpu_affinity == 'auto', args.scheduling)
+                                args.cpu_affinity == 'auto', args.scheduling, args.plant)
             except RuntimeError as error:
                 print(f'snn_loop_bench: run {index + 1} failed: {error}', file=sys.stderr)
                 return 1
@@ -154,7 +156,8 @@ def main(argv=None) -> int:
     print(f'real-time factor: median {statistics.median(factors):.1f}, '
           f'min {min(factors):.1f}, max {max(factors):.1f} over {len(factors)} runs')
     if args.out:
-        args.out.write_text(json.dumps({'estimator': args.estimator, 'duration_s': args.duration,
+        args.out.write_text(json.dumps({'estimator': args.estimator, 'plant': args.plant,
+                                        'duration_s': args.duration,
                                         'cpus': os.cpu_count(),
                                         'cpu_affinity': args.cpu_affinity,
                                         'runs': runs}, indent=2) + '\n')

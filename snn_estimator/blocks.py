@@ -1,0 +1,125 @@
+"""The loop's blocks besides the estimator: the truth plant, the position sensor and the LQR.
+The cw_plant, position_sensor and lqr_controller nodes wrap these (and load no numba); the
+offline simulator (simulation.py) steps the same objects.
+
+Random streams: component ``c`` of run ``b`` draws from ``default_rng([seed + b, c])``, c = 1
+plant process noise, 2 sensor noise (3 and 5 are the estimator's: estimators.py).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .models import StateSpaceModel
+from .validation import as_matrix, as_vector, check_covariance
+
+PLANT_STREAM = 1
+SENSOR_STREAM = 2
+
+
+def matrix_sqrt(covariance: np.ndarray) -> np.ndarray:
+    """A square root L with L L^T = covariance (works for singular PSD matrices)."""
+    values, vectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
+    return vectors * np.sqrt(np.clip(values, 0.0, None))
+
+
+class GaussianStream:
+    """Per-run N(0, I) draws, taken from each run's generator in blocks.
+
+    Drawing a block of k rows gives the same numbers as k single draws, so a single ROS node
+    and an offline batch see the same noise for the same seed.
+    """
+
+    def __init__(self, seeds: Sequence[int], stream: int, width: int, block: int = 512):
+        self._rngs = [np.random.default_rng([int(s), stream]) for s in seeds]
+        self._width = width
+        self._block = block
+        self._buffer = np.empty((len(self._rngs), 0, width))
+        self._next = 0
+
+    def draw(self) -> np.ndarray:
+        """One row per run, shape (runs, width)."""
+        if self._next >= self._buffer.shape[1]:
+            self._buffer = np.stack([g.standard_normal((self._block, self._width))
+                                     for g in self._rngs])
+            self._next = 0
+        row = self._buffer[:, self._next, :]
+        self._next += 1
+        return row
+
+
+class Plant:
+    """Truth propagation: exact (ZOH) for linear models, RK4 otherwise, plus process noise
+    of spectral density Q (Van Loan discretisation)."""
+
+    #: RK4 steps per sample for nonlinear truth models.
+    substeps = 4
+
+    def __init__(self, model: StateSpaceModel, x0, process_noise, seeds: Sequence[int] = (0,)):
+        self.model = model
+        n = model.n_state
+        self.runs = len(seeds)
+        self.x = np.broadcast_to(as_vector(x0, n, 'x0'), (self.runs, n)).copy()
+        self.q = check_covariance(as_matrix(process_noise, (n, n), 'process_noise (Q)'),
+                                  'process_noise (Q)', allow_singular=True)
+        self._noise = GaussianStream(seeds, PLANT_STREAM, n)
+        self._sqrt_cache: dict[float, np.ndarray] = {}
+        self.time = 0.0
+        #: The control applied in the last step and the steps it had to be clipped in (never:
+        #: the CW truth has no thrust limit; the Basilisk truth does).
+        self.applied = np.zeros((self.runs, model.n_input))
+        self.saturated_steps = np.zeros(self.runs, dtype=np.int64)
+
+    def step(self, u, dt: float) -> np.ndarray:
+        """Advance by ``dt`` with ``u`` held; returns x, shape (runs, n)."""
+        u = np.asarray(u, dtype=float).reshape(self.runs, -1)
+        root = self._sqrt_cache.get(dt)
+        if root is None:
+            root = matrix_sqrt(self.model.process_noise_discrete(self.q, dt))
+            self._sqrt_cache[dt] = root
+        self.x = (self.model.transition(self.x, u, dt, 'exact', substeps=self.substeps)
+                  + self._noise.draw() @ root.T)
+        self.applied = u
+        self.time += dt
+        return self.x
+
+
+class PositionSensor:
+    """Noisy partial measurement ``z = C x + v``, v ~ N(0, R) per sample."""
+
+    def __init__(self, model: StateSpaceModel, measurement_noise, seeds: Sequence[int] = (0,)):
+        self.model = model
+        m = model.n_meas
+        self.r = check_covariance(as_matrix(measurement_noise, (m, m), 'measurement_noise (R)'),
+                                  'measurement_noise (R)')
+        self._root = matrix_sqrt(self.r)
+        self._noise = GaussianStream(seeds, SENSOR_STREAM, m)
+
+    def measure(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        return x @ self.model.measurement_matrix.T + self._noise.draw() @ self._root.T
+
+
+def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
+    """Continuous-time LQR gain K (u = -K x, Eq. 42) from python-control, for a linear model."""
+    if not model.is_linear:
+        raise ValueError('LQR design needs a linear model')
+    n, m = model.n_state, model.n_input
+    q = check_covariance(as_matrix(state_weight, (n, n), 'lqr_state_weight (Qc)'),
+                         'lqr_state_weight (Qc)', allow_singular=True)
+    r = check_covariance(as_matrix(input_weight, (m, m), 'lqr_input_weight (Rc)'),
+                         'lqr_input_weight (Rc)')
+    a = model.jacobian(np.zeros(n), np.zeros(m))
+    import control  # imported here: python-control loads matplotlib, which no other core path needs
+    try:
+        gain, _, _ = control.lqr(a, model.input_matrix, q, r)
+    except Exception as error:  # python-control raises several types for an unsolvable ARE
+        raise ValueError(f'LQR design failed for these weights: {error}') from error
+    return np.asarray(gain, dtype=float)
+
+
+def lqr_control(gain: np.ndarray, x_hat) -> np.ndarray:
+    """u = -K x_hat (Eq. 42), batched."""
+    return -(np.asarray(x_hat, dtype=float) @ gain.T)

@@ -1,0 +1,92 @@
+"""Layers that point one way: the core (snn_estimator) imports neither ROS nor matplotlib nor
+the tools, the ROS layer (scenario_nodes) not the tools, no package has an import cycle, and the
+nodes other than the estimator start without loading numba."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ('snn_estimator', 'scenario_nodes', 'snn_tools')
+#: Top-level names each layer must not import (directly or in a function).
+FORBIDDEN = {
+    'snn_estimator': {'rclpy', 'rosbags', 'matplotlib', 'scenario_nodes', 'snn_tools', 'geometry_msgs',
+                      'nav_msgs', 'std_msgs', 'diagnostic_msgs', 'rosgraph_msgs', 'lifecycle_msgs'},
+    'scenario_nodes': {'matplotlib', 'snn_tools', 'dask', 'nir', 'brian2'},
+}
+
+
+def imports(path: Path, package: str, top_level_only: bool) -> set[str]:
+    """Absolute names of the modules ``path`` imports (relative imports resolved)."""
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    names = set()
+    for node in nodes:
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:  # from . import x / from .module import y, inside ``package``
+                base = package if node.module is None else f'{package}.{node.module}'
+                if node.module is None:
+                    names.update(f'{package}.{alias.name}' for alias in node.names)
+                else:
+                    names.add(base)
+            else:
+                names.add(node.module)
+    return names
+
+
+def modules(package: str) -> dict[str, Path]:
+    return {f'{package}.{path.stem}': path for path in sorted((ROOT / package).glob('*.py'))
+            if path.stem != '__init__'}
+
+
+@pytest.mark.parametrize('package', sorted(FORBIDDEN))
+def test_a_layer_imports_nothing_of_the_layers_above_it(package):
+    offending = {name: sorted(n for n in imports(path, package, top_level_only=False)
+                              if n.split('.')[0] in FORBIDDEN[package])
+                 for name, path in modules(package).items()}
+    assert {name: found for name, found in offending.items() if found} == {}
+
+
+@pytest.mark.parametrize('package', PACKAGES)
+def test_no_package_has_an_import_cycle(package):
+    own = modules(package)
+    graph = {name: {n for n in imports(path, package, top_level_only=True) if n in own}
+             for name, path in own.items()}
+    state = {}
+
+    def visit(name, trail):
+        if state.get(name) == 'done':
+            return
+        assert state.get(name) != 'open', f"import cycle: {' -> '.join(trail + [name])}"
+        state[name] = 'open'
+        for target in sorted(graph[name]):
+            visit(target, trail + [name])
+        state[name] = 'done'
+
+    for name in sorted(graph):
+        visit(name, [])
+
+
+def loaded_by(statement: str) -> set[str]:
+    """Top-level packages a fresh interpreter has loaded after ``statement``."""
+    code = f'import sys; {statement}; print(" ".join(sorted({{m.split(".")[0] for m in sys.modules}})))'
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, cwd=ROOT,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    return set(result.stdout.split())
+
+
+def test_importing_the_core_loads_no_ros_no_plotting_and_no_compiler():
+    assert loaded_by('import snn_estimator') & {'rclpy', 'matplotlib', 'numba', 'control', 'scipy'} == set()
+
+
+@pytest.mark.parametrize('node', ['recorder_node', 'sensor_node', 'controller_node', 'plant_node'])
+def test_the_nodes_around_the_estimator_start_without_numba_or_plotting(node):
+    pytest.importorskip('rclpy')
+    loaded = loaded_by(f'import scenario_nodes.{node}')
+    assert 'rclpy' in loaded and loaded & {'numba', 'matplotlib', 'control', 'snn_tools'} == set()
