@@ -2,7 +2,7 @@
 #   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime] [PLANT=cw|basilisk]   closed-loop demo over ROS 2
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the tests that start no ROS process (< 1 min)
-#   make experiments [RUNS=100]   the paper's experiments and ours -> results/REPORT.md
+#   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make bench | bench-loop | bench-campaign    speed figures -> results/
@@ -14,7 +14,7 @@ STAMP := $(VENV)/.snn_rendezvous-installed
 ESTIMATOR ?=
 MODE ?= lockstep
 PLANT ?= cw
-RUNS ?= 100
+RUNS ?=
 SPEC ?= config/campaigns/example.yaml
 WORKERS ?= 2
 SCHEDULER ?=
@@ -31,8 +31,9 @@ $(STAMP): setup.py pyproject.toml
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
 	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
-	# compile the spiking kernels once, into numba's cache: no node compiles at start-up
+	# compile the spiking and Basilisk-step kernels once, into numba's cache: no node compiles at start-up
 	$(BIN)/python -c "from snn_estimator.kernels import warm_up; warm_up()"
+	$(BIN)/python -c "from snn_estimator.basilisk_truth import warm_up; warm_up()"
 	touch $(STAMP)
 
 lint: $(STAMP)
@@ -49,21 +50,23 @@ demo: $(STAMP)
 	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 experiments: $(STAMP)
-	$(BIN)/snn_experiments --runs $(RUNS) --out results
+	$(BIN)/snn_experiments $(if $(RUNS),--runs $(RUNS)) --out results \
+		$(if $(SCHEDULER),--scheduler $(SCHEDULER),--workers $(WORKERS))
 
 campaign: $(STAMP)
 	$(BIN)/snn_campaign --spec $(SPEC) --out runs/campaign_$(notdir $(basename $(SPEC))) \
 		$(if $(SCHEDULER),--scheduler $(SCHEDULER),--workers $(WORKERS))
 
 neuromorphic: $(STAMP)
-	$(BIN)/snn_neuromorphic --runs $(RUNS) --out results
+	$(BIN)/snn_neuromorphic $(if $(RUNS),--runs $(RUNS)) --out results
 
 bench: $(STAMP)
 	$(BIN)/snn_bench --out results/bench.json
+	$(BIN)/python -m snn_tools.codec_bench --out results/codec_bench.json
 
-# RUNS means Monte-Carlo runs (default 100) for experiments; the loop bench takes 5 unless given
+# RUNS means Monte-Carlo runs (default: each spec's) for experiments; the loop bench takes 5 unless given
 bench-loop: $(STAMP)
-	$(BIN)/snn_loop_bench --runs $(if $(filter command line,$(origin RUNS)),$(RUNS),5) \
+	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 bench-campaign: $(STAMP)

@@ -23,7 +23,7 @@ GAIN_SCHEDULES = ('time_varying', 'steady_state')
 @dataclass(frozen=True)
 class EstimatorConfig:
     """Everything a filter needs besides the model. Defaults: the rendezvous scenario (Table 6)
-    with this package's numerical choices (see README, "Decisions").
+    with this package's numerical choices (docs/decisions.md).
 
     Matrices may be given as a matrix, a flat row-major list, a diagonal vector or a scalar.
     """
@@ -50,7 +50,7 @@ class EstimatorConfig:
     #: reads it as the variance of each sample and uses the sampled-data density R_hat dt. The
     #: MSIF's P^zz (Eq. 9) and the sensor always use the per-sample R.
     measurement_noise_units: str = 'spectral_density'
-    #: P0, initial estimation-error covariance (not stated in the paper; see README).
+    #: P0, initial estimation-error covariance (not stated in the paper; docs/decisions.md, 6).
     initial_covariance: Any = D.RENDEZVOUS_INITIAL_COVARIANCE
     #: x_hat0, initial estimate (Table 6: equal to x0).
     initial_state: Any = D.RENDEZVOUS_X0
@@ -162,3 +162,17 @@ def gain_noise_density(settings: ResolvedConfig, dt: float) -> np.ndarray:
     if settings.measurement_noise_units == 'per_sample':
         return settings.r_hat * dt
     return settings.r_hat
+
+
+def silenced_neurons(neurons: int, seed: int, fraction: float = 0.0, explicit=()) -> list[int]:
+    """``explicit`` neuron indices plus a fraction of the N neurons chosen at random with the
+    seed (stream 4): the one rule the ROS estimator's silenced_fraction and the campaigns use,
+    so the same seed silences the same neurons everywhere."""
+    explicit = [int(i) for i in explicit or ()]
+    if any(i < 0 or i >= max(neurons, 1) for i in explicit):
+        raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {explicit}')
+    fraction = float(fraction or 0.0)
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f'silenced_fraction must be in [0, 1], got {fraction}')
+    order = np.random.default_rng([int(seed), 4]).permutation(neurons)
+    return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})

@@ -25,18 +25,27 @@ from typing import Any
 
 import numpy as np
 
-from snn_estimator.config import EstimatorConfig
-from snn_estimator.simulation import Scenario, rendezvous_scenario, simulate, van_der_pol_scenario
+from snn_estimator.config import EstimatorConfig, silenced_neurons
+from snn_estimator.simulation import (
+    Scenario,
+    consistency_check,
+    far_range_scenario,
+    rendezvous_scenario,
+    simulate,
+    van_der_pol_scenario,
+)
 
 from .paths import PACKAGE, SOURCE_ROOT
 
 #: Scenario name -> factory(preset, [factory arguments], **EstimatorConfig changes).
 SCENARIOS: dict[str, Callable[..., Scenario]] = {
     'rendezvous': rendezvous_scenario,
+    'far_range': far_range_scenario,
     'van_der_pol': van_der_pol_scenario,
 }
-#: Scenarios whose truth starts with a relative position (m): their rows get final_range_*.
-RANGE_SCENARIOS = ('rendezvous',)
+#: Scenarios whose truth starts with a relative position (m): their rows get final_range_*,
+#: delta_v_* and saturated_steps_mean.
+RANGE_SCENARIOS = ('rendezvous', 'far_range')
 #: Runs stepped together in one task by default (100 rendezvous runs: ~3 s, ~60 MB of arrays).
 RUNS_PER_TASK = 100
 
@@ -60,25 +69,41 @@ class Setting:
 
 def _silence_fraction(scenario: Scenario, fraction, seed: int) -> Scenario:
     """Silence round(fraction N) neurons chosen with the campaign seed, by the ROS estimator's
-    own rule (scenario_nodes.parameters.silenced_set), so a cell silences exactly the neurons
-    an estimator node with the same seed and silenced_fraction would."""
-    from scenario_nodes.parameters import silenced_set
+    own rule (snn_estimator.config.silenced_neurons), so a cell silences exactly the neurons an
+    estimator node with the same seed and silenced_fraction would."""
     config = scenario.estimator
-    silenced = silenced_set({'silenced_neurons': config.silenced_neurons, 'silenced_fraction': fraction},
-                            int(config.neuron_count), seed)
+    silenced = silenced_neurons(int(config.neuron_count), seed, fraction, config.silenced_neurons)
     return dataclasses.replace(scenario, estimator=config.replace(silenced_neurons=tuple(silenced)))
 
 
+def _basilisk(**changes):
+    """A derived setting that changes the Basilisk truth's orbit (plant: basilisk only)."""
+    def apply(scenario: Scenario, value, seed: int) -> Scenario:
+        if scenario.basilisk is None:
+            raise ValueError(f'{", ".join(changes)} applies to the Basilisk truth only: add plant: basilisk')
+        orbit = dataclasses.replace(scenario.basilisk.orbit, **{name: convert(value)
+                                                                  for name, convert in changes.items()})
+        return dataclasses.replace(scenario, basilisk=dataclasses.replace(scenario.basilisk, orbit=orbit))
+    return apply
+
+
 _RENDEZVOUS = ('rendezvous',)
+_ORBITAL = ('rendezvous', 'far_range')
 #: Every setting a campaign spec may name (in ``grid`` or ``settings``) and where it goes. Every
 #: EstimatorConfig field but the seed (the spec's own ``seed``) is one; adding a key is one line.
 SETTINGS: dict[str, Setting] = {
     **{field.name: Setting(ESTIMATOR, 'see EstimatorConfig (snn_estimator/config.py)')
        for field in dataclasses.fields(EstimatorConfig) if field.name != 'seed'},
-    'preset': Setting(FACTORY, 'default | as_published (the paper\'s literal network)'),
+    'preset': Setting(FACTORY, 'default | as_published (the paper\'s literal network)', ('rendezvous', 'van_der_pol')),
     'cw_model': Setting(FACTORY, 'standard | as_published (filters and LQR use the printed Eq. 41)',
                         _RENDEZVOUS),
-    'orbit_radius': Setting(FACTORY, 'target orbit radius, m', _RENDEZVOUS),
+    'orbit_radius': Setting(FACTORY, 'target orbit radius, m', _ORBITAL),
+    'plant': Setting(FACTORY, 'cw (the model the filters use) | basilisk (two-body gravity, J2, thrust limit)',
+                     _ORBITAL),
+    'j2': Setting(DERIVED, "Basilisk truth: Earth's J2 on (true) or off", _ORBITAL,
+                  apply=_basilisk(j2=bool)),
+    'eccentricity': Setting(DERIVED, "Basilisk truth: the target orbit's eccentricity", _ORBITAL,
+                            apply=_basilisk(eccentricity=float)),
     'duration': Setting(SCENARIO, 'simulated time, s'),
     'dt': Setting(SCENARIO, 'time step of the loop, s'),
     'metric_window': Setting(SCENARIO, 'final window the readings average over, s'),
@@ -173,16 +198,24 @@ def run_chunk(scenario_name: str, kind: str, settings: dict, seed: int, first_ru
     started = time.perf_counter()
     scenario = build_scenario(scenario_name, settings, seed)
     result = simulate(scenario, kind, runs=runs, seed=seed + first_run)
-    error = result.error[:, result.window()]
+    window = result.window()
+    error = result.error[:, window]
     spikes = result.spikes_per_step
+    orbital = scenario_name in RANGE_SCENARIOS
     return {
+        # per-step sums over runs of NEES and NIS in the window (consistency), or None
+        'nees_sum': None if result.nees is None else result.nees[:, window].sum(axis=0),
+        'nis_sum': None if result.nis is None else result.nis[:, window.start - 1:window.stop - 1].sum(axis=0),
+        'dof': (scenario.model.n_state, scenario.model.n_meas),
+        'delta_v': result.delta_v() if orbital else None,
+        'saturated_steps': result.extra['saturated_steps'] if orbital else None,
         'runs': runs,
         'samples': error.shape[1],
         'sum_sq': np.sum(error * error, axis=(0, 1)),
         'sum_error': np.sum(error, axis=0),
         'spikes': None if spikes is None else int(spikes.sum()),
         'spike_slots': None if spikes is None else spikes.size * result.neuron_count,
-        'final_range': result.final_range() if scenario_name in RANGE_SCENARIOS else None,
+        'final_range': result.final_range() if orbital else None,
         'capped_steps': int(result.capped_steps),
         'states': scenario.model.state_names,
         'code_version': code_version(),
@@ -208,6 +241,14 @@ def combine(partials: list[dict]) -> dict:
         ranges = np.concatenate([p['final_range'] for p in partials])
         row['final_range_median'] = float(np.median(ranges))
         row['final_range_max'] = float(ranges.max())
+    if partials[0]['delta_v'] is not None:
+        row['delta_v_mean'] = float(np.mean(np.concatenate([p['delta_v'] for p in partials])))
+        row['saturated_steps_mean'] = float(np.mean(np.concatenate([p['saturated_steps'] for p in partials])))
+    if partials[0]['nees_sum'] is not None:  # the filter's covariance judged (SimulationResult.consistency)
+        for name, dof in zip(('nees', 'nis'), partials[0]['dof']):
+            check = consistency_check(sum(p[f'{name}_sum'] for p in partials) / runs, runs, dof)
+            row.update({f'{name}_average': check['average'], f'{name}_fraction_inside': check['fraction_inside'],
+                        f'{name}_verdict': check['verdict']})
     row['capped_steps'] = sum(p['capped_steps'] for p in partials)
     row['code_version'] = ' '.join(sorted({p['code_version'] for p in partials}))
     row['wall_time_s'] = sum(p['wall_time_s'] for p in partials)

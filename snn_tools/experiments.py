@@ -1,17 +1,25 @@
-"""The paper's experiments in one command: Monte-Carlo tables, figures and REPORT.md.
+"""The paper's experiments and ours in one command: Monte-Carlo tables, figures and REPORT.md.
 
-``snn_experiments [--experiment NAME ...] [--runs 100] [--out results]`` writes
-``<out>/<experiment>.json``, PNG figures and ``<out>/REPORT.md`` with our numbers beside the
+``snn_experiments [--experiment NAME ...] [--runs 100] [--workers 2 | --scheduler ADDR] [--out results]``
+
+Every Monte-Carlo table is a campaign (snn_tools.campaign): one spec per table under
+config/campaigns/, run on Dask like any user's sweep, its cells kept under
+``<out>/campaigns/<name>/`` (so an interrupted ``make experiments`` resumes). The rows are then
+written as ``<out>/<experiment>.json`` and ``<out>/REPORT.md`` with our numbers beside the
 paper's. Two readings of the paper's "average RMSE" are reported for every table:
 
 * ``rmse``: ordinary RMSE over the final window, sqrt(mean over runs and time of e^2);
 * ``mean_error``: the time average over the window of |mean over runs of e(t)|, which
   cancels zero-mean noise and is the only reading that reaches the paper's mm-level numbers.
+
+Figures (one run's tracking, RMSE against time) come from a direct simulation of
+``FIGURE_RUNS`` runs of the same scenarios; the runtime table (Table 5) is timed directly.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -21,17 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from snn_estimator.estimators import make_estimator
-from snn_estimator.simulation import SimulationResult, rendezvous_scenario, simulate, van_der_pol_scenario
+from snn_estimator.simulation import far_range_scenario, rendezvous_scenario, simulate, van_der_pol_scenario
 
-VDP_STATES = ('x1', 'x2')
-CW_STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
-#: Filters in every Monte-Carlo table, default preset first, then the literal network.
-TABLE_FILTERS = ('ekf', 'emsif', 'snn_ekf', 'snn_emsif', 'esif', 'snn_emsif_star')
-AS_PUBLISHED_FILTERS = ('ekf', 'emsif', 'snn_ekf', 'snn_emsif')
-#: Rows with R_hat read as a per-sample variance (Eq. 5-6 then use R_hat dt; README, Decisions).
-PER_SAMPLE_FILTERS = ('ekf', 'emsif', 'snn_ekf', 'snn_emsif')
-NEURON_COUNTS = tuple(range(50, 501, 50))
-RUNTIME_COUNTS = (50, 100, 300)
+from .campaign import CampaignProgress, dask_client, load_spec, run_campaign, validate
 
 #: Numbers printed in the paper (Tables 2-5, 7; Sec. 3.1.2 for Fig. 7).
 PAPER = {
@@ -57,167 +57,133 @@ PAPER = {
     'spikes': {'figure': 7, 'filter': 'snn_emsif', 'neurons': 100, 'steps': 2000,
                'spikes': 34342, 'fraction': 0.17},
 }
+#: Experiment -> the campaign spec of its table (config/campaigns/<name>.yaml), in report order.
+TABLES = ('vdp_nominal', 'vdp_process_noise', 'vdp_measurement_noise', 'vdp_neurons', 'rendezvous',
+          'rendezvous_printed_cw', 'spike_rules', 'rendezvous_dispersed', 'rendezvous_plants', 'far_range',
+          'constant_gain')
+EXPERIMENTS = TABLES + ('runtime',)
+RUNTIME_COUNTS = (50, 100, 300)
+#: Runs behind each figure (the tables use the spec's runs).
+FIGURE_RUNS = 20
+#: How a grid value away from the spec's first one is written after the filter (kind@label).
+LABELS = {('preset', 'as_published'): 'as_published', ('measurement_noise_units', 'per_sample'): 'per_sample_R',
+          ('plant', 'basilisk'): 'basilisk', ('gain_schedule', 'steady_state'): 'steady_state',
+          ('initial_state_dispersion', True): 'dispersed'}
 
-VDP_CASES = {
-    'vdp_nominal': {},
-    'vdp_process_noise': {'process_noise_scale': 0.1},      # Q_hat = 0.1 Q
-    'vdp_measurement_noise': {'measurement_noise_scale': 10.0},  # R_hat = 10 R
+
+def row_key(row: dict, grid: dict, skip=()) -> str:
+    """``kind`` for the spec's first grid point, ``kind@label`` for the others, e.g.
+    ``snn_emsif@as_published,per_sample_R`` or ``ekf@basilisk,process_noise_scale=10000``."""
+    labels = []
+    for name, values in grid.items():
+        if name in skip or row[name] == values[0]:
+            continue
+        labels.append(LABELS.get((name, row[name]), f'{name}={row[name]:g}' if isinstance(row[name], float)
+                                 else f'{name}={row[name]}'))
+    return row['filter'] + ('@' + ','.join(labels) if labels else '')
+
+
+def record(row: dict, states) -> dict:
+    """The JSON record of one table row: both readings, spike fraction and, where measured,
+    final range, delta-v, saturation and the covariance checks."""
+    out = {'rmse': {s: row[f'rmse_{s}'] for s in states},
+           'mean_error': {s: row[f'mean_error_{s}'] for s in states},
+           'spike_fraction': row.get('spike_fraction'), 'wall_time_s': round(row['wall_time_s'], 3)}
+    if row.get('final_range_median') is not None:
+        out['final_range_m'] = {'median': row['final_range_median'], 'max': row['final_range_max']}
+        out['delta_v_m_s'] = row['delta_v_mean']
+        out['saturated_steps'] = row['saturated_steps_mean']
+    if row.get('nees_verdict'):
+        out['consistency'] = {name: {'average': row[f'{name}_average'], 'fraction_inside':
+                                     row[f'{name}_fraction_inside'], 'verdict': row[f'{name}_verdict']}
+                              for name in ('nees', 'nis')}
+    if row.get('capped_steps'):
+        out['capped_steps'] = int(row['capped_steps'])
+    return out
+
+
+def run_table(name: str, runs: int | None, out: Path, client, quiet: bool) -> dict:
+    """The campaign of one table, then its JSON (figures are drawn by :func:`draw`)."""
+    spec = load_spec(f'campaigns/{name}.yaml')
+    if runs is not None:
+        spec = dataclasses.replace(spec, runs=runs, runs_per_task=min(spec.runs_per_task, runs))
+    validate(spec)
+    progress = CampaignProgress(quiet=quiet)
+    progress.say(f'{name}: {len(spec.cells())} cells x {spec.runs} runs')
+    outcome = run_campaign(spec, out / 'campaigns' / name, client, progress)
+    states = [key[len('rmse_'):] for key in outcome.rows[0] if key.startswith('rmse_')]
+    data = {'experiment': name, 'runs': spec.runs, 'description': spec.description.strip(),
+            'spec': f'config/campaigns/{name}.yaml', 'paper': PAPER.get(name, {'note': 'not in the paper'})}
+    if name == 'vdp_neurons':
+        data['sweep'] = neuron_sweep(outcome.rows, spec.grid)
+        rows = [row for row in outcome.rows if row['neuron_count'] == 100]
+        data['filters'] = {row_key(row, spec.grid, skip=('neuron_count',)): record(row, states) for row in rows}
+    elif name == 'spike_rules':  # one filter: rows named by their rule, as the paper's text names them
+        data['filters'] = {row_key(row, spec.grid, skip=('spike_rule',)).replace(row['filter'], row['spike_rule'], 1):
+                           record(row, states) for row in outcome.rows}
+    else:
+        data['filters'] = {row_key(row, spec.grid): record(row, states) for row in outcome.rows}
+    return data
+
+
+def neuron_sweep(rows: list[dict], grid: dict) -> dict:
+    """Fig. 6: delta_x = sqrt(d_x1^2 + d_x2^2) (Eq. 29) over the last 10 s against N."""
+    sweep = {'neurons': list(grid['neuron_count'])}
+    for row in rows:
+        key = row_key(row, grid, skip=('neuron_count',))
+        series = sweep.setdefault(key, {'rmse_norm': [], 'mean_error_norm': [], 'spike_fraction': []})
+        series['rmse_norm'].append(math.hypot(row['rmse_x1'], row['rmse_x2']))
+        series['mean_error_norm'].append(math.hypot(row['mean_error_x1'], row['mean_error_x2']))
+        series['spike_fraction'].append(row['spike_fraction'])
+    return sweep
+
+
+#: Experiment -> (scenario of its figures, filters drawn, title); the others have no figure.
+FIGURE_SCENARIOS = {
+    'vdp_nominal': (lambda: van_der_pol_scenario(), ('ekf', 'emsif', 'snn_ekf', 'snn_emsif'),
+                    'Van der Pol, nominal'),
+    'vdp_process_noise': (lambda: van_der_pol_scenario(process_noise_scale=0.1),
+                          ('ekf', 'emsif', 'snn_ekf', 'snn_emsif'), 'Van der Pol, Q_hat = 0.1 Q'),
+    'vdp_measurement_noise': (lambda: van_der_pol_scenario(measurement_noise_scale=10.0),
+                              ('ekf', 'emsif', 'snn_ekf', 'snn_emsif'), 'Van der Pol, R_hat = 10 R'),
+    'rendezvous': (lambda: rendezvous_scenario(), ('ekf', 'emsif', 'snn_ekf', 'snn_emsif'), 'Rendezvous'),
+    'rendezvous_printed_cw': (lambda: rendezvous_scenario(cw_model='as_published'),
+                              ('ekf', 'emsif', 'snn_ekf', 'snn_emsif'), 'Rendezvous, printed CW'),
+    'rendezvous_dispersed': (lambda: rendezvous_scenario(initial_state_dispersion=True),
+                             ('ekf', 'emsif', 'emsif_weighted', 'snn_ekf', 'snn_emsif', 'snn_emsif_weighted'),
+                             'Rendezvous from a dispersed start'),
+    'rendezvous_plants': (lambda: rendezvous_scenario(plant='basilisk', initial_state_dispersion=True),
+                          ('ekf', 'emsif_weighted', 'snn_ekf', 'snn_emsif_weighted'),
+                          'Rendezvous, Basilisk truth (J2), dispersed start'),
+    'far_range': (lambda: far_range_scenario(), ('ekf', 'emsif', 'emsif_weighted', 'snn_ekf', 'snn_emsif_weighted'),
+                  'Far-range V-bar approach, Basilisk truth (J2)'),
 }
-EXPERIMENTS = ('vdp_nominal', 'vdp_process_noise', 'vdp_measurement_noise', 'vdp_neurons',
-               'rendezvous', 'rendezvous_printed_cw', 'spike_rules', 'runtime')
-SPIKE_RULE_RUNS = 20
 
 
-class Progress:
-    """A one-line progress bar on stderr (silent when quiet)."""
-
-    def __init__(self, quiet: bool = False):
-        self.quiet = quiet
-        self.interactive = sys.stderr.isatty()  # a log file gets one line per item instead
-        self.label = ''
-        self.total = 1
-        self._last = -1
-
-    def start(self, label: str, total: int):
-        self.label, self.total, self._last = label, max(total, 1), -1
-        self.update(0)
-
-    def update(self, done: int):
-        if self.quiet:
-            return
-        percent = int(100 * done / self.total)
-        if not self.interactive:
-            if percent >= 100 and self._last < 100:
-                self._last = 100
-                sys.stderr.write(f'  {self.label}: done\n')
-            return
-        if percent != self._last:
-            self._last = percent
-            bar = '#' * (percent // 4)
-            sys.stderr.write(f'\r  {self.label:<44} [{bar:<25}] {percent:3d}%')
-            if percent >= 100:
-                sys.stderr.write('\n')
-            sys.stderr.flush()
-
-
-def summarise(result: SimulationResult, states) -> dict:
-    """The JSON record of one filter: both readings, spike fraction, extras."""
-    record = {
-        'rmse': dict(zip(states, map(float, result.rmse()))),
-        'mean_error': dict(zip(states, map(float, result.mean_error()))),
-        'spike_fraction': result.spike_fraction,
-        'wall_time_s': round(result.wall_time, 3),
-    }
-    if result.scenario.name == 'rendezvous':
-        record['final_range_m'] = {'median': float(np.median(result.final_range())),
-                                   'max': float(result.final_range().max())}
-    if result.capped_steps:
-        record['capped_steps'] = int(result.capped_steps)
-    return record
-
-
-def run_table(scenario_factory, changes: dict, runs: int, progress: Progress, label: str):
-    """All filters of one table; returns (records, results kept for figures)."""
-    records, results = {}, {}
-    groups = (('default', TABLE_FILTERS, {}), ('as_published', AS_PUBLISHED_FILTERS, {}),
-              ('per_sample_R', PER_SAMPLE_FILTERS, {'measurement_noise_units': 'per_sample'}))
-    for label_suffix, kinds, units in groups:
-        preset = 'as_published' if label_suffix == 'as_published' else 'default'
-        scenario = scenario_factory(preset, **units, **changes)
-        for kind in kinds:
-            key = kind if label_suffix == 'default' else f'{kind}@{label_suffix}'
-            progress.start(f'{label}: {key}', scenario.steps)
-            result = simulate(scenario, kind, runs=runs, on_step=progress.update)
-            progress.update(scenario.steps)
-            states = CW_STATES if scenario.name == 'rendezvous' else VDP_STATES
-            records[key] = summarise(result, states)
-            if label_suffix == 'default':
-                results[kind] = result
-    return records, results
-
-
-def _vdp_factory(preset, **changes):
-    return van_der_pol_scenario(preset, **changes)
-
-
-def _rendezvous_factory(preset, **changes):
-    return rendezvous_scenario(preset, **changes)
-
-
-def _printed_cw_factory(preset, **changes):
-    return rendezvous_scenario(preset, cw_model='as_published', **changes)
-
-
-def experiment_vdp_table(name: str, runs: int, out: Path, progress: Progress) -> dict:
-    records, results = run_table(_vdp_factory, VDP_CASES[name], runs, progress, name)
+def draw(name: str, out: Path) -> dict:
+    """Figures of one table from FIGURE_RUNS runs per filter; extra numbers for the JSON."""
     from . import figures
-    figures.rmse_histories(results, VDP_STATES, out / f'{name}_rmse.png',
-                           f'Van der Pol, {name.split("_", 1)[1].replace("_", " ")}: RMSE over {runs} runs')
+    extra = {}
+    if name == 'vdp_neurons':
+        figures.neuron_sweep(json.loads((out / f'{name}.json').read_text())['sweep'], out / 'vdp_neurons.png')
+        return extra
+    if name not in FIGURE_SCENARIOS:
+        return extra
+    factory, kinds, title = FIGURE_SCENARIOS[name]
+    scenario = factory()
+    results = {kind: simulate(scenario, kind, runs=FIGURE_RUNS) for kind in kinds}
+    states = scenario.model.state_names
+    figures.rmse_histories(results, states, out / f'{name}_rmse.png',
+                           f'{title}: RMSE over {FIGURE_RUNS} runs')
+    if name in ('vdp_nominal', 'rendezvous', 'rendezvous_dispersed', 'far_range'):
+        figures.tracking(results, states, out / f'{name}_tracking.png',
+                         f'{title}, one run: estimates and errors with 3-sigma bounds')
     if name == 'vdp_nominal':
-        figures.tracking(results, VDP_STATES, out / 'vdp_nominal_tracking.png',
-                         'Van der Pol, one run: estimates and errors with 3-sigma bounds (Fig. 2)')
         single = simulate(van_der_pol_scenario(), 'snn_emsif', runs=1)
-        figures.raster(single, out / 'vdp_spike_raster.png',
-                       'SNN-EMSIF spike raster, Van der Pol, one run (Fig. 7)')
-        records['snn_emsif']['single_run_spikes'] = int(single.spikes_per_step.sum())
-        records['snn_emsif']['single_run_spike_fraction'] = single.spike_fraction
-    return {'experiment': name, 'runs': runs, 'filters': records, 'paper': PAPER[name]}
-
-
-def experiment_vdp_neurons(runs: int, out: Path, progress: Progress) -> dict:
-    """Fig. 6: delta_x = sqrt(d_x1^2 + d_x2^2) (Eq. 29) over the last 10 s versus N."""
-    sweep = {'neurons': list(NEURON_COUNTS)}
-    records = {}
-    for preset in ('default', 'as_published'):
-        for kind in ('snn_ekf', 'snn_emsif'):
-            key = kind if preset == 'default' else f'{kind}@as_published'
-            series = {'rmse_norm': [], 'mean_error_norm': [], 'spike_fraction': []}
-            for neurons in NEURON_COUNTS:
-                scenario = van_der_pol_scenario(preset, neuron_count=neurons)
-                progress.start(f'vdp_neurons: {key} N={neurons}', scenario.steps)
-                result = simulate(scenario, kind, runs=runs, on_step=progress.update)
-                progress.update(scenario.steps)
-                series['rmse_norm'].append(float(np.linalg.norm(result.rmse())))
-                series['mean_error_norm'].append(float(np.linalg.norm(result.mean_error())))
-                series['spike_fraction'].append(result.spike_fraction)
-                if neurons == 100:
-                    records[key] = summarise(result, VDP_STATES)
-            sweep[key] = series
-    from . import figures
-    figures.neuron_sweep(sweep, out / 'vdp_neurons.png')
-    return {'experiment': 'vdp_neurons', 'runs': runs, 'filters': records, 'sweep': sweep,
-            'paper': {'figure': 6, 'note': 'plotted only; no numbers printed'}}
-
-
-def experiment_rendezvous(name: str, runs: int, out: Path, progress: Progress) -> dict:
-    factory = _rendezvous_factory if name == 'rendezvous' else _printed_cw_factory
-    records, results = run_table(factory, {}, runs, progress, name)
-    from . import figures
-    figures.tracking(results, CW_STATES, out / f'{name}_tracking.png',
-                     'Rendezvous, one run: estimates and errors with 3-sigma bounds (Fig. 9-10)')
-    figures.rmse_histories(results, CW_STATES, out / f'{name}_rmse.png',
-                           f'Rendezvous: RMSE over {runs} runs (Fig. 11)')
-    paper = PAPER['rendezvous'] if name == 'rendezvous' else {
-        'note': 'not in the paper: filters and LQR use the CW matrix printed as Eq. 41, truth is standard CW'}
-    return {'experiment': name, 'runs': runs, 'filters': records, 'paper': paper}
-
-
-def experiment_spike_rules(runs: int, out: Path, progress: Progress) -> dict:
-    """SNN-EMSIF on the rendezvous with each spike rule, scaled and literal network (not in the
-    paper, which does not say how simultaneous threshold crossings are resolved)."""
-    runs = min(runs, SPIKE_RULE_RUNS)
-    records = {}
-    for preset in ('default', 'as_published'):
-        scenario = rendezvous_scenario(preset)
-        for rule in ('greedy', 'one_per_step', 'all_above'):
-            key = rule if preset == 'default' else f'{rule}@as_published'
-            progress.start(f'spike_rules: {key}', scenario.steps)
-            config = scenario.estimator.replace(spike_rule=rule)
-            result = simulate(scenario, 'snn_emsif', runs=runs, config=config, on_step=progress.update)
-            progress.update(scenario.steps)
-            records[key] = summarise(result, CW_STATES)
-    return {'experiment': 'spike_rules', 'runs': runs, 'filters': records,
-            'paper': {'note': 'not in the paper'}}
+        figures.raster(single, out / 'vdp_spike_raster.png', 'SNN-EMSIF spike raster, Van der Pol, one run (Fig. 7)')
+        extra = {'single_run_spikes': int(single.spikes_per_step.sum()),
+                 'single_run_spike_fraction': single.spike_fraction}
+    return extra
 
 
 def time_steps(estimator, zs, us, dt) -> float:
@@ -231,7 +197,7 @@ def time_steps(estimator, zs, us, dt) -> float:
     return float(np.median(samples) * 1e6)
 
 
-def experiment_runtime(runs: int, out: Path, progress: Progress) -> dict:
+def experiment_runtime() -> dict:
     """Table 5: us per step of one filter instance on the Van der Pol problem (N = 50, 100, 300)."""
     scenario = van_der_pol_scenario()
     truth = simulate(scenario, 'emsif', runs=1)
@@ -239,8 +205,7 @@ def experiment_runtime(runs: int, out: Path, progress: Progress) -> dict:
     zs = truth.truth[0, :-1, :1] + math.sqrt(0.1) * rng.standard_normal((scenario.steps, 1))
     us = np.zeros((scenario.steps, 1))
     records = {}
-    progress.start('runtime', len(RUNTIME_COUNTS))
-    for index, neurons in enumerate(RUNTIME_COUNTS):
+    for neurons in RUNTIME_COUNTS:
         for kind in ('snn_ekf', 'snn_emsif', 'snn_emsif_star', 'ekf', 'emsif'):
             config = scenario.estimator.replace(neuron_count=neurons)
             estimator = make_estimator(kind, config, scenario.model)
@@ -250,48 +215,51 @@ def experiment_runtime(runs: int, out: Path, progress: Progress) -> dict:
                 estimator.reset()
                 best = min(best, time_steps(estimator, zs, us, scenario.dt))
             records.setdefault(kind, {'us_per_step': {}})['us_per_step'][str(neurons)] = round(best, 2)
-        progress.update(index + 1)
     return {'experiment': 'runtime', 'runs': 1, 'filters': records, 'paper': PAPER['runtime'],
             'note': 'median over the 2000 steps of one Van der Pol run, best of 3 repetitions'}
 
 
-def run(name: str, runs: int, out: Path, progress: Progress) -> dict:
-    if name in VDP_CASES:
-        return experiment_vdp_table(name, runs, out, progress)
-    if name == 'vdp_neurons':
-        return experiment_vdp_neurons(runs, out, progress)
-    if name in ('rendezvous', 'rendezvous_printed_cw'):
-        return experiment_rendezvous(name, runs, out, progress)
-    if name == 'runtime':
-        return experiment_runtime(runs, out, progress)
-    if name == 'spike_rules':
-        return experiment_spike_rules(runs, out, progress)
-    raise ValueError(f'unknown experiment {name!r}; choose from {", ".join(EXPERIMENTS)}')
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
-        prog='snn_experiments', description="Run the paper's experiments; write JSON, PNG and REPORT.md.")
+        prog='snn_experiments', description="Run the paper's experiments and ours; write JSON, PNG and REPORT.md.")
     parser.add_argument('--experiment', '-e', action='append', choices=EXPERIMENTS,
                         help='experiment to run (repeatable; default: all)')
-    parser.add_argument('--runs', type=int, default=100, help='Monte-Carlo runs (default 100)')
+    parser.add_argument('--runs', type=int, help="Monte-Carlo runs per cell (default: each spec's, 100)")
+    parser.add_argument('--workers', type=int, default=2, help='local Dask workers (default 2)')
+    parser.add_argument('--scheduler', help='address of a running dask scheduler instead of local workers')
     parser.add_argument('--out', type=Path, default=Path('results'), help='output folder')
     parser.add_argument('--quiet', action='store_true', help='no progress bar')
     args = parser.parse_args(argv)
-    if args.runs < 1:
+    if args.runs is not None and args.runs < 1:
         parser.error('--runs must be >= 1')
     args.out.mkdir(parents=True, exist_ok=True)
-    progress = Progress(args.quiet)
-    for name in args.experiment or EXPERIMENTS:
-        started = time.perf_counter()
-        data = run(name, args.runs, args.out, progress)
-        data['wall_time_s'] = round(time.perf_counter() - started, 1)
-        (args.out / f'{name}.json').write_text(json.dumps(data, indent=2) + '\n')
-        print(f'{name}: {args.out / (name + ".json")} ({data["wall_time_s"]} s)')
+    names = args.experiment or list(EXPERIMENTS)
+    tables = [name for name in names if name in TABLES]
+    if tables:
+        with dask_client(args.workers, args.scheduler) as client:
+            for name in tables:
+                started = time.perf_counter()
+                data = run_table(name, args.runs, args.out, client, args.quiet)
+                data['wall_time_s'] = round(time.perf_counter() - started, 1)
+                _write(args.out, name, data)
+    for name in names:
+        if name == 'runtime':
+            _write(args.out, name, experiment_runtime())
+        elif name in tables:
+            extra = draw(name, args.out)
+            if extra:
+                data = json.loads((args.out / f'{name}.json').read_text())
+                data['filters']['snn_emsif'].update(extra)
+                _write(args.out, name, data)
     from .report_md import write_report
-    report = write_report(args.out)
-    print(f'report: {report}')
+    print(f'report: {write_report(args.out)}')
     return 0
+
+
+def _write(out: Path, name: str, data: dict) -> None:
+    path = out / f'{name}.json'
+    path.write_text(json.dumps(data, indent=2) + '\n')
+    print(f'{name}: {path}' + (f" ({data['wall_time_s']} s)" if 'wall_time_s' in data else ''))
 
 
 if __name__ == '__main__':

@@ -96,7 +96,7 @@ def test_spiking_filters_stay_within_1_5x_of_their_twins_at_under_10_percent_spi
 
 def test_the_literal_network_is_limited_by_spike_quantisation():
     """With D ~ N(0, 1/15) on the unscaled state the spiking filter is ~10x worse than its twin:
-    the reason this package scales the state by default (see README)."""
+    the reason this package scales the state by default (docs/decisions.md, 10)."""
     scenario = rendezvous_scenario('as_published')
     spiking = simulate(scenario, 'snn_emsif', runs=5)
     twin = simulate(scenario, 'emsif', runs=5)
