@@ -6,7 +6,7 @@ everything else a node does (docs/performance.md). The bag tools decode recorded
 same functions. The bytes are the standard types' CDR, so ``ros2 topic echo``, bags and any
 other node read them as usual.
 
-Conventions (README, "Topics"):
+Conventions (README, "Topics and QoS"):
 
 * state ``[x, y, z, vx, vy, vz]`` in the LVLH frame <-> nav_msgs/Odometry: pose.pose.position and
   twist.twist.linear; orientation is not estimated (identity). The position block of the 6x6

@@ -1,7 +1,7 @@
 """Every node parameter, declared once: name, default, unit/meaning, range, read-only.
 
 These tables are the one source of the parameters: the nodes declare them (with their
-ParameterDescriptors), the YAML files in config/ and the README's tables are generated from
+ParameterDescriptors), the YAML files in config/ and docs/parameters.md are generated from
 them (``python -m scenario_nodes.parameters --write``; a test keeps them in step), and their
 defaults come from the core's :mod:`snn_estimator.defaults`. Matrices are flat row-major lists
 (1 value = scalar times identity, n values = diagonal, n*n values = full).
@@ -18,15 +18,14 @@ from typing import Any, Sequence
 import numpy as np
 
 from snn_estimator import defaults as D
-from snn_estimator.config import GAIN_SCHEDULES, MEASUREMENT_NOISE_UNITS, SPIKE_RULES, EstimatorConfig
-from snn_estimator.estimators import FILTER_KINDS
-from snn_estimator.runner import START_MODES
+from snn_estimator.catalog import FILTER_KINDS, START_MODES
+from snn_estimator.config import GAIN_SCHEDULES, MEASUREMENT_NOISE_UNITS, SPIKE_RULES, EstimatorConfig, silenced_neurons
 
 from .topics import PIPELINE_TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The spiking filter the estimator runs unless told otherwise: the one that converges from a
-#: dispersed start in the Monte Carlo of results/rendezvous_dispersed.json (README, "Results").
+#: dispersed start in the Monte Carlo of results/rendezvous_dispersed.json (docs/decisions.md, 17).
 DEFAULT_FILTER = 'snn_ekf'
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
 DOUBLE_ARRAY, INTEGER_ARRAY = 'double_array', 'integer_array'
@@ -82,7 +81,7 @@ PLANT = MODEL + (
     Spec('initial_state', _floats(D.RENDEZVOUS_X0), 'x0 = [x, y, z, vx, vy, vz], m and m/s (Table 6)'),
     Spec('process_noise', [D.RENDEZVOUS_PROCESS_NOISE],
          'Q, process-noise spectral density of the truth, (m/s^2)^2/Hz (Table 6: 1e-12 I6)'),
-    Spec('seed', 0, 'Seed of the process noise (stream 1 of the seed; see README)', low=0),
+    Spec('seed', 0, 'Seed of the process noise (stream 1 of the seed; README, "Time and seeds")', low=0),
     Spec('mode', 'lockstep', 'lockstep: step k+1 only after the control for step k arrived; '
          'realtime: step on a wall-clock timer', choices=('lockstep', 'realtime')),
     Spec('duration', D.RENDEZVOUS_DURATION, 'Simulated time to run, s (0: run until stopped)', low=0.0),
@@ -232,7 +231,7 @@ RECORDER = (
          'messages before closing the bag', low=0.0),
 )
 
-#: Node name -> its table, in the order the YAML files and the README list them.
+#: Node name -> its table, in the order the YAML files and docs/parameters.md list them.
 NODES = {'cw_plant': PLANT, 'basilisk_plant': BASILISK_PLANT, 'position_sensor': SENSOR,
          'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR, 'recorder': RECORDER}
 
@@ -302,15 +301,10 @@ def estimator_config(values: dict) -> EstimatorConfig:
 
 
 def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
-    """silenced_neurons plus a seeded random silenced_fraction of the N neurons."""
-    explicit = [int(i) for i in (values.get('silenced_neurons') or [])]
-    if any(i < 0 or i >= max(neurons, 1) for i in explicit):
-        raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {explicit}')
-    fraction = float(values.get('silenced_fraction') or 0.0)
-    if not 0.0 <= fraction <= 1.0:
-        raise ValueError(f'silenced_fraction must be in [0, 1], got {fraction}')
-    order = np.random.default_rng([int(seed), 4]).permutation(neurons)
-    return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})
+    """silenced_neurons plus a seeded random silenced_fraction of the N neurons
+    (snn_estimator.config.silenced_neurons)."""
+    return silenced_neurons(neurons, seed, values.get('silenced_fraction') or 0.0,
+                            values.get('silenced_neurons') or ())
 
 
 def orbit_settings(values: dict):
@@ -345,7 +339,7 @@ def _show(value) -> str:
 
 
 def markdown() -> str:
-    """Parameter reference tables (README, between the 'parameters' markers)."""
+    """The parameter reference tables of docs/parameters.md."""
     shared = {spec.name for spec in MODEL}
     lines = []
     for title, specs in (('all pipeline nodes', MODEL), *NODES.items()):
@@ -443,22 +437,32 @@ def yaml_document(header: str, estimator_overrides: dict) -> str:
     return '\n'.join(out)
 
 
+PARAMETERS_DOC = """\
+# Parameters
+
+Generated from `scenario_nodes/parameters.py` (`python -m scenario_nodes.parameters --write`; a
+test fails when this file, config/rendezvous.yaml or config/rendezvous_as_published.yaml is
+stale). Every parameter is declared with a descriptor carrying this text and its range
+(`ros2 param describe /estimator leak_rate`). Matrices are flat lists: 1 value = scalar x I,
+n values = diagonal, n x n values = row-major. **[runtime]** parameters may be changed while
+running (`ros2 param set`): they are validated and applied between two steps, or refused with a
+reason and nothing changes. The others are read at start-up (the estimator: at configure); an
+invalid value makes the node exit with code 2 (the estimator: fails `configure`) with a message
+that names the parameter and the fix.
+
+"""
+
+
 def generated_files() -> dict[Path, str]:
     """Every file generated from the tables, with its content."""
     files = {ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
-    readme = ROOT / 'README.md'
-    if readme.exists():
-        text = readme.read_text()
-        begin = text.index('<!-- parameters:begin')
-        start = text.index('\n', begin) + 1
-        end = text.index('<!-- parameters:end -->')
-        files[readme] = text[:start] + markdown() + '\n' + text[end:]
+    files[ROOT / 'docs' / 'parameters.md'] = PARAMETERS_DOC + markdown()
     return files
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description='Print the README parameter tables, or --write the '
-                                                 'generated files (config/*.yaml, the README tables).')
+    parser = argparse.ArgumentParser(description='Print the parameter tables, or --write the '
+                                                 'generated files (config/*.yaml, docs/parameters.md).')
     parser.add_argument('--write', action='store_true')
     args = parser.parse_args(argv)
     if not args.write:

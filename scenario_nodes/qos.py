@@ -88,7 +88,7 @@ class QosEvents:
                     f"'{topic}': a {peer} with incompatible QoS ({policy}) cannot be matched. "
                     f'This {side} uses {describe(PUBLISHER_QOS if side == "publisher" else SUBSCRIPTION_QOS)}; '
                     'publish with the default or the sensor-data profile, or set '
-                    f"qos_overrides./<ns>/{topic}.{side}.<policy> (README, 'QoS')")
+                    f"qos_overrides./<ns>/{topic}.{side}.<policy> (README, 'Topics and QoS')")
         return callback
 
     def subscription_callbacks(self, topic: str) -> SubscriptionEventCallbacks:

@@ -1,8 +1,8 @@
 """The numbers of the scenarios, written once: the paper's values (Table 6, Sec. 3.2; Table 1,
-Sec. 3.1) and this package's choices where the paper is silent (README, "Decisions").
+Sec. 3.1) and this package's choices where the paper is silent (docs/decisions.md).
 
 The core's configuration and scenarios, the ROS parameter tables (and from them the YAML files
-in config/ and the README's tables) all take their defaults from here.
+in config/ and docs/parameters.md) all take their defaults from here.
 """
 
 #: Earth's gravitational parameter, m^3/s^2 (Table 6 gives 398600 km^3/s^2).

@@ -6,7 +6,7 @@ measurements through the exact linear dynamics (the controls held between them k
 returns it with its covariance, which is honest for linear-Gaussian data (the tests check its
 NEES over Monte-Carlo runs). The window sets what the start knows about the unmeasured
 velocity: :func:`window_standard_deviations` gives the position and velocity standard
-deviations a window of a given length leaves (README, "Start-up").
+deviations a window of a given length leaves (docs/decisions.md, 19).
 """
 
 from __future__ import annotations

@@ -55,7 +55,7 @@ def cpu_plan(available=None) -> dict[str, set[int]]:
     """CPU affinity per node: the estimator and the controller share the last CPU, the plant,
     sensor and recorder get the others, so the pacing exchange wakes a process on the same CPU
     and nothing else runs there. {} (no pinning) with one CPU or no affinity support. On the
-    2-core machines: real-time factor median 88 against 70 over 8 interleaved runs (README)."""
+    2-core machines: real-time factor median 88 against 70 over 8 interleaved runs (docs/performance.md)."""
     if not hasattr(os, 'sched_setaffinity'):
         return {}
     cpus = sorted(os.sched_getaffinity(0) if available is None else available)
@@ -245,7 +245,7 @@ def _child_setup(cpus: set[int] | None, lower_priority: bool, batch: bool = Fals
     time it wakes a subscriber: the woken process runs when the CPU is free, so a node ends its
     callback (the estimator publishes three messages per step) instead of being switched out
     after every publish. Five processes on two CPUs otherwise spent about a third of their CPU
-    time switching; CPU per step fell by about a third (README, "Performance")."""
+    time switching; CPU per step fell by about a third (docs/performance.md)."""
     def setup():
         if cpus:
             os.sched_setaffinity(0, cpus)

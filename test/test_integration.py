@@ -41,7 +41,7 @@ def test_closed_loop_converges_over_ros(runs, kind):
     if kind in CONVERGES_FROM_DISPERSION:
         assert summary['final_range_m'] < 0.1
         assert all(rmse[s] < 0.05 for s in ('x', 'y', 'z')) and all(rmse[s] < 1e-3 for s in ('vx', 'vy', 'vz'))
-    else:  # the literal sliding-innovation gain never corrects the velocity (README, "Filters")
+    else:  # the literal sliding-innovation gain never corrects the velocity (README, "Filters"; docs/decisions.md, 16)
         assert summary['final_range_m'] > 0.1 and max(rmse[s] for s in ('vx', 'vy', 'vz')) > 1e-3
     assert summary['control_timeouts'] == 0 and summary['measurements_rejected'] == 0
     assert summary['controls_missing'] == 0
