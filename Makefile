@@ -1,5 +1,5 @@
 # snn_rendezvous: every target creates .venv on first use (Python 3.11 with venv and pip).
-#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime] [PLANT=cw|basilisk]   closed-loop demo over ROS 2
+#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk]   closed-loop demo over ROS 2
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the tests that start no ROS process (< 1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
@@ -14,6 +14,7 @@ STAMP := $(VENV)/.snn_rendezvous-installed
 ESTIMATOR ?=
 MODE ?= lockstep
 PLANT ?= cw
+RTF ?=
 RUNS ?=
 SPEC ?= config/campaigns/example.yaml
 WORKERS ?= 2
@@ -47,7 +48,8 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
 
 demo: $(STAMP)
-	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) \
+		$(if $(RTF),--real-time-factor $(RTF))
 
 experiments: $(STAMP)
 	$(BIN)/snn_experiments $(if $(RUNS),--runs $(RUNS)) --out results \
