@@ -95,6 +95,8 @@ def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
     plan = cpu_plan({0, 1})
     assert plan['estimator'] == plan['lqr_controller'] == {1}
     assert plan['cw_plant'] == plan['position_sensor'] == plan['recorder'] == {0}
+    basilisk = cpu_plan({0, 1}, plant='basilisk')  # a heavier plant: the recorder takes either CPU
+    assert basilisk['basilisk_plant'] == {0} and basilisk['recorder'] == {0, 1} and basilisk['estimator'] == {1}
     four = cpu_plan({4, 5, 6, 7})
     assert four['estimator'] == {7} and four['recorder'] == {4, 5, 6}
     assert cpu_plan({3}) == {}  # one CPU: nothing to separate
@@ -109,12 +111,13 @@ def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_t
     from snn_tools.paths import config_file
     everything = os.sched_getaffinity(0)
     own_nice = os.getpriority(os.PRIO_PROCESS, 0)
-    for pin, scheduling in ((True, 'batch'), (False, 'normal')):
-        expected = cpu_plan() if pin else {}
+    for pin, scheduling, plant in ((True, 'batch', 'basilisk'), (False, 'normal', 'cw')):
+        expected = cpu_plan(plant=plant) if pin else {}
         pipeline = Pipeline(tmp_path / str(pin), config_file(), {}, pipeline_env(), pin_cpus=pin,
-                            scheduling=scheduling)
+                            scheduling=scheduling, plant=plant)
         pipeline.start()
         try:
+            assert not pin or set(pipeline.processes) <= set(expected)  # every node planned
             for name, process in pipeline.processes.items():
                 assert os.sched_getaffinity(process.pid) == expected.get(name, everything), name
                 # 'normal' is set, not inherited: right even if pytest itself runs under batch
