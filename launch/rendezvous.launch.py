@@ -20,10 +20,10 @@ from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 from launch import LaunchDescription
+from snn_estimator.catalog import FILTER_KINDS
 
 PACKAGE = 'snn_rendezvous'
-FILTERS = ('snn_ekf | snn_emsif_weighted | snn_emsif | snn_emsif_star | snn_emsif_hybrid | ekf | '
-           'emsif_weighted | emsif | esif | emsif_hybrid')
+FILTERS = ' | '.join(FILTER_KINDS)
 PLANTS = {'cw': 'cw_plant', 'basilisk': 'basilisk_plant'}
 
 

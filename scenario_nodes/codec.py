@@ -192,13 +192,6 @@ def _decoder(type_name: str, general):
 
 
 # ---------------------------------------------------------------- messages
-def _padded(block: np.ndarray) -> np.ndarray:
-    """A 3x3 block in the top-left of a flat 6x6 ROS covariance."""
-    full = np.zeros((6, 6))
-    full[:3, :3] = block
-    return full.ravel()
-
-
 def encode_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
                     frame_id: str, child_frame_id: str) -> bytes:
     """CDR of the Odometry of a 6-state ``x``; ``covariance`` None publishes zeros (not computed)."""
@@ -209,8 +202,9 @@ def encode_odometry(x: np.ndarray, covariance: np.ndarray | None, stamp_ns: int,
     values[_ORIENTATION_W] = 1.0
     values[_LINEAR] = x[3:6]
     if covariance is not None:
-        values[_POSE_COVARIANCE] = _padded(covariance[:3, :3])
-        values[_TWIST_COVARIANCE] = _padded(covariance[3:, 3:])
+        # the 3x3 blocks in the top-left of the flat 6x6 ROS covariances (mirror of the decoder)
+        values[_POSE_COVARIANCE].reshape(6, 6)[:3, :3] = covariance[:3, :3]
+        values[_TWIST_COVARIANCE].reshape(6, 6)[:3, :3] = covariance[3:, 3:]
     return _doubles(out, values)
 
 

@@ -6,6 +6,8 @@ down), it commands zero thrust at every simulated step and says so, until estima
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
@@ -49,6 +51,7 @@ class ControllerNode(ProcessHooks, Node):
         self._time_jumps = 0
         self._rejected = Rejections()
         self._gate = NewestFirst(p['time_jump_threshold'], p['max_input_age'], p['time_step'])
+        self._now = partial(clock_ns, self)  # the gate reads the clock only when it needs it
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
         self._answers = Answers()
         self._events = qos.QosEvents(self)
@@ -90,7 +93,7 @@ class ControllerNode(ProcessHooks, Node):
             self._reject(error.reason, str(error), 0)
             return
         stamp_ns = estimate.stamp_ns
-        kind = self._gate.classify(stamp_ns, lambda: clock_ns(self))
+        kind = self._gate.classify(stamp_ns, self._now)
         if kind == 'repeat':
             if self._answers.resend(stamp_ns, self._pub):  # the estimate came again: same control
                 self._published += 1
@@ -190,8 +193,7 @@ class ControllerNode(ProcessHooks, Node):
     def close(self) -> None:
         """Final diagnostics, so the totals of the run are on record."""
         if self._gate.last_ns is not None:
-            self._publish_diagnostics(self._gate.last_ns)
-            self._diagnostics.flush()
+            self._publish_diagnostics(self._gate.last_ns)  # run_node waits for its acknowledgement
 
 
 def main(args=None) -> int:

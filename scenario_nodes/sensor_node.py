@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
@@ -30,6 +32,7 @@ class SensorNode(ProcessHooks, Node):
         self._published = 0
         self._rejected = Rejections()
         self._gate = NewestFirst(p['time_jump_threshold'])
+        self._now = partial(clock_ns, self)  # the gate reads the clock only when it needs it
         self._time_jumps = 0
         self._answers = Answers()
         self._events = qos.QosEvents(self)
@@ -48,7 +51,7 @@ class SensorNode(ProcessHooks, Node):
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)
             return
         stamp_ns = truth.stamp_ns
-        kind = self._gate.classify(stamp_ns, lambda: clock_ns(self))
+        kind = self._gate.classify(stamp_ns, self._now)
         if kind == 'repeat':
             if self._answers.resend(stamp_ns, self._pub):  # the plant sent it again: same measurement
                 self._published += 1
@@ -86,8 +89,7 @@ class SensorNode(ProcessHooks, Node):
     def close(self) -> None:
         """Final diagnostics, so the totals of the run are on record."""
         if self._gate.last_ns is not None:
-            self._publish_diagnostics(self._gate.last_ns)
-            self._diagnostics.flush()
+            self._publish_diagnostics(self._gate.last_ns)  # run_node waits for its acknowledgement
 
 
 def main(args=None) -> int:

@@ -56,6 +56,12 @@ _RULES = {'greedy': kernels.RULE_GREEDY, 'one_per_step': kernels.RULE_ONE_PER_ST
 
 
 
+def _retunable_arguments(settings: ResolvedConfig) -> dict:
+    """The step kernel's arguments that :meth:`Estimator.retune` may change, from the settings."""
+    return {'leak': settings.leak_rate, 'q_hat': settings.q_hat,
+            'r_hat_diag': np.ascontiguousarray(np.diag(settings.r_hat)), 'delta': settings.boundary_layer}
+
+
 def _read_only(array: np.ndarray) -> np.ndarray:
     """A view of ``array`` that callers cannot write through."""
     view = array.view()
@@ -133,10 +139,9 @@ class Estimator:
             gain_law=kernels.GAIN_FIXED if self.constant_gain else _GAINS[self.gain_law],
             covariance_law=_COVARIANCES[self.covariance_law], spiking=self.spiking,
             spike_rule=_RULES[s.spike_rule], use_given_drift=False, measured=True, dt=0.0,
-            leak=s.leak_rate, max_spikes=s.max_spikes_per_step, c=self._c, c_pinv=self._c_pinv,
-            q_hat=s.q_hat, r_density=np.eye(m), r_density_inv=np.eye(m),
-            r_hat_diag=np.ascontiguousarray(np.diag(s.r_hat)), delta=s.boundary_layer,
-            scale=self._scale, fixed_gain=no_gain, dynamics=np.zeros((1, n, 2 * n + n_u)),
+            max_spikes=s.max_spikes_per_step, c=self._c, c_pinv=self._c_pinv,
+            r_density=np.eye(m), r_density_inv=np.eye(m), **_retunable_arguments(s), scale=self._scale,
+            fixed_gain=no_gain, dynamics=np.zeros((1, n, 2 * n + n_u)),
             drift=self._no_drift, z=self._no_measurement, u=np.zeros((self.runs, n_u)),
             noise=self._zero_noise, x_hat=self._x_hat, p=self._p, gain=self._gain,
             decoder=self._decoder, gram=self._gram, thresholds=self._thresholds, alive=self._alive,
@@ -385,9 +390,7 @@ class Estimator:
         if self._call_dt is not None:  # the step size in use must still work
             self.check_time_step(self._call_dt, settings)
         self.config, self.settings = config, settings
-        self._call.update(leak=settings.leak_rate, q_hat=settings.q_hat,
-                          r_hat_diag=np.ascontiguousarray(np.diag(settings.r_hat)),
-                          delta=settings.boundary_layer)
+        self._call.update(**_retunable_arguments(settings))
         if self._call_dt is not None:  # R of Eq. 5-6 and a constant gain depend on the settings too
             self.prepare(self._call_dt)
 

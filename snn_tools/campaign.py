@@ -241,15 +241,21 @@ def validate(spec: CampaignSpec) -> None:
     first value, then each value varied alone from it (so an error names the key and value at
     fault), then every combination (some values fail only together)."""
     first = {name: values[0] for name, values in spec.grid.items()}
+    checked = set()  # a cell checked in the first two passes is not built again in the third
+
+    def check(where: str, kind: str, settings: dict) -> None:
+        key = _canonical([kind, settings])
+        if key not in checked:
+            _check(where, spec.scenario, kind, settings, spec.seed)
+            checked.add(key)
+
     for kind in spec.filters:
-        _check(f'grid cell {first} with settings {spec.settings}', spec.scenario, kind,
-               {**first, **spec.settings}, spec.seed)
+        check(f'grid cell {first} with settings {spec.settings}', kind, {**first, **spec.settings})
         for name, values in spec.grid.items():
             for value in values[1:]:
-                _check(f'grid.{name} = {value!r}', spec.scenario, kind,
-                       {**first, name: value, **spec.settings}, spec.seed)
+                check(f'grid.{name} = {value!r}', kind, {**first, name: value, **spec.settings})
     for cell in spec.cells():
-        _check(f'grid cell {cell.settings}', spec.scenario, cell.filter, cell.settings, spec.seed)
+        check(f'grid cell {cell.settings}', cell.filter, cell.settings)
 
 
 # ---------------------------------------------------------------- campaign directory

@@ -28,7 +28,7 @@ from snn_estimator.costs import CHIPS, FLOAT32_MAC_PJ, FLOAT32_MAC_SOURCE, CostM
 from snn_estimator.estimators import FILTER_KINDS, TWIN_OF, Estimator, make_estimator
 from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
 
-from .brian2_sim import run_file, run_network
+from .brian2_sim import run_network
 from .experiments import time_steps
 from .nir_export import NetworkArrays, constant_gain_estimator, network_arrays, network_graph
 
@@ -129,13 +129,13 @@ class DenseNetwork:
         return net.decoder @ self.r
 
 
-def independent_check(scenario, recording: Recording, net: NetworkArrays,
-                      substeps: int, nir_path: Path) -> dict:
-    """Brian2 from the NIR file over the recorded inputs against our estimate: the primary
+def independent_check(scenario, recording: Recording, net: NetworkArrays, substeps: int) -> dict:
+    """Brian2 from the NIR file (``net``, as read back from it) over the recorded inputs against
+    our estimate: the primary
     (sampled, greedy) comparison over the whole run and the continuous-time readings."""
     window = round(min(scenario.metric_window, scenario.duration) / scenario.dt)
     ours_rmse = rmse(recording.truth, recording.estimate, window)
-    run = run_file(nir_path, recording.zs, recording.us, mode='sampled', rule='greedy', substeps=substeps)
+    run = run_network(net, recording.zs, recording.us, mode='sampled', rule='greedy', substeps=substeps)
     theirs = rmse(recording.truth, run.estimate, window)
     record = {
         'independent_simulator': f'Brian2 {_version("brian2")} (numpy code generation) built from the NIR '
@@ -388,7 +388,7 @@ def run_filter(kind: str, scenario, args, workdir: Path) -> dict:
     net = network_arrays(nir.read(nir_path))
     starts = {start for *_, start, _ in reading_windows(scenario)}
     recording = record_rendezvous(scenario, estimator, snapshot_steps=starts)
-    record = independent_check(scenario, recording, net, args.substeps, nir_path)
+    record = independent_check(scenario, recording, net, args.substeps)
     record.update(cost_record(estimator, recording.raster, args.substeps))
     record['cpu'] = cpu_record(kind, scenario.estimator, scenario, recording, net, args.cpu_watts)
     record['constant_vs_time_varying'] = gain_schedule_comparison(kind, args.runs, scenario.duration)
