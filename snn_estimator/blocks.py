@@ -3,20 +3,23 @@ The cw_plant, position_sensor and lqr_controller nodes wrap these (and load no n
 offline simulator (simulation.py) steps the same objects.
 
 Random streams: component ``c`` of run ``b`` draws from ``default_rng([seed + b, c])``, c = 1
-plant process noise, 2 sensor noise (3 and 5 are the estimator's: estimators.py).
+plant process noise, 2 sensor noise, 6 sensor dropouts (3 and 5 are the estimator's:
+estimators.py).
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from .measurements import DROPOUT, REASONS, VALID, MeasurementModel
 from .models import StateSpaceModel
 from .validation import as_matrix, as_vector, check_covariance
 
 PLANT_STREAM = 1
 SENSOR_STREAM = 2
+DROPOUT_STREAM = 6
 
 
 def matrix_sqrt(covariance: np.ndarray) -> np.ndarray:
@@ -100,6 +103,58 @@ class PositionSensor:
     def measure(self, x) -> np.ndarray:
         x = np.asarray(x, dtype=float)
         return x @ self.model.measurement_matrix.T + self._noise.draw() @ self._root.T
+
+
+class Measurement(NamedTuple):
+    """One sample of a :class:`MeasurementSensor` for every run: ``z`` (runs, m), NaN where
+    there is no measurement, and ``reason`` (runs,), a code of measurements.REASONS (0: valid)."""
+    z: np.ndarray
+    reason: np.ndarray
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.reason == VALID
+
+    def counts(self) -> dict[str, int]:
+        """Samples without a measurement, by reason name (what a caller adds to its counters)."""
+        codes = np.bincount(self.reason.astype(np.int64), minlength=len(REASONS))
+        return {REASONS[code]: int(n) for code, n in enumerate(codes) if code != VALID and n}
+
+
+class MeasurementSensor:
+    """Noisy measurements ``z = h(x) + v``, v ~ N(0, R), of any measurement model, batched over
+    runs, with validity (field of view, range limits: measurements.base) and random dropouts.
+
+    The noise draws are PositionSensor's (stream 2, one row per sample whether or not the sample
+    gives a measurement), so with the ``position`` model the numbers are PositionSensor's
+    exactly, and a dropout or an invalid sample never shifts the noise of the later ones.
+    Dropouts draw from their own stream (6), only when ``dropout_probability`` > 0. Angles are
+    reported wrapped into [-pi, pi); a noisy range outside [min_range, max_range] is discarded.
+    """
+
+    def __init__(self, model: MeasurementModel, seeds: Sequence[int] = (0,), dropout_probability: float = 0.0):
+        self.model = model
+        self.r = model.noise
+        self._root = matrix_sqrt(self.r)
+        self._noise = GaussianStream(seeds, SENSOR_STREAM, model.dim)
+        probability = float(dropout_probability)
+        if not 0.0 <= probability <= 1.0:
+            raise ValueError(f'dropout_probability must be within [0, 1]; got {dropout_probability!r}')
+        self.dropout_probability = probability
+        self._dropouts = [np.random.default_rng([int(s), DROPOUT_STREAM]) for s in seeds]
+
+    def measure(self, x) -> Measurement:
+        x = np.asarray(x, dtype=float)
+        reason = self.model.validity(x).astype(np.int8)
+        z = self.model.h(x) + self._noise.draw() @ self._root.T
+        z = self.model.normalize(z)
+        measured = self.model.check_measured(z)
+        reason = np.where(reason == VALID, measured, reason).astype(np.int8)
+        if self.dropout_probability > 0.0:
+            lost = np.array([g.random() < self.dropout_probability for g in self._dropouts])
+            reason[(reason == VALID) & lost] = DROPOUT
+        z[reason != VALID] = np.nan
+        return Measurement(z, reason)
 
 
 def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:

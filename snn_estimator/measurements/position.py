@@ -1,0 +1,44 @@
+"""``position``: the measured Cartesian position axes, ``z = C x`` (Table 6; today's sensor).
+
+Exactly the measurement blocks.PositionSensor and the filters use: the same C (one row per
+measured axis), so the noise and the numbers are identical. No field of view or range limit.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .base import NON_FINITE, VALID, MeasurementModel
+
+AXIS_NAMES = ('x', 'y', 'z')
+
+
+class Position(MeasurementModel):
+    name = 'position'
+    message_form = 'point'
+    parameters = ('measured_axes',)
+
+    def __init__(self, noise, measured_axes: Sequence[int] = (0, 1, 2), n_state: int = 6):
+        axes = tuple(int(a) for a in measured_axes)
+        if not axes or len(set(axes)) != len(axes) or not all(0 <= a <= 2 for a in axes):
+            raise ValueError(
+                f'measured_axes must be distinct position axes among 0 (x), 1 (y), 2 (z); got {axes}')
+        self.measured_axes = axes
+        self.component_names = tuple(AXIS_NAMES[a] for a in axes)
+        self.units = ('m',) * len(axes)
+        super().__init__(noise, n_state)
+        self.matrix = np.zeros((len(axes), self.n_state))
+        self.matrix[np.arange(len(axes)), axes] = 1.0
+
+    def h(self, x) -> np.ndarray:
+        return np.asarray(x, dtype=float) @ self.matrix.T
+
+    def jacobian(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        return np.broadcast_to(self.matrix, x.shape[:-1] + self.matrix.shape).copy()
+
+    def validity(self, x) -> np.ndarray:
+        finite = np.isfinite(np.asarray(x, dtype=float)).all(axis=-1)
+        return np.where(finite, VALID, NON_FINITE).astype(np.int8)
