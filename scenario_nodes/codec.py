@@ -13,7 +13,12 @@ Conventions (README, "Topics and QoS"):
   covariance goes to pose.covariance[0:3, 0:3], the velocity block to twist.covariance[0:3, 0:3];
   the position-velocity cross terms have no place in Odometry and are not published.
 * a partial position measurement <-> geometry_msgs/PointStamped with NaN on unmeasured axes;
-* the control (specific force, m/s^2) <-> geometry_msgs/AccelStamped accel.linear.
+* the control (specific force, m/s^2) <-> geometry_msgs/AccelStamped accel.linear;
+* any measurement model's sample (snn_estimator.measurements) <-> the message of its
+  ``message_form`` (:func:`encode_measurement`, :func:`decode_measurement`; docs/sensors.md):
+  'point' PointStamped as above, 'range' sensor_msgs/Range (field of view, limits and variance
+  in the message), 'vector' geometry_msgs/Vector3Stamped with the components in model order
+  and NaN on unused ones.
 
 Fast path: plain little-endian CDR, recognised by the representation identifier (bytes 0-1 of
 the encapsulation header, 0x0001); the options (bytes 2-3) are ignored, as the XTypes standard
@@ -50,6 +55,13 @@ _ODOMETRY_DOUBLES = 85
 ODOMETRY = 'nav_msgs/msg/Odometry'
 POINT_STAMPED = 'geometry_msgs/msg/PointStamped'
 ACCEL_STAMPED = 'geometry_msgs/msg/AccelStamped'
+VECTOR3_STAMPED = 'geometry_msgs/msg/Vector3Stamped'
+RANGE = 'sensor_msgs/msg/Range'
+#: sensor_msgs/Range.radiation_type: a laser (LIDAR) ranger is INFRARED; the type has no radar or RF.
+RANGE_INFRARED = 1
+#: A measurement model's message_form -> the message type it travels in.
+MEASUREMENT_TYPES = {'point': POINT_STAMPED, 'range': RANGE, 'vector': VECTOR3_STAMPED}
+_RANGE_FLOATS = struct.Struct('<5f')  # field_of_view, min_range, max_range, range, variance
 
 
 class MessageError(ValueError):
@@ -270,6 +282,104 @@ def encode_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
 def decode_accel(data: bytes) -> StampedVector:
     """The stamp, frame and accel.linear (it comes before angular) of an AccelStamped's CDR."""
     return _stamped_vector(data)
+
+
+def encode_vector3(values: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of a Vector3Stamped holding up to three ``values`` in x, y, z (NaN after them)."""
+    vector = np.full(3, math.nan)
+    values = np.asarray(values, dtype=float).ravel()
+    vector[:values.size] = values
+    return _doubles(_header(stamp_ns, frame_id), vector)
+
+
+def _vector3_from_message(msg) -> StampedVector:
+    v = msg.vector
+    return StampedVector(_stamp_of(msg.header), msg.header.frame_id, np.array([v.x, v.y, v.z]))
+
+
+@_decoder(VECTOR3_STAMPED, _vector3_from_message)
+def decode_vector3(data: bytes) -> StampedVector:
+    """The stamp, frame and vector of a Vector3Stamped's CDR."""
+    return _stamped_vector(data)
+
+
+class RangeRecord(NamedTuple):
+    """A received sensor_msgs/Range (float32 fields as received)."""
+    stamp_ns: int
+    frame_id: str
+    radiation_type: int
+    field_of_view: float
+    min_range: float
+    max_range: float
+    range: float
+    variance: float
+
+
+def encode_range(value: float, stamp_ns: int, frame_id: str, field_of_view: float, min_range: float,
+                 max_range: float, variance: float, radiation_type: int = RANGE_INFRARED) -> bytes:
+    """CDR of a sensor_msgs/Range. Its fields are float32: a range is rounded to ~6e-8 of itself."""
+    out = _header(stamp_ns, frame_id)
+    out += struct.pack('<B', int(radiation_type))
+    _pad(out, 4)
+    out += _RANGE_FLOATS.pack(field_of_view, min_range, max_range, value, variance)
+    return bytes(out)
+
+
+def _range_from_message(msg) -> RangeRecord:
+    return RangeRecord(_stamp_of(msg.header), msg.header.frame_id, int(msg.radiation_type), float(msg.field_of_view),
+                       float(msg.min_range), float(msg.max_range), float(msg.range), float(msg.variance))
+
+
+@_decoder(RANGE, _range_from_message)
+def decode_range(data: bytes) -> RangeRecord:
+    """The fields of a sensor_msgs/Range's CDR."""
+    stamp_ns, frame_id, offset = _read_header(data)
+    radiation_type = data[offset]
+    values = _RANGE_FLOATS.unpack_from(data, _body_offset(offset + 1, 4))
+    return RangeRecord(stamp_ns, frame_id, radiation_type, *(float(v) for v in values))
+
+
+def encode_measurement(model, z: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of one sample ``z`` of a measurement model (snn_estimator.measurements), in the message
+    of the model's ``message_form``. A sample that is not finite raises MessageError('non_finite'):
+    never a NaN out."""
+    z = np.asarray(z, dtype=float).ravel()
+    if z.size != model.dim or not np.isfinite(z).all():
+        raise MessageError('non_finite', f'{model.name} sample {z.tolist()} is not {model.dim} finite numbers')
+    form = model.message_form
+    if form == 'point':
+        return encode_point(z, model.measured_axes, stamp_ns, frame_id)
+    if form == 'range':
+        return encode_range(z[0], stamp_ns, frame_id, model.field_of_view, model.min_range,
+                            model.max_range or math.inf, float(model.noise[0, 0]))
+    if form == 'vector':
+        return encode_vector3(z, stamp_ns, frame_id)
+    raise ValueError(f"message_form must be one of {', '.join(MEASUREMENT_TYPES)}; got {form!r}")
+
+
+def decode_measurement(model, data: bytes) -> tuple[int, str, np.ndarray]:
+    """(stamp in ns, frame_id, z) of a measurement of ``model`` (the mirror of
+    :func:`encode_measurement`); MessageError for a value that is not finite, and for a range
+    outside the message's own [min_range, max_range] (sensor_msgs/Range: discard it)."""
+    form = model.message_form
+    if form == 'point':
+        record = decode_point(data)
+        return record.stamp_ns, record.frame_id, measurement_of(record, model.measured_axes)
+    if form == 'range':
+        record = decode_range(data)
+        if not math.isfinite(record.range):
+            raise MessageError('non_finite', f'range {record.range} (REP 117: no detection)')
+        if not record.min_range <= record.range <= record.max_range:
+            raise MessageError('out_of_range', f'range {record.range} m outside [{record.min_range}, '
+                               f'{record.max_range}] m')
+        return record.stamp_ns, record.frame_id, np.array([record.range])
+    if form == 'vector':
+        record = decode_vector3(data)
+        z = record.vector[:model.dim]
+        if not np.isfinite(z).all():
+            raise MessageError('non_finite', f'{model.name} components {z.tolist()}')
+        return record.stamp_ns, record.frame_id, z
+    raise ValueError(f"message_form must be one of {', '.join(MEASUREMENT_TYPES)}; got {form!r}")
 
 
 def encode_clock(stamp_ns: int) -> bytes:

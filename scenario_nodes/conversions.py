@@ -12,9 +12,10 @@ from typing import Mapping, Sequence
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import AccelStamped, PointStamped
+from geometry_msgs.msg import AccelStamped, PointStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import Range
 from std_msgs.msg import UInt32MultiArray
 
 from .codec import (  # noqa: F401 (re-exported)
@@ -22,12 +23,18 @@ from .codec import (  # noqa: F401 (re-exported)
     MessageError,
     control_of,
     decode_accel,
+    decode_measurement,
     decode_odometry,
     decode_point,
+    decode_range,
+    decode_vector3,
     encode_accel,
+    encode_measurement,
     encode_odometry,
     encode_point,
+    encode_range,
     encode_spikes,
+    encode_vector3,
     measurement_of,
     split_stamp,
     state_of,
@@ -65,6 +72,35 @@ def measurement_to_point(z: np.ndarray, measured_axes: Sequence[int], stamp_ns: 
 def point_to_measurement(msg: PointStamped, measured_axes: Sequence[int]) -> np.ndarray:
     """The measured axes of a PointStamped; raises MessageError if one of them is not finite."""
     return measurement_of(decode_point(serialize_message(msg)), measured_axes)
+
+
+#: A measurement model's message_form -> its rclpy message class (codec.MEASUREMENT_TYPES).
+MEASUREMENT_CLASSES = {'point': PointStamped, 'range': Range, 'vector': Vector3Stamped}
+
+
+def measurement_to_message(model, z: np.ndarray, stamp_ns: int, frame_id: str):
+    """The message of one sample of a measurement model (PointStamped, Range or Vector3Stamped,
+    by its message_form; docs/sensors.md); MessageError if ``z`` is not finite."""
+    return deserialize_message(encode_measurement(model, z, stamp_ns, frame_id),
+                               MEASUREMENT_CLASSES[model.message_form])
+
+
+def message_to_measurement(model, msg) -> np.ndarray:
+    """``z`` of a measurement message of ``model``; MessageError for a value not finite, or a
+    range outside the message's limits."""
+    return decode_measurement(model, serialize_message(msg))[2]
+
+
+def values_to_vector3(values: np.ndarray, stamp_ns: int, frame_id: str) -> Vector3Stamped:
+    """Vector3Stamped with up to three values in x, y, z and NaN after them."""
+    return deserialize_message(encode_vector3(values, stamp_ns, frame_id), Vector3Stamped)
+
+
+def range_message(value: float, stamp_ns: int, frame_id: str, field_of_view: float, min_range: float,
+                  max_range: float, variance: float) -> Range:
+    """sensor_msgs/Range (radiation_type INFRARED: a laser ranger)."""
+    return deserialize_message(encode_range(value, stamp_ns, frame_id, field_of_view, min_range, max_range,
+                                            variance), Range)
 
 
 def control_to_accel(u: np.ndarray, stamp_ns: int, frame_id: str) -> AccelStamped:

@@ -133,7 +133,7 @@ def test_colcon_build_installs_an_ament_python_package(tmp_path):
 def test_package_xml_declares_every_runtime_dependency():
     text = (ROOT / 'package.xml').read_text()
     assert '<build_type>ament_python</build_type>' in text and 'format="3"' in text
-    for key in ('rclpy', 'nav_msgs', 'geometry_msgs', 'std_msgs', 'std_srvs', 'diagnostic_msgs',
+    for key in ('rclpy', 'nav_msgs', 'geometry_msgs', 'sensor_msgs', 'std_msgs', 'std_srvs', 'diagnostic_msgs',
                 'rosgraph_msgs', 'ament_index_python', 'launch_ros', 'python3-numpy', 'python3-scipy',
                 'python3-matplotlib', 'python3-control-pip', 'python3-numba-pip', 'python3-rosbags-pip'):
         assert f'<exec_depend>{key}</exec_depend>' in text, key
