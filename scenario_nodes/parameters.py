@@ -20,6 +20,8 @@ import numpy as np
 from snn_estimator import defaults as D
 from snn_estimator.catalog import FILTER_KINDS, START_MODES
 from snn_estimator.config import GAIN_SCHEDULES, MEASUREMENT_NOISE_UNITS, SPIKE_RULES, EstimatorConfig, silenced_neurons
+from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
+from snn_estimator.measurements import OBSERVERS
 
 from .topics import PIPELINE_TOPICS
 
@@ -128,10 +130,25 @@ SENSOR = MODEL + (
     Spec('measured_axes', [0, 1, 2], 'Position axes measured (0 x, 1 y, 2 z); the others are '
          'published as NaN'),
     Spec('measurement_noise', [D.RENDEZVOUS_MEASUREMENT_NOISE], 'R, covariance of the position noise '
-         'per sample, m^2 (Table 6: 1e-2 I3)'),
+         'per sample, m^2 (Table 6: 1e-2 I3); for another model R in its units (docs/sensors.md)'),
     Spec('seed', 0, 'Seed of the measurement noise (stream 2 of the seed)', low=0),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, a truth this far before the last '
          'one means the time base restarted: start over, s', low=0.0),
+    # the measurement model and its geometry (snn_estimator.measurements; docs/sensors.md)
+    Spec('model', 'position', 'Measurement model; position publishes PointStamped in frame_id, the others '
+         'their message in sensor_frame_id (docs/sensors.md)', choices=tuple(MEASUREMENT_MODELS)),
+    Spec('observer', 'chaser', 'Where the sensor is: on the chaser (sees the target at -position) or on '
+         'the target (sees the chaser); not for position', choices=OBSERVERS),
+    Spec('field_of_view', 2.0 * np.pi, 'Full cone angle about the sensor x axis, rad (2 pi: no limit); '
+         'outside it no measurement (counted)', low=1e-9, high=2.0 * np.pi),
+    Spec('min_range', 0.0, 'Shortest range measured, m (range 0 is never measured)', low=0.0),
+    Spec('max_range', 0.0, 'Longest range measured, m (0: no limit)', low=0.0),
+    Spec('mounting_offset', [0.0, 0.0, 0.0], 'Sensor position on its spacecraft, LVLH axes, m'),
+    Spec('mounting_rotation', [0.0, 0.0, 0.0, 1.0], 'Sensor axes in LVLH axes as a unit quaternion '
+         '[x, y, z, w] (tf2 order; identity: sensor x = V-bar, z = R-bar)'),
+    Spec('sensor_frame_id', 'sensor', 'frame_id of the measurements of models other than position'),
+    Spec('dropout_probability', 0.0, 'Probability that a sample is lost (own random stream 6)',
+         low=0.0, high=1.0),
 )
 
 CONTROLLER = MODEL + (

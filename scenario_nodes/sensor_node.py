@@ -1,34 +1,46 @@
-"""position_sensor: noisy partial position measurements z = C x + v of the truth."""
+"""position_sensor: noisy measurements z = h(x) + v of the truth, by any measurement model
+(``model``: position, the default, z = C x; range_azimuth_elevation, line_of_sight, range,
+range_rate: docs/sensors.md)."""
 
 from __future__ import annotations
 
 from functools import partial
 
-from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
-from snn_estimator.blocks import PositionSensor
+from snn_estimator.blocks import MeasurementSensor
 from snn_estimator.gates import NewestFirst
+from snn_estimator.measurements import REASONS, VALID, make_model
 
 from . import qos
-from .codec import MessageError, check_frame, decode_odometry, encode_point, state_of
+from .codec import MessageError, check_frame, decode_odometry, encode_measurement, state_of
+from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import SENSOR, cw_model, declare
+from .parameters import SENSOR, declare
 from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
 
 
 class SensorNode(ProcessHooks, Node):
-    """Wraps :class:`snn_estimator.blocks.PositionSensor`: one measurement per truth sample,
-    stamped with the truth's time, NaN on the axes it does not measure."""
+    """Wraps :class:`snn_estimator.blocks.MeasurementSensor`: one measurement per truth sample,
+    stamped with the truth's time, in the message of the model (position: PointStamped with NaN
+    on the axes it does not measure, PositionSensor's numbers). A sample outside the field of
+    view or the range limits, or dropped, is not published and is counted
+    (measurement_rejected.<reason>)."""
 
     def __init__(self, **kwargs):
         super().__init__('position_sensor', **kwargs)
         p = declare(self, SENSOR)
         self._p = p
         self._axes = tuple(int(a) for a in p['measured_axes'])
-        model = cw_model(p, measured_axes=self._axes)
-        self._sensor = PositionSensor(model, p['measurement_noise'], seeds=[p['seed']])
+        model = make_model(p['model'], p['measurement_noise'], measured_axes=self._axes,
+                           **{name: p[name] for name in ('observer', 'field_of_view', 'min_range', 'max_range',
+                                                          'mounting_offset', 'mounting_rotation')})
+        self._model = model
+        self._frame = p['frame_id'] if model.message_form == 'point' else p['sensor_frame_id']
+        self._sensor = MeasurementSensor(model, seeds=[p['seed']], dropout_probability=p['dropout_probability'])
+        self._not_measured = Rejections()
+        self._unmeasured_ns = None  # the stamp of the last truth that gave no measurement
         self._published = 0
         self._rejected = Rejections()
         self._gate = NewestFirst(p['time_jump_threshold'])
@@ -36,11 +48,14 @@ class SensorNode(ProcessHooks, Node):
         self._time_jumps = 0
         self._answers = Answers()
         self._events = qos.QosEvents(self)
-        self._pub = qos.publisher(self, self._events, PointStamped, qos.MEASUREMENT)
+        self._pub = qos.publisher(self, self._events, MEASUREMENT_CLASSES[model.message_form], qos.MEASUREMENT)
         self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events)
         qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
-        self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
+        if model.message_form == 'point':
+            self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
+        else:
+            self.get_logger().info(f'measuring {model.describe()}, frame {self._frame!r}')
 
     def _on_truth(self, data: bytes) -> None:
         try:
@@ -53,6 +68,8 @@ class SensorNode(ProcessHooks, Node):
         stamp_ns = truth.stamp_ns
         kind = self._gate.classify(stamp_ns, self._now)
         if kind == 'repeat':
+            if stamp_ns == self._unmeasured_ns:  # nothing was measured at this stamp: nothing again
+                return
             if self._answers.resend(stamp_ns, self._pub):  # the plant sent it again: same measurement
                 self._published += 1
             else:
@@ -65,8 +82,18 @@ class SensorNode(ProcessHooks, Node):
             self.get_logger().warning('truth time went back: starting over')
             self._time_jumps += 1
             self._answers.clear()
-        z = self._sensor.measure(x)[0]
-        data = encode_point(z, self._axes, stamp_ns, self._p['frame_id'])
+        sample = self._sensor.measure(x[None])
+        reason = REASONS[int(sample.reason[0])]
+        try:
+            if reason != REASONS[VALID]:
+                raise MessageError(reason, 'no measurement')
+            data = encode_measurement(self._model, sample.z[0], stamp_ns, self._frame)
+        except MessageError as error:  # out of view or range, dropped, not finite: never published
+            self._not_measured[error.reason] += 1
+            self._unmeasured_ns = stamp_ns
+            if self._diagnostics.due(stamp_ns):
+                self._publish_diagnostics(stamp_ns)
+            return
         self._pub.publish(data)
         self._answers.remember(stamp_ns, data)
         self._published += 1
@@ -82,7 +109,7 @@ class SensorNode(ProcessHooks, Node):
     def _publish_diagnostics(self, stamp_ns: int) -> None:
         values = {'measurements_published': self._published, 'measurements_resent': self._answers.resent,
                   'time_jumps': self._time_jumps,
-                  **self._rejected.as_values('truth')}
+                  **self._rejected.as_values('truth'), **self._not_measured.as_values('measurement')}
         problems = [f'{self._rejected.total} truth messages rejected'] if self._rejected.total else []
         self._diagnostics.publish(stamp_ns, values, problems)
 

@@ -1,0 +1,96 @@
+"""The sensor node with a measurement model other than position, in-process: its messages are
+h(x) of the truth plus the offline sensor's noise, and samples it cannot measure are counted,
+never published."""
+
+import math
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+
+from geometry_msgs.msg import Vector3Stamped  # noqa: E402
+from ros_helpers import Probe, make, ros_context, spin_until  # noqa: E402
+from sensor_msgs.msg import Range  # noqa: E402
+
+from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.conversions import message_to_measurement, stamp_to_ns, state_to_odometry  # noqa: E402
+from scenario_nodes.sensor_node import SensorNode  # noqa: E402
+from snn_estimator.blocks import MeasurementSensor  # noqa: E402
+from snn_estimator.measurements import make_model  # noqa: E402
+
+REMAP = ['--ros-args', '-r', 'measurement:=lidar']
+LIDAR = {'model': 'range_azimuth_elevation', 'measurement_noise': [1e-4, 1e-6, 1e-6], 'observer': 'chaser',
+         'field_of_view': math.radians(60.0), 'max_range': 200.0, 'mounting_offset': [0.5, 0.0, -0.2],
+         'mounting_rotation': [0.0, 0.0, 1.0, 0.0], 'seed': 4, 'diagnostics_period': 0.0,
+         'sensor_frame_id': 'lidar'}
+
+
+def test_range_azimuth_elevation_sensor_publishes_h_of_the_truth_and_counts_what_it_cannot_see():
+    # the chaser ahead of the target on V-bar looks back along -x: the mounting turns the sensor
+    # 180 deg about z, so its boresight (+x) is LVLH -x
+    truths = [np.array([70.0, 10.0, -5.0, -0.5, 0.1, 0.0]),
+              np.array([60.0, -8.0, 6.0, -0.4, 0.0, 0.1]),
+              np.array([20.0, 60.0, 0.0, 0.0, 0.0, 0.0]),    # 72 deg off the boresight: out of view
+              np.array([250.0, 0.0, 0.0, 0.0, 0.0, 0.0]),    # beyond max_range
+              np.array([50.0, 3.0, 2.0, -0.3, 0.0, 0.0])]
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        received = []
+        probe.node.create_subscription(Vector3Stamped, 'lidar', received.append, qos.HISTORY_QOS)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, **LIDAR)
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0
+                          and probe.node.count_publishers('lidar') > 0)
+        for k, x in enumerate(truths):
+            probe.publish(qos.TRUTH, state_to_odometry(x, None, (k + 1) * 100_000_000, 'lvlh', 'chaser'))
+            assert spin_until(executor, lambda k=k: probe.diagnostics('position_sensor').get('measurements_published')
+                              is not None and len(probe.received[qos.DIAGNOSTICS]) >= k + 1)
+        assert spin_until(executor, lambda: len(received) == 3)
+        assert spin_until(executor, lambda: probe.diagnostics('position_sensor').get('measurement_rejected') == '2')
+        values = probe.diagnostics('position_sensor')
+        assert values['measurement_rejected.out_of_view'] == '1' and values['measurement_rejected.too_far'] == '1'
+        assert values['measurements_published'] == '3'
+
+    model = make_model(LIDAR['model'], LIDAR['measurement_noise'], observer='chaser',
+                       field_of_view=LIDAR['field_of_view'], max_range=200.0,
+                       mounting_offset=LIDAR['mounting_offset'], mounting_rotation=LIDAR['mounting_rotation'])
+    offline = MeasurementSensor(model, seeds=[4])
+    expected = [offline.measure(x[None]) for x in truths]
+    measured = [e for e in expected if e.valid[0]]
+    assert [stamp_to_ns(m.header.stamp) for m in received] == [100_000_000, 200_000_000, 500_000_000]
+    sigma = np.sqrt(np.diagonal(model.noise))
+    for msg, sample, x in zip(received, measured, [truths[0], truths[1], truths[4]]):
+        assert msg.header.frame_id == 'lidar'
+        z = message_to_measurement(model, msg)
+        np.testing.assert_array_equal(z, sample.z[0])  # the offline sensor's numbers, exactly
+        truth_z = model.h(x)
+        assert np.all(np.abs(model.residual(z, truth_z)) < 5 * sigma)
+        # and h(x) by hand: the boresight is LVLH -x, so the target (at -p - d from the sensor)
+        # lies near the boresight: range |p + d|, small angles
+        assert abs(truth_z[0] - np.linalg.norm(x[:3] + LIDAR['mounting_offset'])) < 1e-12
+        assert abs(truth_z[1]) < 0.3 and abs(truth_z[2]) < 0.3
+
+
+def test_range_sensor_publishes_sensor_msgs_range_with_its_limits():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        received = []
+        probe.node.create_subscription(Range, 'lidar', received.append, qos.HISTORY_QOS)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, model='range',
+             measurement_noise=[1e-6], min_range=1.0, max_range=500.0, sensor_frame_id='rf')
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0)
+        probe.publish(qos.TRUTH, state_to_odometry(np.array([30.0, 40.0, 0, 0, 0, 0]), None, 0, 'lvlh', 'chaser'))
+        assert spin_until(executor, lambda: received)
+        msg = received[0]
+        assert abs(msg.range - 50.0) < 0.01 and (msg.min_range, msg.max_range) == (1.0, 500.0)
+        assert msg.header.frame_id == 'rf' and abs(msg.variance - 1e-6) < 1e-12
+
+
+@pytest.mark.parametrize('changes, message', [
+    ({'model': 'line_of_sight', 'measurement_noise': [1e-6, 1e-6, 1e-6]}, 'R of line_of_sight, 2x2'),
+    ({'model': 'range', 'mounting_rotation': [0.0, 0.0, 0.0, 3.0]}, 'unit quaternion'),
+])
+def test_a_bad_model_parameter_refuses_to_build_the_node(changes, message):
+    with ros_context() as (context, executor, nodes):
+        with pytest.raises(ValueError, match=message):
+            make(SensorNode, context, executor, nodes, 'position_sensor', **changes)
