@@ -11,6 +11,7 @@ pytest.importorskip('rclpy')
 from geometry_msgs.msg import PointStamped, Vector3Stamped  # noqa: E402
 from rclpy.serialization import deserialize_message, serialize_message  # noqa: E402
 from sensor_msgs.msg import Range  # noqa: E402
+from test_measurements import NOISE  # noqa: E402 (one noise per model, for every test)
 
 from scenario_nodes.codec import decode_range, decode_vector3, encode_range, encode_vector3  # noqa: E402
 from scenario_nodes.conversions import (  # noqa: E402
@@ -22,10 +23,8 @@ from scenario_nodes.conversions import (  # noqa: E402
 )
 from snn_estimator.measurements import MODELS, make_model  # noqa: E402
 
-NOISE = {'position': 1e-2, 'range_azimuth_elevation': [1e-4, 1e-6, 1e-6], 'line_of_sight': [1e-6, 1e-6],
-         'range': 4e-4, 'range_rate': 1e-6}
-TYPES = {'position': PointStamped, 'range_azimuth_elevation': Vector3Stamped, 'line_of_sight': Vector3Stamped,
-         'range': Range, 'range_rate': Vector3Stamped}
+#: A model's message_form -> the type its samples must travel in (docs/sensors.md).
+TYPES = {'point': PointStamped, 'range': Range, 'vector': Vector3Stamped}
 FRAMES = ['', 'a', 'ab', 'abc', 'lidar', 'camera_1', 'sensor']
 
 
@@ -36,9 +35,9 @@ def test_every_models_sample_round_trips_through_its_message(name):
     x = np.array([-80.0, 10.0, -5.0, 0.3, -0.1, 0.05]) + rng.normal(size=6)
     z = model.h(x)
     msg = measurement_to_message(model, z, 12_300_000_000, 'lidar')
-    assert isinstance(msg, TYPES[name])
+    assert isinstance(msg, TYPES[model.message_form])
     assert stamp_to_ns(msg.header.stamp) == 12_300_000_000 and msg.header.frame_id == 'lidar'
-    again = deserialize_message(serialize_message(msg), TYPES[name])
+    again = deserialize_message(serialize_message(msg), TYPES[model.message_form])
     back = message_to_measurement(model, again)
     if name == 'range':  # float32 on the wire
         np.testing.assert_allclose(back, z, rtol=1e-7)

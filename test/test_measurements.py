@@ -277,6 +277,16 @@ def test_a_wrong_noise_matrix_is_refused_naming_the_model_and_its_units(name, no
         make_model(name, noise, **kwargs)
 
 
+@pytest.mark.parametrize('name', list(MODELS))
+def test_every_model_refuses_a_noise_of_the_wrong_size(name):
+    model = make_model(name, NOISE[name])
+    m = model.dim
+    with pytest.raises(ValueError, match=rf'R of {name}, {m}x{m} in'):
+        make_model(name, np.ones(m + 1))
+    with pytest.raises(ValueError, match='positive definite'):
+        make_model(name, np.zeros(m))
+
+
 @pytest.mark.parametrize('changes, message', [
     ({'mounting_rotation': [0.0, 0.0, 0.0, 2.0]}, 'unit quaternion'),
     ({'mounting_rotation': [0.0, 0.0, 1.0]}, 'mounting_rotation'),
