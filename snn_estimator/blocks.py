@@ -13,7 +13,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from .measurements import DROPOUT, REASONS, VALID, MeasurementModel
+from .measurements import DROPOUT, NON_FINITE, REASONS, VALID, MeasurementModel
 from .models import StateSpaceModel
 from .validation import as_matrix, as_vector, check_covariance
 
@@ -145,15 +145,21 @@ class MeasurementSensor:
 
     def measure(self, x) -> Measurement:
         x = np.asarray(x, dtype=float)
-        reason = self.model.validity(x).astype(np.int8)
-        z = self.model.h(x) + self._noise.draw() @ self._root.T
-        z = self.model.normalize(z)
-        measured = self.model.check_measured(z)
-        reason = np.where(reason == VALID, measured, reason).astype(np.int8)
+        model = self.model
+        if model.has_limits:
+            reason = model.validity(x).astype(np.int8)
+            z = model.normalize(model.h(x) + self._noise.draw() @ self._root.T)
+            reason = np.where(reason == VALID, model.check_measured(z), reason).astype(np.int8)
+        else:  # position: PositionSensor's two operations, and a finiteness check
+            z = model.h(x) + self._noise.draw() @ self._root.T
+            finite = np.isfinite(z).all(axis=-1)
+            reason = (np.zeros(finite.shape, np.int8) if finite.all()
+                      else np.where(finite, VALID, NON_FINITE).astype(np.int8))
         if self.dropout_probability > 0.0:
             lost = np.array([g.random() < self.dropout_probability for g in self._dropouts])
             reason[(reason == VALID) & lost] = DROPOUT
-        z[reason != VALID] = np.nan
+        if reason.any():
+            z[reason != VALID] = np.nan
         return Measurement(z, reason)
 
 

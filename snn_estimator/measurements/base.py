@@ -95,6 +95,9 @@ class MeasurementModel(ABC):
     message_form: str
     #: Keyword arguments the constructor takes besides ``noise`` (the registry passes these).
     parameters: tuple[str, ...] = ()
+    #: False for a model without limits or angles: every finite sample is valid and nothing is
+    #: wrapped, so a sensor may skip validity, check_measured and normalize (position).
+    has_limits: bool = True
 
     def __init__(self, noise, n_state: int = 6):
         self.n_state = int(n_state)

@@ -19,6 +19,7 @@ class Position(MeasurementModel):
     name = 'position'
     message_form = 'point'
     parameters = ('measured_axes',)
+    has_limits = False
 
     def __init__(self, noise, measured_axes: Sequence[int] = (0, 1, 2), n_state: int = 6):
         axes = tuple(int(a) for a in measured_axes)
