@@ -236,7 +236,8 @@ def test_a_noisy_range_outside_the_limits_is_discarded():
 def test_position_model_draws_positionsensors_numbers_with_the_same_seed(axes):
     seeds = [3, 4, 5]
     m = len(axes)
-    noise = np.diag(np.linspace(1e-2, 3e-2, m))
+    a = np.random.default_rng(m).normal(size=(m, m)) * 0.1
+    noise = a @ a.T + 1e-3 * np.eye(m)  # a full R: its square root is not symmetric
     old = PositionSensor(ClohessyWiltshire(measured_axes=axes), noise, seeds)
     new = MeasurementSensor(make_model('position', noise, measured_axes=axes), seeds)
     rng = np.random.default_rng(0)
