@@ -94,3 +94,22 @@ def test_a_bad_model_parameter_refuses_to_build_the_node(changes, message):
     with ros_context() as (context, executor, nodes):
         with pytest.raises(ValueError, match=message):
             make(SensorNode, context, executor, nodes, 'position_sensor', **changes)
+
+
+def test_a_resent_truth_that_gave_no_measurement_is_neither_measured_nor_counted_again():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes)
+        received = []
+        probe.node.create_subscription(Vector3Stamped, 'lidar', received.append, qos.HISTORY_QOS)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, **LIDAR)
+        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0)
+        hidden = state_to_odometry(np.array([-70.0, 0.0, 0.0, 0, 0, 0]), None, 100_000_000, 'lvlh', 'chaser')
+        for _ in range(3):  # the plant's lockstep resend of the same stamp
+            probe.publish(qos.TRUTH, hidden)
+        seen = state_to_odometry(np.array([70.0, 0.0, 0.0, 0, 0, 0]), None, 200_000_000, 'lvlh', 'chaser')
+        probe.publish(qos.TRUTH, seen)
+        assert spin_until(executor, lambda: len(received) == 1)
+        assert spin_until(executor, lambda: probe.diagnostics('position_sensor').get('measurements_published') == '1')
+        values = probe.diagnostics('position_sensor')
+        assert values['measurement_rejected'] == '1' and values['measurement_rejected.out_of_view'] == '1'
+        assert values['truth_rejected'] == '0'
