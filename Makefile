@@ -65,6 +65,7 @@ neuromorphic: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/snn_bench --out results/bench.json
 	$(BIN)/python -m snn_tools.codec_bench --out results/codec_bench.json
+	$(BIN)/python -m snn_tools.measurement_bench --out results/measurement_bench.json
 
 # RUNS means Monte-Carlo runs (default: each spec's) for experiments; the loop bench takes 5 unless given
 bench-loop: $(STAMP)

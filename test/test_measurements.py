@@ -324,3 +324,15 @@ def test_the_measurements_package_imports_numpy_and_validation_only():
                 found.add('.' * node.level + (node.module or ''))
     outside = {name for name in found if not name.startswith('.') or name.startswith('..')}
     assert outside <= {'__future__', 'abc', 'math', 'typing', 'numpy', '..validation'}, outside
+
+
+def test_the_measurement_bench_times_every_model(tmp_path):
+    from snn_tools import measurement_bench
+    out = tmp_path / 'bench.json'
+    assert measurement_bench.main(['--repeat', '2', '--runs', '3', '--out', str(out)]) == 0
+    import json
+    figures = json.loads(out.read_text())
+    assert set(figures) == {'runs=1', 'runs=3'}
+    for rows in figures.values():
+        assert set(rows) == {'PositionSensor.measure', *MODELS}
+        assert all(value > 0 for name in MODELS for value in rows[name].values())
