@@ -1,6 +1,7 @@
 """The sensor node with a measurement model other than position, in-process: its messages are
 h(x) of the truth plus the offline sensor's noise, and samples it cannot measure are counted,
-never published."""
+never published. The node runs in its own namespace, so no other node's truth or diagnostics
+on the test's domain can reach these tests."""
 
 import math
 
@@ -9,8 +10,10 @@ import pytest
 
 pytest.importorskip('rclpy')
 
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import Vector3Stamped  # noqa: E402
-from ros_helpers import Probe, make, ros_context, spin_until  # noqa: E402
+from nav_msgs.msg import Odometry  # noqa: E402
+from ros_helpers import latest_status, make, ros_context, spin_until  # noqa: E402
 from sensor_msgs.msg import Range  # noqa: E402
 
 from scenario_nodes import qos  # noqa: E402
@@ -19,7 +22,28 @@ from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 from snn_estimator.blocks import MeasurementSensor  # noqa: E402
 from snn_estimator.measurements import make_model  # noqa: E402
 
-REMAP = ['--ros-args', '-r', 'measurement:=lidar']
+NAMESPACE = '/sensor_model_test'
+REMAP = ['--ros-args', '-r', f'__ns:={NAMESPACE}', '-r', 'measurement:=lidar']
+
+
+class Probe:
+    """Publishes truths to the sensor and collects its measurements and diagnostics."""
+
+    def __init__(self, context, executor, nodes, message_type):
+        from rclpy.node import Node
+        self.node = Node('sensor_model_probe', namespace=NAMESPACE, context=context)
+        executor.add_node(self.node)
+        nodes.append(self.node)
+        self.received, self.statuses = [], []
+        self.node.create_subscription(message_type, 'lidar', self.received.append, qos.HISTORY_QOS)
+        self.node.create_subscription(DiagnosticArray, qos.DIAGNOSTICS, self.statuses.append, qos.HISTORY_QOS)
+        self.truth = self.node.create_publisher(Odometry, qos.TRUTH, qos.PUBLISHER_QOS)
+
+    def ready(self) -> bool:
+        return self.node.count_subscribers(qos.TRUTH) > 0 and self.node.count_publishers('lidar') > 0
+
+    def diagnostics(self) -> dict:
+        return latest_status(self.statuses, 'position_sensor')
 LIDAR = {'model': 'range_azimuth_elevation', 'measurement_noise': [1e-4, 1e-6, 1e-6], 'observer': 'chaser',
          'field_of_view': math.radians(60.0), 'max_range': 200.0, 'mounting_offset': [0.5, 0.0, -0.2],
          'mounting_rotation': [0.0, 0.0, 1.0, 0.0], 'seed': 4, 'diagnostics_period': 0.0,
@@ -35,19 +59,17 @@ def test_range_azimuth_elevation_sensor_publishes_h_of_the_truth_and_counts_what
               np.array([250.0, 0.0, 0.0, 0.0, 0.0, 0.0]),    # beyond max_range
               np.array([50.0, 3.0, 2.0, -0.3, 0.0, 0.0])]
     with ros_context() as (context, executor, nodes):
-        probe = Probe(context, executor, nodes)
-        received = []
-        probe.node.create_subscription(Vector3Stamped, 'lidar', received.append, qos.HISTORY_QOS)
+        probe = Probe(context, executor, nodes, Vector3Stamped)
+        received = probe.received
         make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, **LIDAR)
-        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0
-                          and probe.node.count_publishers('lidar') > 0)
+        assert spin_until(executor, probe.ready)
         for k, x in enumerate(truths):
-            probe.publish(qos.TRUTH, state_to_odometry(x, None, (k + 1) * 100_000_000, 'lvlh', 'chaser'))
-            assert spin_until(executor, lambda k=k: probe.diagnostics('position_sensor').get('measurements_published')
-                              is not None and len(probe.received[qos.DIAGNOSTICS]) >= k + 1)
+            probe.truth.publish(state_to_odometry(x, None, (k + 1) * 100_000_000, 'lvlh', 'chaser'))
+            assert spin_until(executor, lambda k=k: len(probe.statuses) >= k + 1)
         assert spin_until(executor, lambda: len(received) == 3)
-        assert spin_until(executor, lambda: probe.diagnostics('position_sensor').get('measurement_rejected') == '2')
-        values = probe.diagnostics('position_sensor')
+        assert spin_until(executor, lambda: probe.diagnostics().get('measurement_rejected') == '2')
+        values = probe.diagnostics()
+        assert values['truth_rejected'] == '0'
         assert values['measurement_rejected.out_of_view'] == '1' and values['measurement_rejected.too_far'] == '1'
         assert values['measurements_published'] == '3'
 
@@ -73,13 +95,12 @@ def test_range_azimuth_elevation_sensor_publishes_h_of_the_truth_and_counts_what
 
 def test_range_sensor_publishes_sensor_msgs_range_with_its_limits():
     with ros_context() as (context, executor, nodes):
-        probe = Probe(context, executor, nodes)
-        received = []
-        probe.node.create_subscription(Range, 'lidar', received.append, qos.HISTORY_QOS)
+        probe = Probe(context, executor, nodes, Range)
+        received = probe.received
         make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, model='range',
              measurement_noise=[1e-6], min_range=1.0, max_range=500.0, sensor_frame_id='rf')
-        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0)
-        probe.publish(qos.TRUTH, state_to_odometry(np.array([30.0, 40.0, 0, 0, 0, 0]), None, 0, 'lvlh', 'chaser'))
+        assert spin_until(executor, probe.ready)
+        probe.truth.publish(state_to_odometry(np.array([30.0, 40.0, 0, 0, 0, 0]), None, 0, 'lvlh', 'chaser'))
         assert spin_until(executor, lambda: received)
         msg = received[0]
         assert abs(msg.range - 50.0) < 0.01 and (msg.min_range, msg.max_range) == (1.0, 500.0)
@@ -98,18 +119,17 @@ def test_a_bad_model_parameter_refuses_to_build_the_node(changes, message):
 
 def test_a_resent_truth_that_gave_no_measurement_is_neither_measured_nor_counted_again():
     with ros_context() as (context, executor, nodes):
-        probe = Probe(context, executor, nodes)
-        received = []
-        probe.node.create_subscription(Vector3Stamped, 'lidar', received.append, qos.HISTORY_QOS)
+        probe = Probe(context, executor, nodes, Vector3Stamped)
+        received = probe.received
         make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, **LIDAR)
-        assert spin_until(executor, lambda: probe.node.count_subscribers(qos.TRUTH) > 0)
+        assert spin_until(executor, probe.ready)
         hidden = state_to_odometry(np.array([-70.0, 0.0, 0.0, 0, 0, 0]), None, 100_000_000, 'lvlh', 'chaser')
         for _ in range(3):  # the plant's lockstep resend of the same stamp
-            probe.publish(qos.TRUTH, hidden)
+            probe.truth.publish(hidden)
         seen = state_to_odometry(np.array([70.0, 0.0, 0.0, 0, 0, 0]), None, 200_000_000, 'lvlh', 'chaser')
-        probe.publish(qos.TRUTH, seen)
+        probe.truth.publish(seen)
         assert spin_until(executor, lambda: len(received) == 1)
-        assert spin_until(executor, lambda: probe.diagnostics('position_sensor').get('measurements_published') == '1')
-        values = probe.diagnostics('position_sensor')
+        assert spin_until(executor, lambda: probe.diagnostics().get('measurements_published') == '1')
+        values = probe.diagnostics()
         assert values['measurement_rejected'] == '1' and values['measurement_rejected.out_of_view'] == '1'
         assert values['truth_rejected'] == '0'
