@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from functools import partial
 
+import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
@@ -19,6 +20,9 @@ from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, declare
 from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
+
+#: An angle variance (rad^2) from which the node warns: 0.1 rad (5.7 deg) of noise.
+ANGLE_VARIANCE_WARNING = 1e-2
 
 
 class SensorNode(ProcessHooks, Node):
@@ -56,6 +60,12 @@ class SensorNode(ProcessHooks, Node):
             self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
         else:
             self.get_logger().info(f'measuring {model.describe()}, frame {self._frame!r}')
+            angles = np.diagonal(model.noise)[list(model.angle_components)]
+            if angles.size and angles.max() >= ANGLE_VARIANCE_WARNING:
+                self.get_logger().warning(
+                    f'measurement_noise gives {model.name} angles a standard deviation of '
+                    f'{np.degrees(np.sqrt(angles.max())):.1f} deg: R is in rad^2 for angles '
+                    '(the default 1e-2 is the position noise of Table 6; docs/sensors.md)')
 
     def _on_truth(self, data: bytes) -> None:
         try:

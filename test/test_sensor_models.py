@@ -104,6 +104,9 @@ def test_range_sensor_publishes_sensor_msgs_range_with_its_limits():
         assert spin_until(executor, lambda: received)
         msg = received[0]
         assert abs(msg.range - 50.0) < 0.01 and (msg.min_range, msg.max_range) == (1.0, 500.0)
+        offline = MeasurementSensor(make_model('range', [1e-6], min_range=1.0, max_range=500.0), seeds=[0])
+        z = offline.measure(np.array([[30.0, 40.0, 0, 0, 0, 0]])).z[0, 0]
+        assert msg.range == float(np.float32(z))  # the offline number, rounded to Range's float32
         assert msg.header.frame_id == 'rf' and abs(msg.variance - 1e-6) < 1e-12
 
 
