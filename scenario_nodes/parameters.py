@@ -149,6 +149,8 @@ SENSOR = MODEL + (
     Spec('sensor_frame_id', 'sensor', 'frame_id of the measurements of models other than position'),
     Spec('dropout_probability', 0.0, 'Probability that a sample is lost (own random stream 6)',
          low=0.0, high=1.0),
+    Spec('measurement_period', 0.0, 'Simulated s between samples (0: every truth): a sample at the first '
+         'truth at or after each multiple of it since the first; truths between are not measured', low=0.0),
 )
 
 CONTROLLER = MODEL + (

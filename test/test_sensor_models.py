@@ -136,3 +136,22 @@ def test_a_resent_truth_that_gave_no_measurement_is_neither_measured_nor_counted
         values = probe.diagnostics()
         assert values['measurement_rejected'] == '1' and values['measurement_rejected.out_of_view'] == '1'
         assert values['truth_rejected'] == '0'
+
+
+def test_measurement_period_samples_on_its_own_grid_of_the_truth_stamps():
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, Vector3Stamped)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP,
+             **{**LIDAR, 'measurement_period': 0.25})
+        assert spin_until(executor, probe.ready)
+        stamps = [100, 200, 300, 400, 500, 600, 700, 800, 900]  # ms
+        for stamp in stamps:
+            probe.truth.publish(state_to_odometry(np.array([70.0, 0.0, 0.0, 0, 0, 0]), None, stamp * 1_000_000,
+                                                  'lvlh', 'chaser'))
+        assert spin_until(executor, lambda: len(probe.received) == 4)
+        executor.spin_once(timeout_sec=0.2)
+        # due at 100, then 350, 600, 850 ms: sampled at the first truth at or after each (a
+        # period counted from each sample instead would give 100, 400, 700)
+        assert [stamp_to_ns(m.header.stamp) // 1_000_000 for m in probe.received] == [100, 400, 600, 900]
+        values = probe.diagnostics()
+        assert values['measurement_rejected'] == '0' and values['truth_rejected'] == '0'
