@@ -10,7 +10,7 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 
-from snn_estimator.blocks import MeasurementSensor
+from snn_estimator.blocks import MeasurementSensor, SamplePeriod
 from snn_estimator.gates import NewestFirst
 from snn_estimator.measurements import REASONS, VALID, make_model
 
@@ -45,8 +45,7 @@ class SensorNode(ProcessHooks, Node):
         self._sensor = MeasurementSensor(model, seeds=[p['seed']], dropout_probability=p['dropout_probability'])
         self._not_measured = Rejections()
         self._unmeasured_ns = None  # the stamp of the last truth that gave no measurement
-        self._period_ns = int(round(p['measurement_period'] * 1e9))
-        self._next_ns = None  # measurement_period: the next sample is due at this stamp
+        self._period = SamplePeriod(p['measurement_period'])
         self._published = 0
         self._rejected = Rejections()
         self._gate = NewestFirst(p['time_jump_threshold'])
@@ -94,14 +93,10 @@ class SensorNode(ProcessHooks, Node):
             self.get_logger().warning('truth time went back: starting over')
             self._time_jumps += 1
             self._answers.clear()
-            self._next_ns = None
-        if self._next_ns is not None and stamp_ns < self._next_ns:  # between two samples: not a sample
+            self._period.reset()
+        if not self._period.due(stamp_ns):  # between two samples (measurement_period)
             self._unmeasured_ns = stamp_ns
             return
-        if self._period_ns:
-            self._next_ns = (stamp_ns if self._next_ns is None else self._next_ns) + self._period_ns
-            while self._next_ns <= stamp_ns:
-                self._next_ns += self._period_ns
         sample = self._sensor.measure(x[None])
         reason = REASONS[int(sample.reason[0])]
         try:
@@ -125,7 +120,7 @@ class SensorNode(ProcessHooks, Node):
         self._time_jumps += 1
         self._gate.reset()
         self._answers.clear()
-        self._next_ns = None
+        self._period.reset()
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
         values = {'measurements_published': self._published, 'measurements_resent': self._answers.resent,

@@ -163,6 +163,32 @@ class MeasurementSensor:
         return Measurement(z, reason)
 
 
+class SamplePeriod:
+    """A sensor's rate on a stream of truth stamps (ns): :meth:`due` is true for the first stamp
+    at or after each multiple of ``period`` (s) counted from the first sample, so the average rate
+    is 1/period whatever the truth's own steps (0: every stamp is a sample)."""
+
+    def __init__(self, period: float):
+        if not 0.0 <= float(period) < float('inf'):
+            raise ValueError(f'measurement_period must be >= 0 s, got {period!r}')
+        self.period_ns = int(round(float(period) * 1e9))
+        self.next_ns: int | None = None
+
+    def due(self, stamp_ns: int) -> bool:
+        """Is ``stamp_ns`` a sample? (Advances the grid when it is.)"""
+        if self.next_ns is not None and stamp_ns < self.next_ns:
+            return False
+        if self.period_ns:
+            self.next_ns = (stamp_ns if self.next_ns is None else self.next_ns) + self.period_ns
+            while self.next_ns <= stamp_ns:
+                self.next_ns += self.period_ns
+        return True
+
+    def reset(self) -> None:
+        """Start the grid again at the next stamp (the time base restarted)."""
+        self.next_ns = None
+
+
 def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
     """Continuous-time LQR gain K (u = -K x, Eq. 42) from python-control, for a linear model."""
     if not model.is_linear:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from snn_estimator import ClohessyWiltshire
-from snn_estimator.blocks import MeasurementSensor, PositionSensor
+from snn_estimator.blocks import MeasurementSensor, PositionSensor, SamplePeriod
 from snn_estimator.measurements import (
     MODELS,
     OUT_OF_VIEW,
@@ -336,3 +336,15 @@ def test_the_measurement_bench_times_every_model(tmp_path):
     for rows in figures.values():
         assert set(rows) == {'PositionSensor.measure', *MODELS}
         assert all(value > 0 for name in MODELS for value in rows[name].values())
+
+
+def test_sample_period_keeps_its_grid_whatever_the_truth_steps():
+    ms = 1_000_000
+    period = SamplePeriod(0.25)
+    assert [t for t in range(100, 1101, 100) if period.due(t * ms)] == [100, 400, 600, 900, 1100]
+    period.reset()
+    assert period.due(50 * ms) and not period.due(250 * ms) and period.due(300 * ms)
+    every = SamplePeriod(0.0)
+    assert all(every.due(t) for t in (5, 5, 7))
+    with pytest.raises(ValueError, match='measurement_period'):
+        SamplePeriod(-1.0)
