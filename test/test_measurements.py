@@ -348,3 +348,11 @@ def test_sample_period_keeps_its_grid_whatever_the_truth_steps():
     assert all(every.due(t) for t in (5, 5, 7))
     with pytest.raises(ValueError, match='measurement_period'):
         SamplePeriod(-1.0)
+
+
+def test_every_model_is_in_the_sensor_tables_of_the_docs():
+    root = Path(__file__).resolve().parents[1]
+    for document in ('docs/sensors.md', 'README.md'):
+        text = (root / document).read_text()
+        missing = [name for name in MODELS if f'| `{name}`' not in text]
+        assert not missing, f'{document} has no table row for {missing}'
