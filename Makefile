@@ -1,5 +1,6 @@
 # snn_rendezvous: every target creates .venv on first use (Python 3.11 with venv and pip).
-#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk]   closed-loop demo over ROS 2
+#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk] [LIVE=1]   closed-loop demo
+#                             over ROS 2 (LIVE=1: live view, Foxglove at ws://localhost:8765)
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the tests that start no ROS process (< 1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
@@ -15,6 +16,7 @@ ESTIMATOR ?=
 MODE ?= lockstep
 PLANT ?= cw
 RTF ?=
+LIVE ?=
 RUNS ?=
 SPEC ?= config/campaigns/example.yaml
 WORKERS ?= 2
@@ -30,7 +32,7 @@ $(STAMP): setup.py pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=23"
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
-	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic]"
+	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic,live]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
 	# compile the spiking and Basilisk-step kernels once, into numba's cache: no node compiles at start-up
 	$(BIN)/python -c "from snn_estimator.kernels import warm_up; warm_up()"
@@ -49,7 +51,7 @@ test-fast: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) \
-		$(if $(RTF),--real-time-factor $(RTF))
+		$(if $(RTF),--real-time-factor $(RTF)) $(if $(LIVE),--live-view)
 
 experiments: $(STAMP)
 	$(BIN)/snn_experiments $(if $(RUNS),--runs $(RUNS)) --out results \
