@@ -67,12 +67,12 @@ setup(
     extras_require={
         # the Basilisk truth plant (issue: high-fidelity truth); pinned, its API moves
         'basilisk': ['bsk==2.12.1'],
-        # Monte-Carlo campaigns on Dask, results as Parquet
-        'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14'],
+        # Monte-Carlo campaigns on Dask, results as Parquet, the interactive page (plotly, pinned)
+        'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14', 'plotly==7.1.0'],
         # NIR export of the networks and the independent Brian2 simulation of them
         'neuromorphic': ['nir>=1.0', 'brian2==2.9.0'],
-        # the live view (Foxglove WebSocket) and the interactive campaign page; pinned, their APIs move
-        'live': ['foxglove-sdk==0.30.3', 'plotly==7.1.0'],
+        # the live view over Foxglove's WebSocket protocol; pinned, its API moves
+        'live': ['foxglove-sdk==0.30.3'],
         # websockets and protobuf: the tests' Foxglove client decodes what the live view sends
         'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6', 'websockets==17.4',
                  'protobuf>=4.21'],

@@ -253,6 +253,8 @@ def main(argv=None) -> int:
                 _write(args.out, name, data)
     from .report_md import write_report
     print(f'report: {write_report(args.out)}')
+    from .campaign_page import write_experiments_page  # i27: one interactive page of every table
+    print(f'interactive page: {write_experiments_page(args.out, tables)}')
     return 0
 
 
