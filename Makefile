@@ -6,7 +6,7 @@
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
-#   make bench | bench-loop | bench-campaign    speed figures -> results/
+#   make bench | bench-loop | bench-campaign | bench-live    speed figures -> results/
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 PYTHON ?= python3.11
 VENV ?= .venv
@@ -24,7 +24,8 @@ SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign report clean
+.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live \
+	docs-screenshots report clean
 
 venv: $(STAMP)
 
@@ -75,6 +76,19 @@ bench-loop: $(STAMP)
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json
+
+# the lockstep loop with and without the live view (and a Foxglove client), interleaved pairs
+bench-live: $(STAMP)
+	$(BIN)/python -m snn_tools.live_bench --pairs $(if $(RUNS),$(RUNS),8) --out results/live_view_bench.json
+
+# the README's pictures: the interactive page of a small campaign in headless Chromium, and what a
+# Foxglove client receives from the live view during a realtime demo (drawn with matplotlib)
+docs-screenshots: $(STAMP)
+	$(BIN)/snn_campaign --spec config/campaigns/page_example.yaml --out runs/campaign_page_example --workers $(WORKERS)
+	chromium --headless --no-sandbox --disable-gpu --hide-scrollbars --user-data-dir=runs/.chromium \
+		--window-size=1100,1250 --virtual-time-budget=10000 --screenshot=docs/campaign_page.png \
+		runs/campaign_page_example/campaign.html
+	$(BIN)/python -m snn_tools.live_snapshot --out docs/live_view.png
 
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)

@@ -68,6 +68,10 @@ def arrow_pose(start, end) -> tuple[tuple, tuple, float]:
     return tuple(start), tuple(float(v) for v in q), length
 
 
+#: Static meshes' points, converted once: id of the mesh -> (the mesh, its Point3 list).
+_STATIC: dict[int, tuple] = {}
+
+
 def scene_update(scene: Scene):
     """The foxglove.SceneUpdate of a scene: one entity per primitive, named as in the scene."""
     from foxglove.messages import (
@@ -96,6 +100,12 @@ def scene_update(scene: Scene):
     def points(array):
         return [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in array]
 
+    def static_points(array):  # the corridor: one mesh, converted once
+        key = id(array)
+        if key not in _STATIC or _STATIC[key][0] is not array:
+            _STATIC[key] = (array, points(array))
+        return _STATIC[key][1]
+
     stamp = Timestamp(scene.stamp_ns // 1_000_000_000, scene.stamp_ns % 1_000_000_000)
 
     def entity(name, **primitives):
@@ -118,7 +128,7 @@ def scene_update(scene: Scene):
             scale_invariant=False, points=points(line.points), color=color(line.color))]))
     for t in scene.triangles:
         entities.append(entity(t.name, triangles=[TriangleListPrimitive(
-            pose=pose((0.0, 0.0, 0.0)), points=points(t.points), color=color(t.color))]))
+            pose=pose((0.0, 0.0, 0.0)), points=static_points(t.points), color=color(t.color))]))
     return SceneUpdate(entities=entities)
 
 

@@ -112,8 +112,8 @@ class LiveViewNode(ProcessHooks, Node):
         scene, sample, raster = frame
         if self._view is not None:
             self._view.publish(scene, sample, raster)
-        if self._markers is not None and scene is not None:
-            self._markers.publish(marker_array(scene))
+        if self._markers is not None and scene is not None and self._markers.get_subscription_count():
+            self._markers.publish(marker_array(scene))  # built only for a subscriber (RViz)
 
     def close(self) -> None:
         self.get_logger().info(f'live view: {self._scene.frames} frames from {self.decoded} decoded messages '

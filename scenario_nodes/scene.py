@@ -27,6 +27,8 @@ import numpy as np
 from snn_estimator import defaults as D
 
 STATES = ('x', 'y', 'z', 'vx', 'vy', 'vz')
+#: Points a trail is drawn with at most (:func:`decimate`).
+TRAIL_POINTS = 100
 #: RGBA colours (0-1) of the scene's parts.
 COLORS = {
     'target': (0.85, 0.85, 0.85, 1.0),
@@ -170,6 +172,28 @@ def corridor_mesh(axis, half_angle_deg: float, length: float, segments: int = 32
     return np.array(triangles)
 
 
+class Trail:
+    """The last ``length`` positions in a ring buffer; ``points()`` gives at most
+    :data:`TRAIL_POINTS` of them, oldest first, evenly spread with the oldest and the newest kept
+    (a trail drawn every frame stays cheap to encode)."""
+
+    def __init__(self, length: int):
+        self._buffer = np.zeros((length, 3))
+        self._count = 0
+
+    def __len__(self) -> int:
+        return min(self._count, len(self._buffer))
+
+    def append(self, position) -> None:
+        self._buffer[self._count % len(self._buffer)] = position[:3]
+        self._count += 1
+
+    def points(self, most: int = TRAIL_POINTS) -> np.ndarray:
+        n, size = len(self), len(self._buffer)
+        order = (self._count - n + np.linspace(0, n - 1, min(n, most)).round().astype(int)) % size
+        return self._buffer[order]
+
+
 # ---------------------------------------------------------------- plot values
 @dataclass(frozen=True)
 class PlotSample:
@@ -215,8 +239,8 @@ class LiveScene:
         self._control = np.zeros(3)
         self._spike_count = None
         self._raster = deque(maxlen=raster_steps)
-        self._true_trail = deque(maxlen=settings.trail_length)
-        self._estimated_trail = deque(maxlen=settings.trail_length)
+        self._true_trail = Trail(settings.trail_length)
+        self._estimated_trail = Trail(settings.trail_length)
         self._changed = False
         self._corridor = corridor_mesh(settings.corridor_axis, settings.corridor_half_angle,
                                        settings.corridor_length)
@@ -227,7 +251,7 @@ class LiveScene:
         self._truths[stamp_ns] = np.array(x[:6], dtype=float)
         if len(self._truths) > self._keep:
             del self._truths[min(self._truths)]
-        self._true_trail.append(np.array(x[:3], dtype=float))
+        self._true_trail.append(x[:3])
         self._changed = True
 
     def add_estimate(self, stamp_ns: int, x: np.ndarray, covariance: np.ndarray) -> None:
@@ -235,7 +259,7 @@ class LiveScene:
         self._estimates[stamp_ns] = self._estimate[1:]
         if len(self._estimates) > self._keep:
             del self._estimates[min(self._estimates)]
-        self._estimated_trail.append(np.array(x[:3], dtype=float))
+        self._estimated_trail.append(x[:3])
         self._changed = True
 
     def add_control(self, u: np.ndarray) -> None:
@@ -290,7 +314,7 @@ class LiveScene:
             scene.spheres.append(Sphere('chaser_true', tuple(newest[1][:3]), (0.5, 0.5, 0.5), identity,
                                         COLORS['truth']))
         if len(self._true_trail) > 1:
-            scene.lines.append(Lines('trail_true', np.array(self._true_trail), COLORS['truth']))
+            scene.lines.append(Lines('trail_true', self._true_trail.points(), COLORS['truth']))
         if self._estimate is not None:
             _, x_hat, covariance = self._estimate
             scene.spheres.append(Sphere('chaser_estimate', tuple(x_hat[:3]), (0.5, 0.5, 0.5), identity,
@@ -298,7 +322,7 @@ class LiveScene:
             scene.spheres.append(covariance_ellipsoid('covariance', x_hat[:3], covariance[:3, :3],
                                                       s.covariance_sigma, COLORS['covariance']))
             if len(self._estimated_trail) > 1:
-                scene.lines.append(Lines('trail_estimate', np.array(self._estimated_trail), COLORS['estimate']))
+                scene.lines.append(Lines('trail_estimate', self._estimated_trail.points(), COLORS['estimate']))
             end = x_hat[:3] + s.thrust_scale * self._control
             scene.arrows.append(Arrow('thrust', tuple(x_hat[:3]), tuple(float(e) for e in end), COLORS['thrust']))
         return scene
@@ -308,8 +332,10 @@ class LiveScene:
         a network whose size changed is padded with zeros)."""
         if not self._raster:
             return None
-        neurons = max(len(r) for r in self._raster)
-        image = np.zeros((neurons, len(self._raster)), dtype=np.int64)
+        sizes = {len(r) for r in self._raster}
+        if len(sizes) == 1:
+            return np.array(self._raster, dtype=np.int64).T
+        image = np.zeros((max(sizes), len(self._raster)), dtype=np.int64)
         for column, counts in enumerate(self._raster):
             image[:len(counts), column] = counts
         return image

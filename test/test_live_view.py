@@ -154,3 +154,16 @@ def test_the_foxglove_scene_update_carries_the_scene():
     scene.add_estimate(0, np.ones(6), np.eye(6))
     update = scene_update(scene.frame()[0])
     assert len(update.encode()) > 100  # encodes as protobuf (decoded field by field in test_live_view_ros)
+
+
+def test_a_trail_keeps_the_newest_positions_oldest_first_and_at_most_its_points():
+    from scenario_nodes.scene import TRAIL_POINTS, Trail
+    trail = Trail(length=300)
+    for k in range(1000):
+        trail.append(np.array([k, 0.0, 0.0]))
+    x = trail.points()[:, 0]
+    assert len(x) == TRAIL_POINTS and x[0] == 700 and x[-1] == 999 and (np.diff(x) > 0).all()
+    short = Trail(length=300)
+    for k in range(5):
+        short.append(np.array([k, 1.0, 2.0]))
+    np.testing.assert_array_equal(short.points(), [[k, 1.0, 2.0] for k in range(5)])
