@@ -249,7 +249,7 @@ LIVE_VIEW = MODEL + (
          "corridor's axis from the target, LVLH (default: the chaser's initial position)"),
     Spec('corridor_half_angle', 15.0, "Half angle of the approach corridor's cone, deg", low=0.1, high=89.0),
     Spec('corridor_length', 100.0, 'Length of the approach corridor, m (0: not drawn)', low=0.0),
-    Spec('thrust_scale', 1000.0, 'Length of the thrust arrow per unit of control, m per m/s^2', low=0.0),
+    Spec('thrust_scale', 200.0, 'Length of the thrust arrow per unit of control, m per m/s^2', low=0.0),
     Spec('trail_length', 500, 'Positions kept in the true and estimated trails', low=2, high=100000),
     Spec('raster_steps', 200, 'Steps shown across the spike raster', low=1, high=100000),
 )

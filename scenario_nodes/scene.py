@@ -52,7 +52,7 @@ class SceneSettings:
     corridor_axis: tuple = tuple(D.RENDEZVOUS_X0[:3])
     corridor_half_angle: float = 15.0  # deg
     corridor_length: float = 100.0  # m
-    thrust_scale: float = 1000.0  # m of arrow per m/s^2 of control
+    thrust_scale: float = 200.0  # m of arrow per m/s^2 of control (0.09 m/s^2 at the start: 18 m)
     trail_length: int = 500  # positions kept per trail
     target_radius: float = 1.0  # m
 

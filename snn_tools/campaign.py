@@ -552,7 +552,8 @@ def main(argv=None) -> int:
               'the same command retries the rest', file=sys.stderr)
         return 1
     print(f'{outcome.computed} cells computed, {outcome.skipped} already done: '
-          f'{out / "results.parquet"}, {out / "summary.md"}')
+          f'{out / "results.parquet"}, {out / "summary.md"}' +
+          (f', {out / "campaign.html"}' if (out / 'campaign.html').exists() else ''))
     return 0
 
 

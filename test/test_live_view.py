@@ -167,3 +167,71 @@ def test_a_trail_keeps_the_newest_positions_oldest_first_and_at_most_its_points(
     for k in range(5):
         short.append(np.array([k, 1.0, 2.0]))
     np.testing.assert_array_equal(short.points(), [[k, 1.0, 2.0] for k in range(5)])
+
+
+def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view():
+    """A client subscribes, then stops reading (its socket fills): logging stays fast and the
+    server drops the oldest messages instead of queueing 15 MB for it."""
+    pytest.importorskip('foxglove')
+    websockets = pytest.importorskip('websockets')
+    import asyncio
+    import json
+    import threading
+    import time
+
+    from scenario_nodes.foxglove_view import FoxgloveView
+    view = FoxgloveView(port=0, backlog=8)
+    subscribed, release, received = threading.Event(), threading.Event(), []
+
+    async def stalled_client():
+        async with websockets.connect(f'ws://127.0.0.1:{view.port}', subprotocols=['foxglove.sdk.v1'],
+                                      max_size=None, max_queue=1) as ws:
+            while True:
+                op = json.loads(await ws.recv())
+                if op['op'] == 'advertise':
+                    break
+            await ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
+                {'id': c['id'], 'channelId': c['id']} for c in op['channels']]}))
+            subscribed.set()
+            while not release.is_set():  # not reading: the socket's buffers fill up
+                await asyncio.sleep(0.05)
+            while True:
+                try:
+                    message = await asyncio.wait_for(ws.recv(), 1.0)
+                except (asyncio.TimeoutError, websockets.ConnectionClosed):
+                    return
+                if isinstance(message, bytes):
+                    received.append(len(message))
+
+    client = threading.Thread(target=lambda: asyncio.run(stalled_client()), daemon=True)
+    client.start()
+    try:
+        assert subscribed.wait(10.0)
+        time.sleep(0.3)  # the server has the subscription
+        scene = LiveScene(raster_steps=400)
+        rng = np.random.default_rng(0)
+        slowest, frames = 0.0, 300
+        for k in range(frames):
+            scene.add_truth(k, rng.standard_normal(6))
+            scene.add_estimate(k, rng.standard_normal(6), np.eye(6))
+            scene.add_spikes(total=1, per_neuron=rng.integers(0, 2, 200))
+            started = time.perf_counter()
+            view.publish(*scene.frame())
+            slowest = max(slowest, time.perf_counter() - started)
+        release.set()
+        client.join(20.0)
+    finally:
+        view.close()
+    assert slowest < 0.1  # never waits for the client
+    assert 0 < len(received) < 3 * frames  # it got some, the server dropped the rest
+
+
+def test_a_taken_port_is_refused_naming_the_parameter():
+    pytest.importorskip('foxglove')
+    from scenario_nodes.foxglove_view import FoxgloveView
+    first = FoxgloveView(port=0)
+    try:
+        with pytest.raises(ValueError, match="choose another 'port'"):
+            FoxgloveView(port=first.port)
+    finally:
+        first.close()
