@@ -176,13 +176,19 @@ class FoxgloveView:
     def url(self) -> str:
         return f'ws://{"localhost" if self.host in ("127.0.0.1", "::1") else self.host}:{self.port}'
 
+    @property
+    def watched(self) -> bool:
+        """Whether a client subscribes to any channel (nothing is built for nobody)."""
+        return self._scene.has_sinks() or self._plots.has_sinks() or self._raster.has_sinks()
+
     def publish(self, scene, sample, raster) -> None:
-        """Log one frame (any part may be None: not available yet)."""
-        if scene is not None:
+        """Log one frame (any part may be None: not available yet), each channel only while a
+        client subscribes to it."""
+        if scene is not None and self._scene.has_sinks():
             self._scene.log(scene_update(scene), log_time=scene.stamp_ns)
-        if sample is not None:
+        if sample is not None and self._plots.has_sinks():
             self._plots.log(json.dumps(plot_record(sample)).encode(), log_time=sample.stamp_ns)
-        if raster is not None and scene is not None:
+        if raster is not None and scene is not None and self._raster.has_sinks():
             self._raster.log(raster_message(raster, scene.stamp_ns, scene.frame_id), log_time=scene.stamp_ns)
         self.sent += 1
 

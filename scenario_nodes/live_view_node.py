@@ -106,14 +106,17 @@ class LiveViewNode(ProcessHooks, Node):
 
     def _on_frame(self) -> None:
         self._feed()
+        markers = self._markers is not None and self._markers.get_subscription_count() > 0
+        if not markers and not (self._view is not None and self._view.watched):
+            return  # nobody looks: the scene is kept up to date, no frame is built
         frame = self._scene.frame()
         if frame is None:
             return
         scene, sample, raster = frame
         if self._view is not None:
             self._view.publish(scene, sample, raster)
-        if self._markers is not None and scene is not None and self._markers.get_subscription_count():
-            self._markers.publish(marker_array(scene))  # built only for a subscriber (RViz)
+        if markers and scene is not None:
+            self._markers.publish(marker_array(scene))
 
     def close(self) -> None:
         self.get_logger().info(f'live view: {self._scene.frames} frames from {self.decoded} decoded messages '
