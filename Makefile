@@ -86,7 +86,7 @@ bench-live: $(STAMP)
 docs-screenshots: $(STAMP)
 	$(BIN)/snn_campaign --spec config/campaigns/page_example.yaml --out runs/campaign_page_example --workers $(WORKERS)
 	chromium --headless --no-sandbox --disable-gpu --hide-scrollbars --user-data-dir=runs/.chromium \
-		--window-size=1100,1250 --virtual-time-budget=10000 --screenshot=docs/campaign_page.png \
+		--window-size=1100,1700 --virtual-time-budget=10000 --screenshot=docs/campaign_page.png \
 		runs/campaign_page_example/campaign.html
 	$(BIN)/python -m snn_tools.live_snapshot --out docs/live_view.png
 

@@ -68,6 +68,8 @@ def _heatmaps(spec, rows, state: str, key: str):
             custom[i][j] = [f'{value:.4g}' if value is not None else '-', _spikes(row), cell_key(row, spec.grid), key]
         fig.add_trace(go.Heatmap(
             z=z, x=xs, y=ys, customdata=custom, zmin=low, zmax=high, coloraxis='coloraxis',
+            text=[[c[0] if c else '' for c in line] for line in custom], texttemplate='%{text}',
+            textfont={'size': 10},
             hovertemplate=(f'{label_of(kind)}<br>{x_name}=%{{x}}<br>{y_name}=%{{y}}<br>RMSE {state} = '
                            '%{customdata[0]}<br>spikes %{customdata[1]}<extra></extra>')), row=1, col=column)
         fig.update_xaxes(title_text=x_name, type='category', row=1, col=column)
@@ -114,12 +116,18 @@ def _comparison(spec, rows, states, key: str):
             name=label_of(kind), customdata=[[_spikes(r), cell_key(r, spec.grid), key] for r in mine],
             hovertemplate=f'{label_of(kind)}<br>%{{x}}<br>RMSE = %{{y:.4g}}<br>spikes %{{customdata[0]}}'
                           '<extra></extra>'))
+    def log_range(state):  # plotly's log autorange of bars starts at the smallest top: set it
+        values = [v for r in rows if (v := _finite(r.get(f'rmse_{state}'))) and v > 0]
+        return [math.log10(min(values)) - 0.5, math.log10(max(values)) + 0.1] if values else None
+
     buttons = [{'label': state, 'method': 'update',
                 'args': [{'y': [[_finite(r.get(f'rmse_{state}')) for r in rows if r['filter'] == kind]
                                 for kind in spec.filters]},
-                         {'yaxis.title.text': f'RMSE {state} [{UNITS.get(state, "")}]'}]} for state in states]
+                         {'yaxis.title.text': f'RMSE {state} [{UNITS.get(state, "")}]',
+                          'yaxis.range': log_range(state)}]} for state in states]
     fig.update_layout(barmode='group', title='filters compared: RMSE per grid point (menu: state)',
-                      yaxis={'type': 'log', 'title': f'RMSE {states[0]} [{UNITS.get(states[0], "")}]'},
+                      yaxis={'type': 'log', 'title': f'RMSE {states[0]} [{UNITS.get(states[0], "")}]',
+                             'range': log_range(states[0])},
                       updatemenus=[{'buttons': buttons, 'x': 1.0, 'y': 1.18, 'xanchor': 'right'}], height=420)
     return fig
 
