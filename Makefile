@@ -1,11 +1,12 @@
 # snn_rendezvous: every target creates .venv on first use (Python 3.11 with venv and pip).
-#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk]   closed-loop demo over ROS 2
+#   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk] [LIVE=1]   closed-loop demo
+#                             over ROS 2 (LIVE=1: live view, Foxglove at ws://localhost:8765)
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the tests that start no ROS process (< 1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
-#   make bench | bench-loop | bench-campaign    speed figures -> results/
+#   make bench | bench-loop | bench-campaign | bench-live    speed figures -> results/
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 PYTHON ?= python3.11
 VENV ?= .venv
@@ -15,6 +16,7 @@ ESTIMATOR ?=
 MODE ?= lockstep
 PLANT ?= cw
 RTF ?=
+LIVE ?=
 RUNS ?=
 SPEC ?= config/campaigns/example.yaml
 WORKERS ?= 2
@@ -22,7 +24,8 @@ SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign report clean
+.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live \
+	docs-screenshots report clean
 
 venv: $(STAMP)
 
@@ -30,7 +33,7 @@ $(STAMP): setup.py pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=23"
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
-	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic]"
+	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic,live]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
 	# compile the spiking and Basilisk-step kernels once, into numba's cache: no node compiles at start-up
 	$(BIN)/python -c "from snn_estimator.kernels import warm_up; warm_up()"
@@ -49,7 +52,7 @@ test-fast: $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) \
-		$(if $(RTF),--real-time-factor $(RTF))
+		$(if $(RTF),--real-time-factor $(RTF)) $(if $(LIVE),--live-view)
 
 experiments: $(STAMP)
 	$(BIN)/snn_experiments $(if $(RUNS),--runs $(RUNS)) --out results \
@@ -74,6 +77,19 @@ bench-loop: $(STAMP)
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json
+
+# the lockstep loop with and without the live view (and a Foxglove client), interleaved pairs
+bench-live: $(STAMP)
+	$(BIN)/python -m snn_tools.live_bench --pairs $(if $(RUNS),$(RUNS),8) --out results/live_view_bench.json
+
+# the README's pictures: the interactive page of a small campaign in headless Chromium, and what a
+# Foxglove client receives from the live view during a realtime demo (drawn with matplotlib)
+docs-screenshots: $(STAMP)
+	$(BIN)/snn_campaign --spec config/campaigns/page_example.yaml --out runs/campaign_page_example --workers $(WORKERS)
+	chromium --headless --no-sandbox --disable-gpu --hide-scrollbars --user-data-dir=runs/.chromium \
+		--window-size=1100,1700 --virtual-time-budget=10000 --screenshot=docs/campaign_page.png \
+		runs/campaign_page_example/campaign.html
+	$(BIN)/python -m snn_tools.live_snapshot --out docs/live_view.png
 
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)

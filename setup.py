@@ -13,6 +13,7 @@ EXECUTABLES = {
     'lqr_controller': 'scenario_nodes.controller_node:main',
     'estimator': 'scenario_nodes.estimator_node:main',
     'recorder': 'scenario_nodes.recorder_node:main',
+    'live_view': 'scenario_nodes.live_view_node:main',
     'report': 'snn_tools.report:main',
     'snn_demo': 'snn_tools.demo:main',
     'snn_experiments': 'snn_tools.experiments:main',
@@ -30,6 +31,8 @@ data_files = [
     (f'share/{PACKAGE}/launch', glob('launch/*.launch.py')),
     (f'share/{PACKAGE}/config', glob('config/*.yaml')),
     (f'share/{PACKAGE}/config/campaigns', glob('config/campaigns/*.yaml')),
+    # the live view's RViz config and Foxglove layout
+    (f'share/{PACKAGE}/config', glob('config/*.rviz') + glob('config/*.json')),
     (f'share/{PACKAGE}/rosdep', glob('rosdep/*.yaml')),
 ]
 # `ros2 run` looks for executables in <prefix>/lib/<package>. colcon puts the console scripts
@@ -64,11 +67,15 @@ setup(
     extras_require={
         # the Basilisk truth plant (issue: high-fidelity truth); pinned, its API moves
         'basilisk': ['bsk==2.12.1'],
-        # Monte-Carlo campaigns on Dask, results as Parquet
-        'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14'],
+        # Monte-Carlo campaigns on Dask, results as Parquet, the interactive page (plotly, pinned)
+        'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14', 'plotly==7.1.0'],
         # NIR export of the networks and the independent Brian2 simulation of them
         'neuromorphic': ['nir>=1.0', 'brian2==2.9.0'],
-        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6'],
+        # the live view over Foxglove's WebSocket protocol; pinned, its API moves
+        'live': ['foxglove-sdk==0.30.3'],
+        # websockets and protobuf: the tests' Foxglove client decodes what the live view sends
+        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6', 'websockets==17.4',
+                 'protobuf>=4.21'],
     },
     zip_safe=True,
     maintainer='snn_rendezvous maintainers',

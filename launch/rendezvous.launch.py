@@ -4,6 +4,7 @@
     ros2 launch snn_rendezvous rendezvous.launch.py params_file:=/path/to/my.yaml record:=true
     ros2 launch snn_rendezvous rendezvous.launch.py plant:=basilisk   # Basilisk truth (J2)
     ros2 launch snn_rendezvous rendezvous.launch.py keep_alive:=true  # stay up after the scenario
+    ros2 launch snn_rendezvous rendezvous.launch.py live_view:=true   # Foxglove: ws://localhost:8765
 
 Each node is its own process; swapping the estimator is only the `estimator` argument. When
 the plant has flown the scenario it exits and the launch shuts the others down (the recorder
@@ -51,6 +52,10 @@ def generate_launch_description():
             'record', default_value='false',
             description='Also start the recorder (rosbag2 MCAP in ./bag_<date-time>)'),
         DeclareLaunchArgument(
+            'live_view', default_value='false', choices=['true', 'false'],
+            description='Also start live_view: the scene and plots over Foxglove\'s WebSocket protocol '
+                        '(ws://localhost:8765; needs the live extra) and a MarkerArray on markers (RViz)'),
+        DeclareLaunchArgument(
             'keep_alive', default_value='false', choices=['true', 'false'],
             description='true: keep every node up after the plant has flown the scenario; false: the '
                         'plant exits and the launch shuts down'),
@@ -91,6 +96,7 @@ def _nodes(context):
         node('position_sensor'),
         plant,
         node('recorder', condition=IfCondition(LaunchConfiguration('record'))),
+        node('live_view', condition=IfCondition(LaunchConfiguration('live_view'))),
     ]
     if end_with_plant:
         actions.append(RegisterEventHandler(OnProcessExit(

@@ -250,9 +250,33 @@ RECORDER = (
          'messages before closing the bag', low=0.0),
 )
 
+LIVE_VIEW = MODEL + (
+    Spec('host', '127.0.0.1', "Address the Foxglove WebSocket server listens on (0.0.0.0: every "
+         'interface; the live view has no authentication)'),
+    Spec('port', 8765, "Port of the Foxglove WebSocket server (Foxglove's default; 0: any free port)",
+         low=0, high=65535),
+    Spec('foxglove', True, 'Serve the live view over Foxglove\'s WebSocket protocol (foxglove-sdk)'),
+    Spec('markers', True, 'Publish the scene as visualization_msgs/MarkerArray on `markers` (RViz)'),
+    Spec('publish_rate', 20.0, 'Frames per wall-clock second at most; inputs between two frames are '
+         'coalesced (the newest drawn), never queued', low=0.1, high=1000.0),
+    Spec('message_backlog', 64, 'Messages queued per Foxglove client; the oldest is dropped when a '
+         'client does not keep up (logging never blocks)', low=1, high=100000),
+    Spec('covariance_sigma', 3.0, 'Size of the covariance ellipsoid and of the +- bounds of the error '
+         'plots, in standard deviations', low=1e-3, high=100.0),
+    Spec('keep_out_radius', 2.0, 'Radius of the keep-out sphere around the target, m (0: not drawn)', low=0.0),
+    Spec('corridor_axis', [float(v) for v in D.RENDEZVOUS_X0[:3]], 'Direction of the approach '
+         "corridor's axis from the target, LVLH (default: the chaser's initial position)"),
+    Spec('corridor_half_angle', 15.0, "Half angle of the approach corridor's cone, deg", low=0.1, high=89.0),
+    Spec('corridor_length', 100.0, 'Length of the approach corridor, m (0: not drawn)', low=0.0),
+    Spec('thrust_scale', 200.0, 'Length of the thrust arrow per unit of control, m per m/s^2', low=0.0),
+    Spec('trail_length', 500, 'Positions kept in the true and estimated trails', low=2, high=100000),
+    Spec('raster_steps', 200, 'Steps shown across the spike raster', low=1, high=100000),
+)
+
 #: Node name -> its table, in the order the YAML files and docs/parameters.md list them.
 NODES = {'cw_plant': PLANT, 'basilisk_plant': BASILISK_PLANT, 'position_sensor': SENSOR,
-         'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR, 'recorder': RECORDER}
+         'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR, 'recorder': RECORDER,
+         'live_view': LIVE_VIEW}
 
 
 def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:

@@ -15,3 +15,4 @@ SET_STATE = 'set_state'  # estimator input: replace the estimate (nav_msgs/Odome
 CLOCK = '/clock'
 
 PIPELINE_TOPICS = (TRUTH, MEASUREMENT, CONTROL, ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS)
+MARKERS = 'markers'  # live_view output: visualization_msgs/MarkerArray of the scene (RViz)

@@ -24,6 +24,7 @@ from snn_estimator.reference import DenseFilter, DenseSpikingFilter
 from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
 
 from .experiments import time_steps
+from .progress import track
 
 NEURON_COUNTS = (50, 100, 200, 300)
 
@@ -65,7 +66,7 @@ def main(argv=None) -> int:
           f'{platform.processor() or platform.machine()}, Python {platform.python_version()}')
     print(f'{"filter":<16}{"N":>5}{"compiled us/step":>18}{"dense us/step":>15}{"ratio":>8}')
     results: dict = {}
-    for kind, spec in FILTER_KINDS.items():
+    for kind, spec in track(FILTER_KINDS.items(), 'filters', 'snn_bench'):  # progress on a terminal
         for neurons in NEURON_COUNTS:
             config = scenario.estimator.replace(neuron_count=neurons)
 
@@ -83,7 +84,7 @@ def main(argv=None) -> int:
             sys.stdout.flush()
     print(f'\n{args.mc_runs}-run rendezvous Monte Carlo (360 s each), wall time:')
     monte_carlo = {}
-    for kind in FILTER_KINDS:
+    for kind in track(FILTER_KINDS, 'filters', 'Monte Carlo'):
         simulate(scenario, kind, runs=2)  # compile
         started = time.perf_counter()
         result = simulate(scenario, kind, runs=args.mc_runs)

@@ -32,7 +32,6 @@ import os
 import re
 import signal
 import sys
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,6 +51,7 @@ from .campaign_cells import (
     run_chunk,
 )
 from .paths import config_file
+from .progress import Progress
 
 #: Top-level keys of a spec: required ones, then optional ones with their defaults.
 REQUIRED_KEYS = ('scenario', 'runs', 'filters', 'grid')
@@ -335,67 +335,49 @@ def write_outputs(out: Path, spec: CampaignSpec) -> list[dict]:
 
 # ---------------------------------------------------------------- progress
 class CampaignProgress:
-    """Cells done, runs/s and ETA on stderr: one redrawn line on a terminal, a line per tenth
-    of the campaign in a log."""
+    """Cells and runs done, runs/s and ETA on stderr through :class:`snn_tools.progress.Progress`:
+    one redrawn line on a terminal, nothing in a log. ``say`` lines (what runs, the dashboard)
+    are printed unless ``quiet``."""
 
     def __init__(self, quiet: bool = False, stream=sys.stderr):
         self.quiet = quiet
         self.stream = stream
-        self.interactive = stream.isatty()
-        self.cells_total = self.cells_done = self.runs_total = self.runs_done = 0
-        self.started = time.perf_counter()
-        self._drawn = 0.0
-        self._tenth = -1
+        self.bar = Progress(0, 'runs', stream=stream, enabled=False if quiet else None)
+        self.cells_total = self.cells_done = 0
 
     def start(self, cells_total: int, cells_skipped: int, runs_total: int) -> None:
-        self.cells_total, self.cells_done, self.runs_total = cells_total, cells_skipped, runs_total
-        self.started = time.perf_counter()
+        self.cells_total, self.cells_done = cells_total, cells_skipped
+        self.bar.restart(runs_total)
+        self.bar.open()
         if cells_skipped:
             self.say(f'{cells_skipped} of {cells_total} cells already done, skipped')
-        self._draw(force=True)
+        self._note()
 
     def say(self, text: str) -> None:
-        if not self.quiet:
-            self.stream.write(('\n' if self.interactive and self._drawn else '') + text + '\n')
+        if self.quiet:
+            return
+        if self.bar.enabled:
+            self.bar.say(text)
+        else:
+            self.stream.write(text + '\n')
             self.stream.flush()
-            self._drawn = 0.0
 
     def runs_finished(self, runs: int) -> None:
-        self.runs_done += runs
-        self._draw()
+        self.bar.advance(runs)
 
     def cell_finished(self) -> None:
         self.cells_done += 1
-        self._draw(force=self.cells_done == self.cells_total)
+        self._note()
+
+    def _note(self) -> None:
+        self.bar.note = f'cells {self.cells_done}/{self.cells_total}'
+        self.bar.draw(force=True)
 
     def line(self) -> str:
-        elapsed = time.perf_counter() - self.started
-        rate = self.runs_done / elapsed if elapsed > 0 else 0.0
-        eta = (self.runs_total - self.runs_done) / rate if rate > 0 else None
-        eta_text = time.strftime('%H:%M:%S', time.gmtime(eta)) if eta is not None else '--:--:--'
-        return (f'cells {self.cells_done}/{self.cells_total}  runs {self.runs_done}/{self.runs_total}'
-                f'  {rate:.1f} runs/s  ETA {eta_text}')
-
-    def _draw(self, force: bool = False) -> None:
-        if self.quiet:
-            return
-        now = time.perf_counter()
-        if self.interactive:
-            if force or now - self._drawn > 0.2:
-                self.stream.write('\r' + self.line().ljust(72))
-                self.stream.flush()
-                self._drawn = now
-            return
-        tenth = 10 * self.cells_done // max(self.cells_total, 1)
-        if force or tenth > self._tenth:
-            self._tenth = tenth
-            self.stream.write(self.line() + '\n')
-            self.stream.flush()
+        return self.bar.line()
 
     def close(self) -> None:
-        if not self.quiet and self.interactive:
-            self.stream.write('\n')
-            self.stream.flush()
+        self.bar.close()
 
 
 # ---------------------------------------------------------------- running
@@ -570,7 +552,8 @@ def main(argv=None) -> int:
               'the same command retries the rest', file=sys.stderr)
         return 1
     print(f'{outcome.computed} cells computed, {outcome.skipped} already done: '
-          f'{out / "results.parquet"}, {out / "summary.md"}')
+          f'{out / "results.parquet"}, {out / "summary.md"}' +
+          (f', {out / "campaign.html"}' if (out / 'campaign.html').exists() else ''))
     return 0
 
 

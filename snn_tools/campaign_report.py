@@ -235,6 +235,10 @@ def write_report(out: Path, spec, rows: list[dict], total_cells: int) -> Path:
     drawn = figures(out, spec, rows)
     if drawn:
         lines += ['## Figures', '', *(f'![{p.stem}](figures/{p.name})' for p in drawn), '']
+    from .campaign_page import write_campaign_page  # the interactive page of the same rows
+    if write_campaign_page(out, spec, rows, total_cells):
+        lines += ['Interactive page (heatmaps, filter comparison, table by cell; opens offline): '
+                  '[campaign.html](campaign.html)', '']
     path = out / 'summary.md'
     path.write_text('\n'.join(lines))
     return path

@@ -35,6 +35,8 @@ NODES = (  # start order: consumers first, the plant (which starts the clock) la
 #: The truth plants the demo can fly: --plant choice -> (node name, module).
 PLANTS = {'cw': ('cw_plant', 'scenario_nodes.plant_node'),
           'basilisk': ('basilisk_plant', 'scenario_nodes.basilisk_plant_node')}
+#: The optional live view (Foxglove WebSocket and `markers`): started beside the others with --live-view.
+LIVE_VIEW = ('live_view', 'scenario_nodes.live_view_node')
 #: The exchange that paces a lockstep run (estimate k -> control k -> estimate k+1).
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).
@@ -66,6 +68,7 @@ def cpu_plan(available=None, plant: str = 'cw') -> dict[str, set[int]]:
     loop, rest = {cpus[-1]}, set(cpus[:-1])
     plan = {name: loop if name in LOOP_PAIR else rest for name, _ in NODES}
     plan[PLANTS[plant][0]] = rest
+    plan[LIVE_VIEW[0]] = rest  # never beside the pacing pair
     if plant == 'basilisk':
         plan['recorder'] = set(cpus)
     return plan
@@ -75,7 +78,8 @@ class Pipeline:
     """The node processes of one run, with their logs in ``<run>/logs``."""
 
     def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
-                 namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw'):
+                 namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw',
+                 live_view: bool = False):
         if scheduling not in SCHEDULING:
             raise ValueError(f'scheduling {scheduling!r}: expected one of {SCHEDULING}')
         if plant not in PLANTS:
@@ -93,6 +97,8 @@ class Pipeline:
         self.processes: dict[str, subprocess.Popen] = {}
         self.nodes = [PLANTS[plant] if name == 'cw_plant' else (name, module) for name, module in NODES
                       if record or name != 'recorder']
+        if live_view:
+            self.nodes.insert(0, LIVE_VIEW)
         if record:  # the first state waits until the sensor and the recorder match 'truth'
             overrides.setdefault(self.plant, {}).setdefault('min_truth_subscribers', 2)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
@@ -129,7 +135,8 @@ class Pipeline:
         log = open(self.run_dir / 'logs' / f'{log_name or key}.log', 'w')
         self.processes[key] = subprocess.Popen(
             self.command(name, module, node_name), env=self.env, stdout=log, stderr=subprocess.STDOUT,
-            start_new_session=True, preexec_fn=_child_setup(self.cpus.get(name), name == 'recorder', self.batch))
+            start_new_session=True,
+            preexec_fn=_child_setup(self.cpus.get(name), name in ('recorder', LIVE_VIEW[0]), self.batch))
         if self.batch and running_policy(self.processes[key].pid) not in (BATCH, None):
             if not self.refused_batch:
                 print(f'snn_demo: the kernel refused SCHED_BATCH for {key}; the nodes run under the '
@@ -195,7 +202,7 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
-                 scheduling: str = 'batch', plant: str = 'cw') -> dict:
+                 scheduling: str = 'batch', plant: str = 'cw', live_view: bool = False) -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
@@ -214,7 +221,7 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
-                        pin_cpus=pin_cpus, scheduling=scheduling, plant=plant)
+                        pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)
@@ -307,6 +314,8 @@ def main(argv=None) -> int:
     parser.add_argument('--scheduling', default='batch', choices=SCHEDULING,
                         help='Linux policy of the node processes: batch (SCHED_BATCH, no wakeup '
                              'preemption; faster lockstep) or normal (SCHED_OTHER)')
+    parser.add_argument('--live-view', action='store_true',
+                        help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
     args = parser.parse_args(argv)
     name = args.name or f"{args.estimator}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     run_dir = (args.runs_dir / name).resolve()
@@ -319,7 +328,7 @@ def main(argv=None) -> int:
         result = run_pipeline(run_dir, args.estimator, args.mode, params_file, args.duration,
                               args.real_time_factor, args.domain_id, storage=args.storage,
                               pin_cpus=args.cpu_affinity == 'auto', scheduling=args.scheduling,
-                              plant=args.plant)
+                              plant=args.plant, live_view=args.live_view)
     except RuntimeError as error:
         print(f'snn_demo: {error}', file=sys.stderr)
         return 1

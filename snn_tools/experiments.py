@@ -32,6 +32,7 @@ from snn_estimator.estimators import make_estimator
 from snn_estimator.simulation import far_range_scenario, rendezvous_scenario, simulate, van_der_pol_scenario
 
 from .campaign import CampaignProgress, dask_client, load_spec, run_campaign, validate
+from .progress import track
 
 #: Numbers printed in the paper (Tables 2-5, 7; Sec. 3.1.2 for Fig. 7).
 PAPER = {
@@ -242,7 +243,7 @@ def main(argv=None) -> int:
                 data = run_table(name, args.runs, args.out, client, args.quiet)
                 data['wall_time_s'] = round(time.perf_counter() - started, 1)
                 _write(args.out, name, data)
-    for name in names:
+    for name in track(names, 'experiments', 'figures'):  # i27: progress on a terminal
         if name == 'runtime':
             _write(args.out, name, experiment_runtime())
         elif name in tables:
@@ -253,6 +254,8 @@ def main(argv=None) -> int:
                 _write(args.out, name, data)
     from .report_md import write_report
     print(f'report: {write_report(args.out)}')
+    from .campaign_page import write_experiments_page  # i27: one interactive page of every table
+    print(f'interactive page: {write_experiments_page(args.out, tables)}')
     return 0
 
 

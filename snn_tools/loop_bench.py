@@ -24,6 +24,7 @@ from scenario_nodes.parameters import DEFAULT_FILTER
 from snn_estimator.estimators import FILTER_KINDS
 
 from .demo import SCHEDULING, Pipeline, run_pipeline
+from .progress import track
 
 #: Part of the stepping interval, at each end, left out of the CPU window.
 WINDOW_MARGIN = 0.2
@@ -139,7 +140,7 @@ def main(argv=None) -> int:
           f'{os.cpu_count()} CPUs, scheduling {args.scheduling}, CPU affinity {args.cpu_affinity}')
     runs = []
     with TemporaryDirectory(prefix='snn_loop_bench_') as folder:
-        for index in range(args.runs):
+        for index in track(range(args.runs), 'runs', 'snn_loop_bench'):  # progress on a terminal
             try:
                 run = bench_run(Path(folder) / f'run_{index}', args.estimator, args.duration,
                                 args.cpu_affinity == 'auto', args.scheduling, args.plant)

@@ -31,6 +31,7 @@ from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gai
 from .brian2_sim import run_network
 from .experiments import time_steps
 from .nir_export import NetworkArrays, constant_gain_estimator, network_arrays, network_graph
+from .progress import track
 
 DEFAULT_FILTERS = ('snn_ekf', 'snn_emsif', 'snn_emsif_star', 'snn_emsif_weighted')
 NEURON_COUNTS = tuple(range(50, 501, 50))
@@ -251,7 +252,7 @@ def gain_schedule_comparison(kind: str, runs: int, duration: float) -> dict:
 def neuron_sweep(kind: str, scenario, counts, watts: float) -> dict:
     """Operations and energy per estimate against N (one closed-loop run per N)."""
     rows = []
-    for neurons in counts:
+    for neurons in track(counts, 'networks', 'neuron sweep'):
         config = scenario.estimator.replace(neuron_count=int(neurons))
         estimator = constant_gain_estimator(kind, config, scenario.model)
         recording = record_rendezvous(scenario, estimator)
@@ -463,7 +464,7 @@ def main(argv=None) -> int:
                          'sub-step count.'}}
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix='snn_neuromorphic_') as workdir:
-        for kind in args.filters:
+        for kind in track(args.filters, 'filters', 'snn_neuromorphic'):  # progress on a terminal
             data['filters'][kind] = run_filter(kind, scenario, args, Path(workdir))
             item = data['filters'][kind]
             print(f'{kind}: Brian2/ours RMSE {item["independent_rmse_ratio"]}, spikes '

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = 'snn_rendezvous'
 NODES = ('cw_plant', 'position_sensor', 'lqr_controller', 'estimator', 'recorder')
-EXECUTABLES = NODES + ('report',)
+EXECUTABLES = NODES + ('report', 'live_view')
 
 
 def ros2_run_path(prefix_env: dict, executable: str) -> Path:
@@ -81,7 +81,7 @@ def test_pip_install_puts_ros2_run_wrappers_index_marker_and_share_files(pip_pre
     assert (pip_prefix / 'share/ament_index/resource_index/packages' / PACKAGE).is_file()
     share = pip_prefix / 'share' / PACKAGE
     for name in ('package.xml', 'launch/rendezvous.launch.py', 'config/rendezvous.yaml',
-                 'config/rendezvous_as_published.yaml'):
+                 'config/rendezvous_as_published.yaml', 'config/rendezvous.rviz', 'config/foxglove_layout.json'):
         assert (share / name).is_file(), name
     env = prefix_env(pip_prefix, site)
     for executable in EXECUTABLES:
@@ -199,7 +199,8 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         created['node'], created['handler'] = [], []
         actions = make_nodes(dict(base, **context))
         nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
-        assert set(nodes) == set(NODES)
+        assert set(nodes) == set(NODES) | {'live_view'}  # live_view only with live_view:=true
+        assert nodes['live_view']['condition'].args == (('config', 'live_view', None),)
         for exe, n in nodes.items():
             assert n['package'] == PACKAGE and n['name'] == exe
             assert n['exec_name'] == exe  # log lines say [estimator-2], not [chrt-2]

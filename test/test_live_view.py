@@ -1,0 +1,237 @@
+"""The live view: the scene and plot values against independent computations (no ROS), the
+MarkerArray a live_view node publishes against the estimate and covariance it was given, and
+the Foxglove layout file in step with its generator."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from scenario_nodes.scene import (
+    LiveScene,
+    SceneSettings,
+    corridor_mesh,
+    covariance_ellipsoid,
+    nees,
+    plot_record,
+    quaternion_of,
+    raster_image,
+)
+
+
+def random_covariance(rng, scale=1.0):
+    a = rng.standard_normal((3, 3))
+    return scale * (a @ a.T + 0.1 * np.eye(3))
+
+
+def ellipsoid_covariance(radii, quaternion, sigma):
+    """The covariance an ellipsoid stands for: R diag((r / sigma)^2) R^T (scipy's rotation)."""
+    rotation = Rotation.from_quat(quaternion).as_matrix()
+    return rotation @ np.diag((np.asarray(radii) / sigma) ** 2) @ rotation.T
+
+
+def test_the_covariance_ellipsoid_reproduces_the_covariance_it_was_drawn_from():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        covariance = random_covariance(rng, 10.0 ** rng.uniform(-6, 1))
+        sphere = covariance_ellipsoid('c', (1.0, 2.0, 3.0), covariance, 3.0, (1, 1, 1, 1))
+        assert sphere.center == (1.0, 2.0, 3.0)
+        np.testing.assert_allclose(ellipsoid_covariance(sphere.radii, sphere.orientation, 3.0), covariance,
+                                   rtol=1e-9, atol=1e-12 * np.abs(covariance).max())
+
+
+def test_quaternion_of_matches_scipy_for_random_rotations():
+    for rotation in Rotation.random(50, random_state=3):
+        q = np.array(quaternion_of(rotation.as_matrix()))
+        expected = rotation.as_quat()
+        assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-12
+
+
+def test_nees_is_e_p_inverse_e_and_absent_for_a_covariance_that_is_not_positive_definite():
+    rng = np.random.default_rng(2)
+    p = np.zeros((6, 6))
+    p[:3, :3], p[3:, 3:] = random_covariance(rng), random_covariance(rng, 1e-4)
+    e = rng.standard_normal(6)
+    assert nees(e, p) == pytest.approx(float(e @ np.linalg.inv(p) @ e), rel=1e-10)
+    assert nees(e, np.zeros((6, 6))) is None
+    assert nees(e, np.diag([1.0, 1, 1, 1, 1, -1])) is None
+
+
+def test_every_corridor_vertex_lies_in_the_cone_and_its_rim_on_the_cone():
+    axis, half_angle, length = np.array([70.0, 30.0, -5.0]), 15.0, 100.0
+    points = corridor_mesh(axis, half_angle, length)
+    unit = axis / np.linalg.norm(axis)
+    along = points @ unit
+    assert len(points) % 3 == 0 and along.min() >= -1e-9 and along.max() == pytest.approx(length)
+    off_apex = np.linalg.norm(points, axis=1) > 1e-9
+    angles = np.degrees(np.arccos(np.clip(along[off_apex] / np.linalg.norm(points[off_apex], axis=1), -1, 1)))
+    assert angles.max() == pytest.approx(half_angle, abs=1e-9)  # the rim
+    assert (angles <= half_angle + 1e-9).all()
+
+
+def test_a_plot_sample_pairs_the_estimate_with_the_truth_of_its_own_stamp():
+    rng = np.random.default_rng(4)
+    scene = LiveScene(SceneSettings(covariance_sigma=3.0))
+    truths = {k * 100_000_000: rng.standard_normal(6) for k in range(6)}
+    covariance = np.zeros((6, 6))
+    covariance[:3, :3], covariance[3:, 3:] = random_covariance(rng), random_covariance(rng, 1e-2)
+    x_hat = rng.standard_normal(6)
+    for stamp in list(truths)[:3]:
+        scene.add_truth(stamp, truths[stamp])
+    # the estimate for t = 0.4 s arrives before its truth: the plot waits for it
+    scene.add_estimate(400_000_000, x_hat, covariance)
+    scene.add_spikes(total=17, per_neuron=np.array([0, 2, 0, 1]))
+    _, sample, raster = scene.frame()
+    assert sample is None
+    np.testing.assert_array_equal(raster[:, -1], [0, 2, 0, 1])
+    scene.add_truth(300_000_000, truths[300_000_000])
+    scene.add_truth(400_000_000, truths[400_000_000])
+    scene.add_truth(500_000_000, truths[500_000_000])  # newer than the estimate: not its pair
+    _, sample, _ = scene.frame()
+    assert sample.stamp_ns == 400_000_000 and sample.spikes == 17
+    np.testing.assert_allclose(sample.error, x_hat - truths[400_000_000], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(sample.three_sigma, 3 * np.sqrt(np.diag(covariance)), rtol=1e-15)
+    assert sample.range_true == pytest.approx(np.linalg.norm(truths[400_000_000][:3]))
+    assert sample.nees == pytest.approx(float(sample.error @ np.linalg.solve(covariance, sample.error)))
+    assert scene.frame() is None  # nothing new: no frame
+    scene.add_control(np.zeros(3))
+    assert scene.frame()[1] is None  # a new frame, but that sample was plotted already
+
+
+def test_the_scene_draws_every_part_at_the_estimate_and_the_thrust_scaled():
+    scene = LiveScene(SceneSettings(thrust_scale=500.0, keep_out_radius=3.0))
+    x_hat, covariance = np.array([10.0, 5, -1, 0, 0, 0]), np.diag([4e-4, 1e-4, 9e-4, 1e-6, 1e-6, 1e-6])
+    scene.add_truth(0, np.array([10.1, 5, -1, 0, 0, 0]))
+    scene.add_estimate(0, x_hat, covariance)
+    scene.add_control(np.array([1e-3, 0.0, -2e-3]))
+    drawn, _, _ = scene.frame()
+    assert set(drawn.names()) == {'target', 'keep_out', 'corridor', 'chaser_true', 'chaser_estimate',
+                                  'covariance', 'thrust'}
+    assert drawn.get('chaser_estimate').center == (10.0, 5.0, -1.0)
+    assert drawn.get('keep_out').radii == (3.0, 3.0, 3.0)
+    np.testing.assert_allclose(drawn.get('thrust').end, x_hat[:3] + 500.0 * np.array([1e-3, 0, -2e-3]))
+    assert sorted(drawn.get('covariance').radii) == pytest.approx(sorted(3 * np.sqrt([4e-4, 1e-4, 9e-4])))
+
+
+def test_plot_values_are_finite_only_and_the_raster_is_binary():
+    scene = LiveScene()
+    covariance = np.eye(6)
+    covariance[0, 0] = math.nan
+    scene.add_truth(0, np.zeros(6))
+    scene.add_estimate(0, np.ones(6), covariance)
+    record = plot_record(scene.frame()[1])
+    assert 'x' not in record['three_sigma'] and record['three_sigma']['y'] == 3.0
+    assert 'nees' not in record and 'spikes' not in record
+    np.testing.assert_array_equal(raster_image(np.array([[0, 3], [1, 0]])), [[0, 255], [255, 0]])
+
+
+@pytest.mark.parametrize('field, value', [('covariance_sigma', 0.0), ('corridor_half_angle', 90.0),
+                                          ('corridor_axis', (0.0, 0.0, 0.0)), ('trail_length', 1)])
+def test_bad_scene_settings_are_refused_naming_the_parameter(field, value):
+    with pytest.raises(ValueError, match=field):
+        SceneSettings(**{field: value})
+
+
+def test_the_foxglove_layout_file_is_what_its_generator_writes():
+    pytest.importorskip('foxglove')
+    from snn_tools.live_layout import LAYOUT_FILE, layout_json
+    text = layout_json()
+    assert LAYOUT_FILE.read_text() == text, 'stale: python -m snn_tools.live_layout --write'
+    for path in ('/scene', '/plots.error.x', '/plots.three_sigma.vz', '/plots.nees', '/plots.spikes', '/spike_raster'):
+        assert f'"{path}"' in text, path
+
+
+def test_the_foxglove_scene_update_carries_the_scene():
+    pytest.importorskip('foxglove')
+    from scenario_nodes.foxglove_view import arrow_pose, scene_update
+    rng = np.random.default_rng(5)
+    for _ in range(10):  # the arrow's rotation takes +x onto its direction
+        start, end = rng.standard_normal(3), rng.standard_normal(3)
+        _, q, length = arrow_pose(start, end)
+        np.testing.assert_allclose(Rotation.from_quat(q).apply([length, 0, 0]), end - start, atol=1e-12)
+    scene = LiveScene()
+    scene.add_estimate(0, np.ones(6), np.eye(6))
+    update = scene_update(scene.frame()[0])
+    assert len(update.encode()) > 100  # encodes as protobuf (decoded field by field in test_live_view_ros)
+
+
+def test_a_trail_keeps_the_newest_positions_oldest_first_and_at_most_its_points():
+    from scenario_nodes.scene import TRAIL_POINTS, Trail
+    trail = Trail(length=300)
+    for k in range(1000):
+        trail.append(np.array([k, 0.0, 0.0]))
+    x = trail.points()[:, 0]
+    assert len(x) == TRAIL_POINTS and x[0] == 700 and x[-1] == 999 and (np.diff(x) > 0).all()
+    short = Trail(length=300)
+    for k in range(5):
+        short.append(np.array([k, 1.0, 2.0]))
+    np.testing.assert_array_equal(short.points(), [[k, 1.0, 2.0] for k in range(5)])
+
+
+def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view():
+    """A client subscribes, then stops reading (its socket fills): every frame is still logged
+    (a view that waited for the client would hang here) and the server drops the oldest messages
+    instead of queueing 15 MB for it."""
+    pytest.importorskip('foxglove')
+    websockets = pytest.importorskip('websockets')
+    import asyncio
+    import json
+    import threading
+    import time
+
+    from scenario_nodes.foxglove_view import FoxgloveView
+    view = FoxgloveView(port=0, backlog=8)
+    subscribed, release, received = threading.Event(), threading.Event(), []
+
+    async def stalled_client():
+        async with websockets.connect(f'ws://127.0.0.1:{view.port}', subprotocols=['foxglove.sdk.v1'],
+                                      max_size=None, max_queue=1) as ws:
+            while True:
+                op = json.loads(await ws.recv())
+                if op['op'] == 'advertise':
+                    break
+            await ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
+                {'id': c['id'], 'channelId': c['id']} for c in op['channels']]}))
+            subscribed.set()
+            while not release.is_set():  # not reading: the socket's buffers fill up
+                await asyncio.sleep(0.05)
+            while True:
+                try:
+                    message = await asyncio.wait_for(ws.recv(), 1.0)
+                except (asyncio.TimeoutError, websockets.ConnectionClosed):
+                    return
+                if isinstance(message, bytes):
+                    received.append(len(message))
+
+    client = threading.Thread(target=lambda: asyncio.run(stalled_client()), daemon=True)
+    client.start()
+    try:
+        assert subscribed.wait(10.0)
+        time.sleep(0.3)  # the server has the subscription
+        scene = LiveScene(raster_steps=400)
+        rng = np.random.default_rng(0)
+        frames, started = 300, time.perf_counter()
+        for k in range(frames):
+            scene.add_truth(k, rng.standard_normal(6))
+            scene.add_estimate(k, rng.standard_normal(6), np.eye(6))
+            scene.add_spikes(total=1, per_neuron=rng.integers(0, 2, 200))
+            view.publish(*scene.frame())
+        publishing = time.perf_counter() - started  # all 300 logged while the client read nothing
+        release.set()
+        client.join(20.0)
+    finally:
+        view.close()
+    assert publishing < 60.0  # a view that waited for this client would never have finished
+    assert 0 < len(received) < 3 * frames  # it got some, the server dropped the rest
+
+
+def test_a_taken_port_is_refused_naming_the_parameter():
+    pytest.importorskip('foxglove')
+    from scenario_nodes.foxglove_view import FoxgloveView
+    first = FoxgloveView(port=0)
+    try:
+        with pytest.raises(ValueError, match="choose another 'port'"):
+            FoxgloveView(port=first.port)
+    finally:
+        first.close()
