@@ -107,6 +107,8 @@ SETTINGS: dict[str, Setting] = {
     'duration': Setting(SCENARIO, 'simulated time, s'),
     'dt': Setting(SCENARIO, 'time step of the loop, s'),
     'metric_window': Setting(SCENARIO, 'final window the readings average over, s'),
+    'truth_noise': Setting(SCENARIO, "the truth's process noise: spectral_density (variance Q dt per "
+                           'step) | held_sample (w ~ N(0, Q) held over the step, ~Q dt^2)'),
     'silenced_fraction': Setting(DERIVED, 'fraction of neurons silenced, chosen with the seed',
                                  apply=_silence_fraction),
 }
