@@ -68,7 +68,7 @@ setup(
         'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14'],
         # NIR export of the networks and the independent Brian2 simulation of them
         'neuromorphic': ['nir>=1.0', 'brian2==2.9.0'],
-        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6'],
+        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6', 'filterpy>=1.4'],
     },
     zip_safe=True,
     maintainer='snn_rendezvous maintainers',
