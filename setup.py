@@ -75,7 +75,7 @@ setup(
         'live': ['foxglove-sdk==0.30.3'],
         # websockets and protobuf: the tests' Foxglove client decodes what the live view sends
         'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6', 'websockets==17.4',
-                 'protobuf>=4.21'],
+                 'protobuf>=4.21', 'filterpy>=1.4'],
     },
     zip_safe=True,
     maintainer='snn_rendezvous maintainers',

@@ -20,6 +20,11 @@ from .validation import as_matrix, as_vector, check_covariance
 PLANT_STREAM = 1
 SENSOR_STREAM = 2
 DROPOUT_STREAM = 6
+#: How the truth reads Eq. 1's process noise w (docs/decisions.md, 4):
+#: spectral_density: continuous white noise of density Q, variance Q dt per step (default);
+#: held_sample: w ~ N(0, Q) drawn once per step and held over it (what a simulator that adds
+#: ``sqrt(Q) randn dt`` produces), variance ~ Q dt^2 per step.
+TRUTH_NOISE_READINGS = ('spectral_density', 'held_sample')
 
 
 def matrix_sqrt(covariance: np.ndarray) -> np.ndarray:
@@ -60,7 +65,12 @@ class Plant:
     #: RK4 steps per sample for nonlinear truth models.
     substeps = 4
 
-    def __init__(self, model: StateSpaceModel, x0, process_noise, seeds: Sequence[int] = (0,)):
+    def __init__(self, model: StateSpaceModel, x0, process_noise, seeds: Sequence[int] = (0,),
+                 noise_reading: str = 'spectral_density'):
+        if noise_reading not in TRUTH_NOISE_READINGS:
+            raise ValueError(f"truth_noise must be one of {', '.join(TRUTH_NOISE_READINGS)}; "
+                             f'got {noise_reading!r}')
+        self.noise_reading = noise_reading
         self.model = model
         n = model.n_state
         self.runs = len(seeds)
@@ -80,13 +90,28 @@ class Plant:
         u = np.asarray(u, dtype=float).reshape(self.runs, -1)
         root = self._sqrt_cache.get(dt)
         if root is None:
-            root = matrix_sqrt(self.model.process_noise_discrete(self.q, dt))
+            root = matrix_sqrt(self.step_noise_covariance(dt))
             self._sqrt_cache[dt] = root
         self.x = (self.model.transition(self.x, u, dt, 'exact', substeps=self.substeps)
                   + self._noise.draw() @ root.T)
         self.applied = u
         self.time += dt
         return self.x
+
+
+    def step_noise_covariance(self, dt: float) -> np.ndarray:
+        """Covariance of the process noise one step of ``dt`` adds to the state: Van Loan
+        (``Q dt`` for a nonlinear model) for spectral_density; for held_sample, G Q G^T with
+        G = integral_0^dt Phi(s) ds (``dt I`` for a nonlinear model), i.e. ~ Q dt^2."""
+        if self.noise_reading == 'spectral_density':
+            return self.model.process_noise_discrete(self.q, dt)
+        n = self.model.n_state
+        if self.model.is_linear:
+            from .models import zoh_matrices
+            _, g = zoh_matrices(self.model.jacobian(np.zeros(n), np.zeros(self.model.n_input)), np.eye(n), dt)
+        else:
+            g = dt * np.eye(n)
+        return g @ self.q @ g.T
 
 
 class PositionSensor:

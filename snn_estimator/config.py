@@ -18,6 +18,10 @@ MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 #: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
 #: state (constant network weights, what a neuromorphic chip holds).
 GAIN_SCHEDULES = ('time_varying', 'steady_state')
+#: What the spiking network integrates as its prediction (docs/decisions.md, 13): linearized,
+#: A(x_hat) x_hat + B u with A the Jacobian (Eq. 14, 17: the paper's network); nonlinear, f(x_hat, u)
+#: (Eq. 3's drift, what the non-spiking twin integrates). The same for a linear model.
+NETWORK_DRIVES = ('linearized', 'nonlinear')
 
 
 @dataclass(frozen=True)
@@ -73,6 +77,8 @@ class EstimatorConfig:
     #: time_varying (the paper: K from P or the innovation every step) | steady_state (K held at
     #: its value at the fixed point of Eq. 6; linear models only).
     gain_schedule: str = 'time_varying'
+    #: The spiking network's drift: linearized (A(x_hat) x_hat + B u, Eq. 14) | nonlinear (f, Eq. 3).
+    network_drive: str = 'linearized'
 
     def replace(self, **changes) -> 'EstimatorConfig':
         """A copy with some fields changed (unknown names raise TypeError)."""
@@ -101,6 +107,7 @@ class ResolvedConfig:
     max_spikes_per_step: int
     silenced_neurons: tuple
     gain_schedule: str
+    network_drive: str = 'linearized'
 
 
 def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
@@ -151,7 +158,8 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
         initial_state=x0, initial_state_dispersion=bool(config.initial_state_dispersion), spike_rule=rule,
         state_scale=scale, discretization=method,
         membrane_noise=noise, max_spikes_per_step=cap or 1000 * neurons, silenced_neurons=silenced,
-        gain_schedule=schedule)
+        gain_schedule=schedule,
+        network_drive=check_choice(config.network_drive, NETWORK_DRIVES, 'network_drive'))
 
 
 def gain_noise_density(settings: ResolvedConfig, dt: float) -> np.ndarray:

@@ -461,11 +461,11 @@ class Estimator:
         runs = self.runs
         jac = model.jacobian(self._x_hat, u)
         b_d = np.broadcast_to(model.input_matrix, (runs,) + model.input_matrix.shape)
-        if self.spiking:  # the network implements the linearised drift A(x_hat) x_hat (Eq. 17)
+        if self.spiking and self.settings.network_drive == 'linearized':  # A(x_hat) x_hat (Eq. 14, 17)
             a_d, b_d = model.linearized_increment(self._x_hat, dt, method)
             b_d = np.broadcast_to(b_d, (runs,) + b_d.shape[-2:])
             return np.ascontiguousarray(np.concatenate([a_d, b_d, jac], axis=2)), self._no_drift, False
-        # the non-spiking twin integrates the nonlinear f itself
+        # the non-spiking twin (and a network with network_drive: nonlinear) integrates f itself
         drift = (model.transition(self._x_hat, u, dt, method) - self._x_hat) / dt
         return (np.ascontiguousarray(np.concatenate([jac, b_d, jac], axis=2)),
                 np.ascontiguousarray(drift), True)

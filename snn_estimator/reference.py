@@ -4,14 +4,121 @@ It forms the N x N weight matrices of Eq. 16-22 every step and integrates Eq. 15
 same forward-Euler scheme and spike rule as the compiled kernel, in plain numpy. It is slow
 on purpose: it is the paper's algebra written out, so the fast kernel can be checked against
 it (same spikes, same estimate) and timed beside it.
+
+It is written from the paper and textbooks, not from the code it checks: the zero-order-hold
+matrices come from scipy's matrix exponential (not models.zoh_matrices / linearized_increment),
+the nonlinear step is one classical RK4 step written out, and the steady-state gain solves the
+Riccati equation by the Hamiltonian's stable eigenvectors refined by Newton-Kleinman steps (not
+estimators.steady_state_gain and scipy's Schur solver); the SIF's mean saturation is a numerical
+integral over the innovation density (not the closed form).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+import scipy.integrate
+import scipy.linalg
 
 from .config import gain_noise_density
-from .estimators import Estimator, steady_state_gain
+from .estimators import Estimator
+
+
+def zoh(a: np.ndarray, b: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Phi, Gamma) = (e^{A dt}, int_0^dt e^{A s} ds B) from one exponential of [[A, B], [0, 0]] dt."""
+    n, m = b.shape
+    block = np.zeros((n + m, n + m))
+    block[:n, :n], block[:n, n:] = a, b
+    exp = scipy.linalg.expm(block * dt)
+    return exp[:n, :n], exp[:n, n:]
+
+
+def drift_matrices(model, x: np.ndarray, dt: float, method: str) -> tuple[np.ndarray, np.ndarray]:
+    """(A_d, B_d) of the network's linearised drift: the Jacobian and B (Eq. 14, 16-17) for
+    euler; their exact zero-order hold over the step, ((Phi - I)/dt, Gamma/dt), for exact."""
+    n = model.n_state
+    a = model.jacobian(np.zeros(n) if x is None else x, np.zeros(model.n_input))
+    if method == 'euler':
+        return a, model.input_matrix
+    phi, gamma = zoh(a, model.input_matrix, dt)
+    return (phi - np.eye(n)) / dt, gamma / dt
+
+
+def rk4_step(f, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """One classical Runge-Kutta step of x' = f(x, u), u held."""
+    k1 = f(x, u)
+    k2 = f(x + 0.5 * dt * k1, u)
+    k3 = f(x + 0.5 * dt * k2, u)
+    k4 = f(x + dt * k3, u)
+    return x + dt / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def filter_transition(model, x: np.ndarray, u: np.ndarray, dt: float, method: str) -> np.ndarray:
+    """The direct filters' prediction over dt: Euler of Eq. 3's f, or the exact (linear: ZOH;
+    nonlinear: one RK4 step) solution."""
+    if method == 'euler':
+        return x + dt * model.f(x, u)
+    if model.is_linear:
+        phi, gamma = zoh(model.jacobian(np.zeros(model.n_state), np.zeros(model.n_input)), model.input_matrix, dt)
+        return phi @ x + gamma @ u
+    return rk4_step(model.f, x, u, dt)
+
+
+def riccati_fixed_point(a: np.ndarray, c: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """P with A P + P A^T + Q - P C^T R^-1 C P = 0 (Eq. 6 at rest): the stable invariant subspace
+    [X; Y] of the Hamiltonian [[A^T, -C^T R^-1 C], [-Q, -A]] gives P = Y X^-1, then
+    Newton-Kleinman steps (a Lyapunov equation each) polish it."""
+    n = a.shape[0]
+    r_inv = np.linalg.inv(r)
+    hamiltonian = np.block([[a.T, -c.T @ r_inv @ c], [-q, -a]])
+    values, vectors = np.linalg.eig(hamiltonian)
+    stable = vectors[:, np.argsort(values.real)[:n]]
+    p = np.real(stable[n:] @ np.linalg.inv(stable[:n]))
+    p = 0.5 * (p + p.T)
+    for _ in range(20):
+        closed = a - p @ c.T @ r_inv @ c
+        # closed P' + P' closed^T = -(Q + P C^T R^-1 C P)
+        update = scipy.linalg.solve_continuous_lyapunov(closed, -(q + p @ c.T @ r_inv @ c @ p))
+        update = 0.5 * (update + update.T)
+        if np.abs(update - p).max() <= 1e-15 * max(np.abs(p).max(), 1e-300):
+            p = update
+            break
+        p = update
+    return p
+
+
+def mean_saturation(sigma: float, delta: float) -> float:
+    """E[min(|nu| / delta, 1)] for nu ~ N(0, sigma^2), by quadrature."""
+    density = lambda x: math.exp(-0.5 * (x / sigma) ** 2) / (sigma * math.sqrt(2.0 * math.pi))  # noqa: E731
+    inside, _ = scipy.integrate.quad(lambda x: 2.0 * x / delta * density(x), 0.0, delta, epsabs=0, epsrel=1e-13)
+    outside = math.erfc(delta / (sigma * math.sqrt(2.0)))
+    return inside + outside
+
+
+def written_out_steady_state_gain(source: Estimator, dt: float) -> np.ndarray:
+    """The constant gain of ``source``'s law at the fixed point of Eq. 6 (Decision 28), from the
+    formulas: Kalman P C^T R^-1 (Eq. 5), MSIF C^+ sat(diag(C P C^T + R_hat)/delta) (Eq. 8-9),
+    SIF C^+ E[sat(|nu|/delta)] over nu ~ N(0, C P C^T + R_hat) (Eq. 7), weighted and hybrid."""
+    s, model = source.settings, source.model
+    n = model.n_state
+    c = model.measurement_matrix
+    a = model.jacobian(np.zeros(n), np.zeros(model.n_input))
+    density = gain_noise_density(s, dt)
+    p = riccati_fixed_point(a, c, s.q_hat, density)
+    kalman = p @ c.T @ np.linalg.inv(density)
+    if source.gain_law == 'kalman':
+        return kalman
+    c_pinv = np.linalg.pinv(c)
+    variance = np.diag(c @ p @ c.T + s.r_hat)
+    if source.gain_law == 'sif':
+        return c_pinv @ np.diag([mean_saturation(math.sqrt(v), d) for v, d in zip(variance, s.boundary_layer)])
+    saturation = np.diag(np.minimum(variance / s.boundary_layer, 1.0))
+    if source.gain_law == 'msif':
+        return c_pinv @ saturation
+    if source.gain_law == 'msif_weighted':
+        return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation
+    return c_pinv @ saturation + (np.eye(n) - c_pinv @ c) @ kalman
 
 
 def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, dt: float) -> np.ndarray:
@@ -20,7 +127,7 @@ def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, d
     c = source.model.measurement_matrix
     c_pinv = np.linalg.pinv(c)
     if source.constant_gain:
-        return steady_state_gain(source.gain_law, source.model, s, dt)
+        return written_out_steady_state_gain(source, dt)
     kalman = p @ c.T @ np.linalg.inv(gain_noise_density(s, dt))                          # Eq. 5
     if source.gain_law == 'kalman':
         return kalman
@@ -84,7 +191,13 @@ class DenseSpikingFilter:
         x_hat = self.x_hat
         c = model.measurement_matrix
         k_gain = written_out_gain(self.source, self.P, z - c @ x_hat, dt)
-        a_d, b_d = model.linearized_increment(x_hat, dt, self.method)
+        a_d, b_d = drift_matrices(model, x_hat, dt, self.method)
+        if self.source.settings.network_drive == 'nonlinear':  # f(x_hat, u) instead of A(x_hat) x_hat
+            a_d = np.zeros_like(a_d)
+            nonlinear = (filter_transition(model, x_hat, u, dt, self.method) - x_hat) / dt
+            b_d = np.zeros_like(b_d)
+        else:
+            nonlinear = np.zeros(len(self.scale))
         a_scaled = s_inv[:, None] * a_d * self.scale[None, :]
         n = len(self.scale)
         f_weights = d.T @ (s_inv[:, None] * b_d)                               # Eq. 16
@@ -92,7 +205,8 @@ class DenseSpikingFilter:
         omega_k = -d.T @ (s_inv[:, None] * k_gain) @ (c * self.scale[None, :]) @ d  # Eq. 19/21/23
         f_k = d.T @ (s_inv[:, None] * k_gain)                                  # Eq. 20/22/24
         self.P = written_out_covariance_step(self.source, self.P, model.jacobian(x_hat, u), k_gain, dt)
-        v_dot = -self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z  # Eq. 15
+        v_dot = (-self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z  # Eq. 15
+                 + d.T @ (s_inv * nonlinear))
         self.v = self.v + dt * v_dot
         self.r = self.r * (1.0 - self.leak * dt)                               # Eq. 11
         self.spikes[:] = 0
@@ -136,5 +250,5 @@ class DenseFilter:
         innovation = z - c @ self.x_hat
         gain = written_out_gain(self.source, self.P, innovation, dt)
         self.P = written_out_covariance_step(self.source, self.P, self.model.jacobian(self.x_hat, u), gain, dt)
-        self.x_hat = self.model.transition(self.x_hat, u, dt, self.method) + dt * gain @ innovation
+        self.x_hat = filter_transition(self.model, self.x_hat, u, dt, self.method) + dt * gain @ innovation
         return self.x_hat

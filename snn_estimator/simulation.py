@@ -57,6 +57,9 @@ class Scenario:
     setpoint: np.ndarray | None = None
     #: Truth by Basilisk (basilisk_truth.BasiliskSettings) instead of the model (None: the model).
     basilisk: object | None = None
+    #: How the truth reads Eq. 1's w: spectral_density (variance Q dt per step) | held_sample
+    #: (w ~ N(0, Q) held over the step, variance ~ Q dt^2): blocks.TRUTH_NOISE_READINGS.
+    truth_noise: str = 'spectral_density'
 
     @property
     def steps(self) -> int:
@@ -314,7 +317,11 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
 def truth_plant(scenario: Scenario, seeds: Sequence[int]):
     """The scenario's truth: the model (exact ZOH with process noise), or Basilisk."""
     if scenario.basilisk is None:
-        return Plant(scenario.truth_model or scenario.model, scenario.x0, scenario.process_noise, seeds)
+        return Plant(scenario.truth_model or scenario.model, scenario.x0, scenario.process_noise, seeds,
+                     noise_reading=scenario.truth_noise)
+    if scenario.truth_noise != 'spectral_density':
+        raise ValueError('truth_noise applies to the model truth only (the Basilisk truth draws its '
+                         'own noise): use truth_noise: spectral_density with plant: basilisk')
     from .basilisk_truth import BasiliskPlant
     settings = scenario.basilisk
     return BasiliskPlant(scenario.x0, scenario.process_noise, seeds, dt=scenario.dt, orbit=settings.orbit,

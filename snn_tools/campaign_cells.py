@@ -107,6 +107,8 @@ SETTINGS: dict[str, Setting] = {
     'duration': Setting(SCENARIO, 'simulated time, s'),
     'dt': Setting(SCENARIO, 'time step of the loop, s'),
     'metric_window': Setting(SCENARIO, 'final window the readings average over, s'),
+    'truth_noise': Setting(SCENARIO, "the truth's process noise: spectral_density (variance Q dt per "
+                           'step) | held_sample (w ~ N(0, Q) held over the step, ~Q dt^2)'),
     'silenced_fraction': Setting(DERIVED, 'fraction of neurons silenced, chosen with the seed',
                                  apply=_silence_fraction),
 }
@@ -208,6 +210,7 @@ def run_chunk(scenario_name: str, kind: str, settings: dict, seed: int, first_ru
         'nis_sum': None if result.nis is None else result.nis[:, window.start - 1:window.stop - 1].sum(axis=0),
         'dof': (scenario.model.n_state, scenario.model.n_meas),
         'delta_v': result.delta_v() if orbital else None,
+        'peak_thrust': np.abs(result.control).max(axis=(1, 2)) if orbital else None,
         'saturated_steps': result.extra['saturated_steps'] if orbital else None,
         'runs': runs,
         'samples': error.shape[1],
@@ -244,6 +247,10 @@ def combine(partials: list[dict]) -> dict:
     if partials[0]['delta_v'] is not None:
         row['delta_v_mean'] = float(np.mean(np.concatenate([p['delta_v'] for p in partials])))
         row['saturated_steps_mean'] = float(np.mean(np.concatenate([p['saturated_steps'] for p in partials])))
+    if partials[0].get('peak_thrust') is not None:  # largest |u| on any axis per run, m/s^2
+        peaks = np.concatenate([p['peak_thrust'] for p in partials])
+        row['peak_thrust_median'] = float(np.median(peaks))
+        row['peak_thrust_max'] = float(peaks.max())
     if partials[0]['nees_sum'] is not None:  # the filter's covariance judged (SimulationResult.consistency)
         for name, dof in zip(('nees', 'nis'), partials[0]['dof']):
             check = consistency_check(sum(p[f'{name}_sum'] for p in partials) / runs, runs, dof)

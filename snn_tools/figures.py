@@ -51,11 +51,15 @@ def _axis_label(state: str) -> str:
     return f'{state} [{unit}]' if unit and unit != '-' else state
 
 
+#: Resolution of saved figures (make experiments lowers it for the committed report figures).
+DPI = 110
+
+
 def _save(fig, path: Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
 
@@ -187,16 +191,23 @@ def control_figure(series: dict, path: Path, title: str) -> Path:
     return _save(fig, path)
 
 
-def neuron_sweep_figure(sweep: dict, path: Path) -> Path:
-    """Fig. 6: norm of the per-state RMSE (Eq. 29) over the last 10 s against N."""
+def neuron_sweep_figure(sweep: dict, path: Path, coding: dict | None = None) -> Path:
+    """Fig. 6: norm of the per-state RMSE (Eq. 29) over the last 10 s against N, the spike
+    fraction, and (``coding``) the RMSE norm of the spiking estimate against its twin's."""
     neurons = sweep['neurons']
-    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5))
+    panels = 3 if coding else 2
+    fig, axes = plt.subplots(1, panels, figsize=(5.5 * panels, 4.5))
+    left, right = axes[0], axes[1]
+    styles = {'': '-', 'as_published': ':', 'held_noise': '--', 'as_published,held_noise': '-.'}
+
+    def label_style(key):
+        kind, _, labels = key.partition('@')
+        return kind, label_of(kind) + (f' @{labels}' if labels else ''), styles.get(labels, '-')
+
     for key, data in sweep.items():
         if key == 'neurons':
             continue
-        kind = key.split('@')[0]
-        style = '-' if '@' not in key else ':'
-        label = label_of(kind) + (' (as published)' if '@' in key else '')
+        kind, label, style = label_style(key)
         left.plot(neurons, data['rmse_norm'], style, marker='o', color=colour_of(kind), label=label)
         left.plot(neurons, data['mean_error_norm'], style, marker='x', color=colour_of(kind), alpha=0.6)
         right.plot(neurons, 100 * np.asarray(data['spike_fraction']), style, marker='o',
@@ -208,9 +219,21 @@ def neuron_sweep_figure(sweep: dict, path: Path) -> Path:
     right.set_xlabel('neurons N')
     right.set_ylabel('spikes [% of N x steps]')
     right.set_title('spike fraction')
-    for ax in (left, right):
+    if coding:
+        third = axes[2]
+        for key, data in coding.items():
+            if key in ('neurons', 'runs'):
+                continue
+            kind, label, style = label_style(key)
+            third.plot(coding['neurons'], data['coding_rmse_norm'], style, marker='o', color=colour_of(kind),
+                       label=label)
+        third.set_yscale('log')
+        third.set_xlabel('neurons N')
+        third.set_ylabel('RMSE norm of x_snn - x_twin')
+        third.set_title("what the network adds to its twin")
+    for ax in axes:
         ax.grid(alpha=0.3, which='both')
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
     fig.suptitle('Van der Pol: accuracy and activity against network size (Fig. 6)')
     return _save(fig, path)
 
@@ -240,5 +263,6 @@ def raster(result, path: Path, title: str) -> Path:
     return raster_figure(result.time, result.raster, path, title)
 
 
-def neuron_sweep(sweep: dict, path: Path) -> Path:
-    return neuron_sweep_figure(sweep, path)
+def neuron_sweep(data: dict, path: Path) -> Path:
+    """Fig. 6 from an experiment's JSON (``sweep``, and ``coding_error`` when present)."""
+    return neuron_sweep_figure(data['sweep'], path, data.get('coding_error'))

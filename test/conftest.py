@@ -57,3 +57,43 @@ def pytest_collection_modifyitems(config, items):
             needs_ros[path] = "importorskip('rclpy')" in path.read_text()
         if needs_ros[path]:
             item.add_marker(pytest.mark.ros)
+
+
+# ---------------------------------------------------------------- no silent skips under CI
+#: Skip reasons that mean "an optional dependency is missing" (pytest.importorskip, the colcon
+#: check of test_packaging). A developer without an extra sees a skip; under CI (CI=true), where
+#: `make` installs every extra, such a skip means the install is broken and fails the run.
+MISSING_EXTRA = ('could not import', 'is not installed')
+_missing_extras: list[str] = []
+
+
+def _under_ci() -> bool:
+    return os.environ.get('CI', '').strip().lower() in ('1', 'true', 'yes')
+
+
+def _record_skip(report) -> None:
+    if not (report.skipped and _under_ci()):
+        return
+    reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
+    if any(marker in reason for marker in MISSING_EXTRA):
+        _missing_extras.append(f'{report.nodeid}: {reason}')
+
+
+def pytest_collectreport(report):
+    _record_skip(report)
+
+
+def pytest_runtest_logreport(report):
+    _record_skip(report)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _missing_extras and exitstatus in (pytest.ExitCode.OK, pytest.ExitCode.NO_TESTS_COLLECTED):
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _missing_extras:
+        terminalreporter.section('skipped for a missing extra under CI (CI=true): failing the run', red=True)
+        for line in sorted(set(_missing_extras)):
+            terminalreporter.line(line)

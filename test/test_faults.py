@@ -21,7 +21,7 @@ from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.conversions import stamp_to_ns  # noqa: E402
 from scenario_nodes.parameters import DEFAULT_FILTER  # noqa: E402
 from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
+from snn_tools.bag_tools import matched_errors, read_bag, summarize  # noqa: E402
 from snn_tools.demo import NODES, Pipeline, pipeline_env  # noqa: E402
 from snn_tools.paths import config_file  # noqa: E402
 
@@ -151,8 +151,12 @@ def test_estimator_hot_swap_safe_mode_and_recovery(tmp_path):
     assert 'started from a least-squares fit of' in swap_log
     for array in (data.truth, data.estimate, data.control, data.estimate_variance):
         assert np.all(np.isfinite(array))
-    after = data.estimate_t > 150.0
-    assert np.abs(data.estimate[after, :3]).max() < 50.0
+    # after the restart the estimate tracks the truth (not merely stays near the target): 3 sigma
+    # of the sensor (0.1 m) in position and a few cm/s in velocity, at every stamp after 150 s
+    times, errors = matched_errors(data)
+    after = times > 150.0
+    assert after.sum() > 1000
+    assert np.abs(errors[after, :3]).max() < 0.3 and np.abs(errors[after, 3:]).max() < 0.05
 
 
 def test_a_hot_standby_takes_over_when_the_active_estimator_dies(tmp_path):

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from snn_estimator.models import EARTH_MU, ClohessyWiltshire, VanDerPol, zoh_matrices
+from snn_estimator.models import EARTH_MU, ClohessyWiltshire, VanDerPol
 
 
 def cw_free_motion(state0, n, t):
@@ -126,10 +126,15 @@ def test_linearized_increment_tends_to_the_jacobian_for_small_steps():
     a_exact, b_exact = model.linearized_increment(x, 1e-6, 'exact')
     np.testing.assert_allclose(a_exact, model.jacobian(x, np.zeros(1)), atol=1e-5)
     np.testing.assert_allclose(b_exact, model.input_matrix, atol=1e-5)
-    phi, gamma = zoh_matrices(model.jacobian(x, np.zeros(1)), model.input_matrix, 0.01)
+    # the exact step against scipy's exponential of [[J, B], [0, 0]] dt (Van Loan's block form)
+    block = np.zeros((3, 3))
+    block[:2, :2], block[:2, 2:] = model.jacobian(x, np.zeros(1)), model.input_matrix
+    exp = scipy.linalg.expm(0.01 * block)
     a_d, b_d = model.linearized_increment(x, 0.01, 'exact')
-    np.testing.assert_allclose(np.eye(2) + 0.01 * a_d, phi)
-    np.testing.assert_allclose(0.01 * b_d, gamma)
+    np.testing.assert_allclose(np.eye(2) + 0.01 * a_d, exp[:2, :2], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(0.01 * b_d, exp[:2, 2:], rtol=1e-13, atol=1e-15)
+    # and it is not the Euler step (the O(dt^2) terms are there)
+    assert np.abs(a_d - model.jacobian(x, np.zeros(1))).max() > 1e-4
 
 
 def test_small_argument_expm_matches_scipy():

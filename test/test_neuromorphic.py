@@ -73,21 +73,39 @@ def test_nir_file_reads_back_the_same_graph(emsif_file):
     assert float(read.metadata['sample_period']) == SCENARIO.dt
 
 
+def papers_weights(estimator, dt):
+    """Eq. 16-20 in the network's scaled units, written from the decoder, the model and the
+    steady-state gain of reference.py (not from Estimator.weights or steady_state_gain)."""
+    from snn_estimator.reference import drift_matrices, written_out_steady_state_gain
+    d, scale = estimator.decoder, estimator.settings.state_scale
+    model = estimator.model
+    a_d, b_d = drift_matrices(model, None, dt, estimator.settings.discretization)
+    k = written_out_steady_state_gain(estimator, dt) / scale[:, None]   # S^-1 K
+    a_scaled = a_d / scale[:, None] * scale[None, :]                     # S^-1 A_d S
+    c_scaled = model.measurement_matrix * scale[None, :]                 # C S
+    return {'F': d.T @ (b_d / scale[:, None]),                               # Eq. 16
+            'Omega_s': d.T @ (a_scaled + estimator.settings.leak_rate * np.eye(len(scale))) @ d,  # Eq. 17
+            'Omega_f': -d.T @ d,                                             # Eq. 18
+            'Omega_k': -d.T @ k @ c_scaled @ d,                              # Eq. 19/21/23
+            'F_k': d.T @ k,                                                  # Eq. 20/22/24
+            'thresholds': 0.5 * np.sum(d * d, axis=0), 'decoder': d}
+
+
 @pytest.mark.parametrize('kind', SPIKING_KINDS)
-def test_exported_weights_equal_the_estimators_weights(kind):
+def test_exported_weights_equal_the_papers_formulas(kind):
     estimator = constant_gain_estimator(kind, SCENARIO.estimator, SCENARIO.model)
-    weights = estimator.weights(dt=SCENARIO.dt)
+    weights = papers_weights(estimator, SCENARIO.dt)
     graph = network_graph(estimator, SCENARIO.dt)
     net = network_arrays(graph)
     scale = estimator.settings.state_scale
-    np.testing.assert_allclose(net.measurement, weights['F_k'], rtol=1e-12)
-    np.testing.assert_allclose(net.control, weights['F'], rtol=1e-12)
+    np.testing.assert_allclose(net.measurement, weights['F_k'], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(net.control, weights['F'], rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(net.omega_f, weights['Omega_f'], rtol=1e-12)
-    np.testing.assert_array_equal(graph.nodes['slow_dynamics'].weight, weights['Omega_s'])
-    np.testing.assert_array_equal(graph.nodes['slow_correction'].weight, weights['Omega_k'])
-    np.testing.assert_allclose(net.slow, weights['Omega_s'] + weights['Omega_k'], rtol=1e-12)
+    np.testing.assert_allclose(graph.nodes['slow_dynamics'].weight, weights['Omega_s'], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(graph.nodes['slow_correction'].weight, weights['Omega_k'], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(net.slow, weights['Omega_s'] + weights['Omega_k'], rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(net.decoder, scale[:, None] * weights['decoder'], rtol=1e-12)
-    np.testing.assert_array_equal(net.threshold, weights['thresholds'])
+    np.testing.assert_allclose(net.threshold, weights['thresholds'], rtol=1e-12)
     np.testing.assert_allclose(net.tau_v, 1.0 / estimator.settings.leak_rate)
     np.testing.assert_allclose(net.train_jump, 1.0)
     np.testing.assert_allclose(net.decoder @ net.initial_r, estimator.x_hat, atol=1e-9)
@@ -177,13 +195,47 @@ def test_synaptic_operations_equal_a_count_spike_by_spike():
     np.testing.assert_array_equal(costs.neuron_updates, 2 * 200 + 6)
 
 
-def test_ekf_step_macs_equal_the_hand_count():
-    # scalar EKF, the kernel's loops: nu = z - c x (1); P C^T, P C^T R^-1 (2); a x + b u + k nu,
-    # x += dt inc (4); J P, P C^T R^-1 C P (2)
-    assert sum(filter_macs(1, 1, 1, 'kalman', 'riccati').values()) == 9
-    assert filter_macs(6, 3, 3, 'kalman', 'riccati') == {
-        'innovation': 18, 'gain': 108 + 54, 'state': 36 + 18 + 18 + 6, 'covariance': 216 + 21 * 3}
-    assert sum(filter_macs(6, 3, 3, 'sif', 'none').values()) == 18 + 18 + 78  # no P at all
+class MacCounter:
+    """Counts the multiply-adds of matrix products as a written-out step performs them."""
+
+    def __init__(self):
+        self.total = 0
+
+    def mm(self, a, b, symmetric=False):
+        a, b = np.atleast_2d(a), np.atleast_2d(b)
+        rows, inner, cols = a.shape[0], a.shape[1], b.shape[1]
+        # a symmetric result (P C^T R^-1 C P) needs only its upper triangle
+        self.total += (rows * (rows + 1) // 2 if symmetric else rows * cols) * inner
+        return a @ b
+
+
+def counted_ekf_step(n, m, nu, law):
+    """One EKF / SIF step of Eq. 3-7 written out with numpy, every product counted."""
+    rng = np.random.default_rng(n * 100 + m * 10 + nu)
+    count = MacCounter()
+    c, x, z, u = rng.normal(size=(m, n)), rng.normal(size=(n, 1)), rng.normal(size=(m, 1)), rng.normal(size=(nu, 1))
+    a, b, p = rng.normal(size=(n, n)), rng.normal(size=(n, nu)), np.eye(n)
+    r_inv, c_pinv = np.eye(m), np.linalg.pinv(c)
+    innovation = z - count.mm(c, x)                                           # Eq. 4
+    if law == 'kalman':
+        pct = count.mm(p, c.T)
+        gain = count.mm(pct, r_inv)                                           # Eq. 5
+    else:
+        gain = c_pinv * np.minimum(np.abs(innovation.T), 1.0)                 # Eq. 7: a scaling
+        count.total += n * m
+    increment = count.mm(a, x) + count.mm(b, u) + count.mm(gain, innovation)  # Eq. 3
+    count.total += n                                                          # x += dt increment
+    if law == 'kalman':                                                       # Eq. 6
+        count.mm(a, p)
+        count.mm(gain, pct.T, symmetric=True)
+    del increment
+    return count.total
+
+
+@pytest.mark.parametrize('n, m, nu', [(1, 1, 1), (2, 1, 1), (6, 3, 3), (9, 4, 2)])
+def test_filter_macs_equal_a_count_of_the_written_out_step(n, m, nu):
+    assert sum(filter_macs(n, m, nu, 'kalman', 'riccati').values()) == counted_ekf_step(n, m, nu, 'kalman')
+    assert sum(filter_macs(n, m, nu, 'sif', 'none').values()) == counted_ekf_step(n, m, nu, 'sif')
 
 
 def test_energy_is_operations_times_the_chips_figures():

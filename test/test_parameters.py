@@ -79,7 +79,14 @@ def test_descriptors_carry_descriptions_ranges_and_read_only_flags():
                 assert descriptor.floating_point_range[0].from_value == spec.low
     by_name = {s.name: s for s in ESTIMATOR}
     assert by_name['filter_type'].read_only and by_name['neuron_count'].read_only
-    assert not by_name['leak_rate'].read_only or True  # runtime changes: see test_robustness
+    # exactly the parameters the node applies between steps are writable, and the core can
+    # retune every one of them that is a filter setting
+    from scenario_nodes.estimator_node import RUNTIME
+    from snn_estimator.estimators import Estimator
+    writable = {s.name for s in ESTIMATOR if not s.read_only}
+    assert writable == RUNTIME & set(by_name)
+    assert {'leak_rate', 'boundary_layer', 'membrane_noise'} <= writable
+    assert writable & set(EstimatorConfig.__dataclass_fields__) <= set(Estimator.RETUNABLE) | {'silenced_neurons'}
     assert 'Eq.' in by_name['boundary_layer'].description
 
 

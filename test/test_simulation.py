@@ -71,15 +71,27 @@ def test_sensor_noise_has_the_configured_covariance():
     np.testing.assert_allclose(root @ root.T, r, atol=1e-15)
 
 
-def test_closed_loop_rendezvous_converges_with_every_filter():
-    scenario = rendezvous_scenario()
+def test_closed_loop_rendezvous_converges_with_every_filter_from_a_dispersed_start():
+    """From x_hat0 ~ N(x0, P0) (at the truth a filter with zero gain would pass every bound:
+    Q = 1e-12 barely moves the truth away from the model). The Kalman filters correct position
+    and velocity; the sliding-innovation filters (C^+ gain, no velocity rows) correct position
+    only, so they end farther out (docs/decisions.md, 16)."""
+    scenario = rendezvous_scenario(initial_state_dispersion=True)
+    runs = 2
     for kind in ('ekf', 'emsif', 'esif', 'snn_ekf', 'snn_emsif', 'snn_emsif_star'):
-        result = simulate(scenario, kind)
-        assert result.final_range()[0] < 0.1, kind
-        assert np.all(result.rmse()[:3] < 0.05) and np.all(result.rmse()[3:] < 1e-3), kind
+        result = simulate(scenario, kind, runs=runs)
+        assert np.all(result.rmse()[:3] < 0.05), kind
+        if kind in ('ekf', 'snn_ekf'):
+            assert np.all(result.final_range() < 0.05), kind
+            assert np.all(result.rmse()[3:] < 1e-3), kind
+        else:
+            assert np.all(result.final_range() < 2.0), kind
         assert np.all(np.isfinite(result.estimate))
         # peak thrust of the documented LQR weights stays below 0.1 m/s^2
         assert np.abs(result.control).max() < 0.1
+    # the same bounds fail for a filter that ignores its measurements (gain ~ 0)
+    blind = simulate(scenario, 'ekf', runs=runs, config=scenario.estimator.replace(measurement_noise_scale=1e9))
+    assert np.any(blind.rmse()[:3] > 0.05) and np.any(blind.final_range() > 0.05)
 
 
 @pytest.mark.slow
@@ -105,11 +117,21 @@ def test_the_literal_network_is_limited_by_spike_quantisation():
 
 
 def test_metrics_are_the_two_readings_of_average_rmse():
+    """Checked on errors whose readings are known in closed form, not with the same expression:
+    a constant bias b plus +-s alternating over the runs gives RMSE sqrt(b^2 + s^2) and |mean| b;
+    and only the final window counts."""
     result = simulate(van_der_pol_scenario(), 'emsif', runs=4)
-    window = result.error[:, -1000:]
-    np.testing.assert_allclose(result.rmse(), np.sqrt((window ** 2).mean(axis=(0, 1))))
-    np.testing.assert_allclose(result.mean_error(), np.abs(window.mean(axis=0)).mean(axis=0))
-    assert np.all(result.mean_error() <= result.rmse() + 1e-15)
+    steps = result.time.size
+    window = int(round(10.0 / result.scenario.dt))
+    bias, spread = np.array([0.3, -0.2]), np.array([0.4, 0.1])
+    signs = np.array([1.0, -1.0, 1.0, -1.0])[:, None, None]
+    error = np.zeros((4, steps, 2))
+    error[:, -window:] = bias + signs * spread
+    error[:, :-window] = 100.0  # outside the window: must not count
+    result.estimate = result.truth - error
+    np.testing.assert_allclose(result.rmse(), np.hypot(bias, spread), rtol=1e-12)
+    np.testing.assert_allclose(result.mean_error(), np.abs(bias), rtol=1e-12)
+    np.testing.assert_allclose(result.rmse_history()[-1], np.hypot(bias, spread), rtol=1e-12)
     assert result.spike_fraction is None
 
 
