@@ -59,7 +59,8 @@ def runner_settings(p: dict) -> RunnerSettings:
     return RunnerSettings(time_step=p['time_step'], max_input_age=p['max_input_age'],
                           nis_threshold=p['nis_threshold'], nis_window=p['nis_window'],
                           initial_fit_window=p['initial_fit_window'],
-                          time_jump_threshold=p['time_jump_threshold'])
+                          time_jump_threshold=p['time_jump_threshold'],
+                          control_validity=p['control_validity'])
 
 
 class Inputs:

@@ -75,6 +75,10 @@ MODEL = (
          'along-track, y opposite the orbit normal, z radial toward Earth)'),
     Spec('child_frame_id', 'chaser', 'child_frame_id of the state messages'),
     Spec('diagnostics_period', 1.0, 'Simulated s between diagnostics messages (0: every step)', low=0.0),
+    Spec('control_validity', 0.5, 'Simulated s a control stays in force after its stamp when no newer '
+         'one came: then the plant applies zero thrust and the estimator predicts with zero thrust '
+         '(the same rule, so both agree on what was applied; default: the controller\'s estimate_timeout)',
+         low=1e-6),
 )
 
 PLANT = MODEL + (
@@ -88,7 +92,8 @@ PLANT = MODEL + (
     Spec('real_time_factor', 1.0, 'realtime mode: simulated seconds per wall-clock second',
          low=1e-3, high=1e6),
     Spec('control_timeout', 1.0, 'lockstep: wall-clock s to wait for the control of a step before '
-         'holding the last control (counted as a control timeout)', low=1e-3),
+         'stepping with the control in force (the last one until control_validity, then zero thrust; '
+         'counted as a control timeout)', low=1e-3),
     Spec('resend_period', 0.25, 'lockstep: wall-clock s without the control of a step after which '
          'the state is sent again (each node answers a repeated input again: a sample lost on a '
          'best-effort link does not stall the loop)', low=1e-3),

@@ -170,7 +170,7 @@ def plant_settings(p: dict) -> PlantSettings:
     """The runner's settings from the plant's parameters."""
     return PlantSettings(time_step=p['time_step'], mode=p['mode'], duration=p['duration'],
                          start_time=p['start_time'], control_timeout=p['control_timeout'],
-                         resend_period=p['resend_period'], control_validity=float('inf'),
+                         resend_period=p['resend_period'], control_validity=p['control_validity'],
                          notice_period=STARTUP_NOTICE_PERIOD)
 
 

@@ -121,6 +121,7 @@ class PlantRunner:
         self.step = 0
         self._controls: dict[int, np.ndarray] = {}  # received, by stamp (early ones and the newest)
         self._held = None  # lockstep: the control of a step that came while paused
+        self._expired = False  # stepping with zero thrust: the newest control expired
         self._sent_at = 0.0
         self._waiting_since = None
         self.started_wall = self.finished_wall = None
@@ -167,6 +168,10 @@ class PlantRunner:
     def _keep(self, stamp_ns: int, u: np.ndarray) -> None:
         self._controls[stamp_ns] = u
         self._prune()
+        if self._expired:
+            self._expired = False
+            self._log('info', f'controls are back at t = {stamp_ns / NS:.3f} s after '
+                      f"{self.counts['expired_control_steps']} zero-thrust steps so far")
 
     def _prune(self) -> None:
         """Forget controls before the plant's time, except the newest of them (it may still
@@ -223,7 +228,18 @@ class PlantRunner:
         self._advance(u)
 
     def _in_force(self) -> np.ndarray:
-        return control_in_force(self._controls, self.t_ns, self._validity_ns, self.plant.model.n_input)[0]
+        """The control in force at the plant's time; zero thrust once the newest one expired
+        (counted per step, logged once per outage)."""
+        u, stamp = control_in_force(self._controls, self.t_ns, self._validity_ns, self.plant.model.n_input)
+        if stamp is None:
+            self.counts['expired_control_steps'] += 1
+            newest = max(self._controls, default=None)
+            if not self._expired and newest is not None:  # before the first control: nothing to say
+                self._log('warning', f'the control of t = {newest / NS:.3f} s expired at t = '
+                          f'{self.t_ns / NS:.3f} s (control_validity {self.settings.control_validity} s): '
+                          'zero thrust until controls come again')
+            self._expired = newest is not None
+        return u
 
     # ---------------------------------------------------------------- stepping
     def _advance(self, u: np.ndarray) -> None:
@@ -272,12 +288,15 @@ class PlantRunner:
             'real_time_factor': sim / wall if wall > 0 else 0.0,
             'control_timeouts': c['control_timeouts'], 'controls_received': c['controls_received'],
             'truth_published': c['truth_published'], 'truth_resent': c['truth_resent'],
-            'late_controls': c['late_controls'],
+            'late_controls': c['late_controls'], 'expired_control_steps': c['expired_control_steps'],
             'saturated_steps': int(self.plant.saturated_steps[0]),
             'range': float(np.linalg.norm(self.plant.x[0, :3])), 'done': self.finished,
             'finished_unix_time': self.finished_unix,
         }
 
     def problems(self) -> list[str]:
-        timeouts = self.counts['control_timeouts']
-        return [f'{timeouts} control timeouts'] if timeouts else []
+        timeouts, expired = self.counts['control_timeouts'], self.counts['expired_control_steps']
+        problems = [f'{timeouts} control timeouts'] if timeouts else []
+        if expired:
+            problems.append(f'{expired} steps with zero thrust (control expired)')
+        return problems

@@ -36,6 +36,7 @@ from .catalog import START_MODES  # noqa: F401 (re-exported)
 from .estimators import Estimator
 from .gates import NS, seconds_ahead, seconds_to_ns
 from .initialization import least_squares_start
+from .plant_runner import control_in_force
 
 #: Controls kept for pairing and replay.
 CONTROL_MEMORY = 2000
@@ -61,6 +62,9 @@ class RunnerSettings:
     #: Without a running clock, a measurement this far before the estimate time means the time
     #: base restarted.
     time_jump_threshold: float = 1.0
+    #: Simulated s a control stays in force after its stamp (then zero thrust), as the plant
+    #: applies it (snn_estimator.plant_runner.control_in_force).
+    control_validity: float = 0.5
 
 
 @dataclass
@@ -95,7 +99,8 @@ class FilterRunner:
         self._last_measurement_ns: int | None = None
         self._newest_ns: int | None = None
         self._last_arrival = wall_clock()
-        self._held_control = np.zeros(estimator.model.n_input)
+        self._held = {}  # stamp -> u: the newest control used, while it may still be in force
+        self._expired = False
         self._high_nis = 0
         self._clock_agrees: bool | None = None  # stamps on the clock's time base (None: not known)
         self._awaiting_start = False
@@ -295,11 +300,15 @@ class FilterRunner:
         stamps = sorted(t for t in self._pending if t >= newest - window_ns)
         if (newest - stamps[0]) < window_ns - self._dt_ns // 2:
             return False  # not a full window: the filter did not join a running loop
-        known, held = [], self._held_control
+        known, validity_ns = [], seconds_to_ns(self.settings.control_validity)
+        held = dict(self._held)
         for stamp_ns in stamps:
             u = self._control_for(stamp_ns)
-            held = u if u is not None else held
-            known.append(held)
+            if u is None:
+                u = control_in_force(held, stamp_ns, validity_ns, self.estimator.model.n_input)[0]
+            else:
+                held = {stamp_ns: u}
+            known.append(u)
         try:
             x, covariance = least_squares_start(
                 self.estimator.model, np.asarray(stamps) / NS, [self._pending[t] for t in stamps],
@@ -395,13 +404,27 @@ class FilterRunner:
                 return  # wait: the next measurement may overtake this step's control
             self._step(self._pending.pop(first) if first == self.time_ns else None, self.time_ns)
 
+    def _in_force(self, stamp_ns: int) -> np.ndarray:
+        """The control the plant applied from ``stamp_ns`` when none stamped for it came: the
+        last one while younger than control_validity, else zero thrust (the plant's rule)."""
+        validity_ns = seconds_to_ns(self.settings.control_validity)
+        u, stamp = control_in_force(self._held, stamp_ns, validity_ns, self.estimator.model.n_input)
+        if stamp is None and self._held:
+            self.events['controls_expired'] += 1
+            if not self._expired:
+                self._log('warning', f'the control of t = {max(self._held) / NS:.3f} s expired at t = '
+                          f'{stamp_ns / NS:.3f} s: predicting with zero thrust, as the plant applies')
+            self._expired = True
+        return u
+
     def _step(self, z: np.ndarray | None, stamp_ns: int) -> None:
         u = self._control_for(stamp_ns)
         if u is None:
-            u = self._held_control
+            u = self._in_force(stamp_ns)
             self.controls_missing += 1
-            self._log('warning', f'no control for t = {stamp_ns / NS:.3f} s: holding the last one')
-        self._held_control = u
+            self._log('warning', f'no control for t = {stamp_ns / NS:.3f} s: using the one in force')
+        else:
+            self._held, self._expired = {stamp_ns: u}, False
         if z is None:
             self.dropout_steps += 1
         else:

@@ -137,3 +137,62 @@ def test_bad_settings_are_refused_naming_the_field(field, value, message):
     values = {'time_step': 0.1, field: value}
     with pytest.raises(ValueError, match=message):
         PlantSettings(**values)
+
+
+class Spy:
+    """Records the control of every step an estimator takes (and passes it on)."""
+
+    def __init__(self, estimator):
+        self.controls = []
+        step = estimator.step
+
+        def recording(z, u, dt):
+            self.controls.append(np.array(u, dtype=float))
+            return step(z, u, dt)
+        estimator.step = recording
+
+
+@pytest.mark.parametrize('mode', ['lockstep', 'realtime'])
+def test_a_dead_controllers_last_command_expires_to_zero_thrust_in_plant_and_estimator_alike(mode):
+    """Controls for steps 0-14, then none (the controller died): both the plant and the
+    estimator apply the control of 1.4 s until it is control_validity (0.5 s) old, then zero
+    thrust; counted and logged once each."""
+    from snn_estimator import make_estimator
+    from snn_estimator.runner import FilterRunner, RunnerSettings
+    runner, sent, logs, wall, _ = make_runner(mode=mode, control_timeout=0.2, control_validity=0.5)
+    scenario = rendezvous_scenario()
+    estimator = make_estimator('ekf', scenario.estimator, scenario.model)
+    spy = Spy(estimator)
+    filter_logs = []
+    filter_runner = FilterRunner(estimator, RunnerSettings(time_step=0.1, control_validity=0.5), 1e-2 * np.eye(3),
+                                 publish=lambda stamp: None, log=lambda level, m: filter_logs.append(m),
+                                 wall_clock=wall)
+    filter_runner.start('parameters')
+    applied = []
+    runner.begin()
+    for k in range(25):
+        u = np.array([2e-3, -1e-3, 0.0]) * (k + 1)
+        filter_runner.measurement(k * DT, runner.plant.x[0, :3])
+        if k < 15:
+            runner.control(k * DT, u)
+            filter_runner.control(k * DT, u)
+        if mode == 'realtime':
+            runner.tick()
+        else:
+            while runner.step == k:
+                wall.now += 0.05
+                runner.watchdog()
+        applied.append(runner.plant.applied[0].copy())
+    last = np.array([2e-3, -1e-3, 0.0]) * 15
+    for k in range(15, 25):
+        expected = last if k < 19 else np.zeros(3)
+        np.testing.assert_array_equal(applied[k], expected, err_msg=f'plant, step {k}')
+    assert runner.values()['expired_control_steps'] == 6
+    assert sum('expired' in m for _, m in logs) == 1
+    filter_runner.measurement(25 * DT, runner.plant.x[0, :3])
+    filter_runner.measurement(26 * DT, runner.plant.x[0, :3])  # steps up to 24 without controls
+    assert len(spy.controls) == 25
+    for k in range(25):
+        np.testing.assert_array_equal(spy.controls[k], applied[k], err_msg=f'estimator, step {k}')
+    assert filter_runner.values()['controls_expired'] == 6
+    assert sum('expired' in m for m in filter_logs) == 1
