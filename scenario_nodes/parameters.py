@@ -204,9 +204,11 @@ ESTIMATOR = MODEL + (
     Spec('autostart', True, 'Configure and activate at start-up (a managed node otherwise: ros2 '
          'lifecycle set /estimator configure, activate)'),
     Spec('standby', False, 'Hot standby: configure, run on the same inputs but do not publish, and '
-         'activate when the active estimator stops publishing (standby_timeout)'),
-    Spec('standby_timeout', 0.1, 'standby: activate when our estimate is newer than the newest one '
-         'on `estimate` for this many wall-clock s, or by two time steps of simulated time', low=1e-3),
+         'activate when every other estimator on `estimate` is gone (its liveliness lease expired). '
+         'Of two active estimators, the one whose node name sorts last yields and stands by'),
+    Spec('standby_timeout', 0.25, 'Liveliness lease of the `estimate` publisher, wall-clock s: a '
+         'killed, stopped or deactivated active estimator is known to be gone within it, and a '
+         'standby takes over', low=1e-3),
     Spec('initialization', 'auto', 'How the filter starts: parameters (initial_state at the first '
          'measurement), last_estimate (the newest estimate on `estimate`, replaying the inputs since: '
          'hot swap), history (a least-squares fit of the measurement history: restart after a crash); '

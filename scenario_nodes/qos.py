@@ -23,8 +23,9 @@ from __future__ import annotations
 
 from collections import Counter
 
+from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 # The topic names live in .topics (no rclpy there); re-exported here beside their QoS.
@@ -108,10 +109,20 @@ def describe(profile: QoSProfile) -> str:
             f'{profile.history.name.lower()} {profile.depth}')
 
 
-def publisher(node, events: QosEvents, message_type, topic: str, lifecycle: bool = False):
-    """A pipeline publisher: PUBLISHER_QOS, overridable, incompatibilities counted."""
+def with_liveliness(profile: QoSProfile, lease: float) -> QoSProfile:
+    """``profile`` whose publisher asserts liveliness automatically within ``lease`` wall s:
+    its subscribers learn within the lease that a killed or stopped process is gone (a
+    subscription with the default profile requests an infinite lease: it matches)."""
+    return QoSProfile(history=profile.history, depth=profile.depth, reliability=profile.reliability,
+                      durability=profile.durability, liveliness=LivelinessPolicy.AUTOMATIC,
+                      liveliness_lease_duration=Duration(nanoseconds=int(lease * 1e9)))
+
+
+def publisher(node, events: QosEvents, message_type, topic: str, lifecycle: bool = False,
+              profile: QoSProfile | None = None):
+    """A pipeline publisher: PUBLISHER_QOS (or ``profile``), overridable, incompatibilities counted."""
     create = node.create_lifecycle_publisher if lifecycle else node.create_publisher
-    return create(message_type, topic, PUBLISHER_QOS, event_callbacks=events.publisher_callbacks(topic),
+    return create(message_type, topic, profile or PUBLISHER_QOS, event_callbacks=events.publisher_callbacks(topic),
                   qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
 
 
@@ -122,3 +133,14 @@ def subscription(node, events: QosEvents, message_type, topic: str, callback, pr
         message_type, topic, callback, profile or SUBSCRIPTION_QOS, raw=True,
         event_callbacks=events.subscription_callbacks(topic),
         qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
+
+
+def liveliness_monitor(node, message_type, topic: str, lease: float, on_change):
+    """A subscription that only watches which publishers of ``topic`` are alive: it requests
+    a liveliness lease of ``lease`` wall s (Fast DDS times a writer out on the reader's lease),
+    so it matches only publishers that offer one at most that long (ours, see
+    :func:`with_liveliness`), quietly; ``on_change(info)`` gets the live count. Within one
+    process (one DDS participant) a writer counts as alive only while it publishes."""
+    callbacks = SubscriptionEventCallbacks(incompatible_qos=lambda event: None, liveliness=on_change)
+    return node.create_subscription(message_type, topic, lambda data: None,
+                                    with_liveliness(SUBSCRIPTION_QOS, lease), raw=True, event_callbacks=callbacks)
