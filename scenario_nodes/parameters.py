@@ -262,10 +262,60 @@ def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
             except ParameterUninitializedException:
                 values[spec.name] = None
         else:
-            values[spec.name] = node.declare_parameter(spec.name, spec.default, spec.descriptor()).value
+            values[spec.name] = _declare_with_coercion(node, spec)
     if check:
         check_choices(values, specs)
     return values
+
+
+def _is_double(default) -> bool:
+    return (isinstance(default, float)
+            or (isinstance(default, list) and bool(default) and all(isinstance(v, float) for v in default)))
+
+
+def coerce(spec: Spec, value):
+    """``value`` as the type of ``spec``'s default where that is exact: an integer (or a list
+    of integers) given for a double (``-p real_time_factor:=10``) becomes a double; anything
+    else is returned as it is."""
+    if isinstance(spec.default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if (_is_double(spec.default) and isinstance(value, (list, tuple)) and value
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
+        return [float(v) for v in value]
+    return value
+
+
+def _declare_with_coercion(node, spec: Spec):
+    """Declare ``spec`` with its value from the overrides, an integer given for a double
+    accepted as that double; a value of another type refused naming the parameter and the fix."""
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import InvalidParameterTypeException
+    if not _is_double(spec.default):
+        return _declare_static(node, spec, spec.default, ignore_override=False)
+    # read the override as given (any type), then declare the parameter with its type
+    probe = ParameterDescriptor(name=spec.name, dynamic_typing=True)
+    given = node.declare_parameter(spec.name, spec.default, probe).value
+    node.undeclare_parameter(spec.name)
+    value = coerce(spec, given)
+    scalar = isinstance(spec.default, float)
+    if not (isinstance(value, float) if scalar else
+            not isinstance(value, (str, bytes)) and all(isinstance(v, float) for v in value)):
+        kind = 'double' if scalar else 'list of doubles'
+        raise ValueError(f'parameter {spec.name} must be a {kind} (e.g. {spec.name}:={_show(spec.default)}); '
+                         f'got {given!r}')
+    try:
+        return node.declare_parameter(spec.name, value, spec.descriptor(), ignore_override=True).value
+    except InvalidParameterTypeException as error:  # not expected after the check: say it anyway
+        raise ValueError(f'parameter {spec.name}: {error}') from None
+
+
+def _declare_static(node, spec: Spec, default, ignore_override: bool):
+    from rclpy.exceptions import InvalidParameterTypeException
+    try:
+        return node.declare_parameter(spec.name, default, spec.descriptor(), ignore_override=ignore_override).value
+    except InvalidParameterTypeException as error:
+        raise ValueError(f'parameter {spec.name} must be of the type of its default '
+                         f'{_show(spec.default)} ({error})') from None
 
 
 def read(node, specs: Sequence[Spec]) -> dict:

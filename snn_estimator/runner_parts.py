@@ -66,9 +66,11 @@ class Gating:
         agrees = abs(now_ns - stamp_ns) <= lead
         if not agrees and self._clock_agrees is not False:
             self.events['stamps_off_the_clock'] += 1
+            # far apart: another time base (wall against simulated); near: a process lagging
+            cause = ('is use_sim_time set as the sensor stamps?' if abs(now_ns - stamp_ns) > 1000 * NS
+                     else 'the clock or the measurements arrive late: a starved CPU or a delayed /clock?')
             self._log('warning', f'measurement stamped {stamp_ns / NS:.3f} s with the clock at '
-                      f'{now_ns / NS:.3f} s: not predicting over sensor dropouts (is use_sim_time set '
-                      'as the sensor stamps?)')
+                      f'{now_ns / NS:.3f} s: not predicting over sensor dropouts ({cause})')
         self._clock_agrees = agrees
 
 

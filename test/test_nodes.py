@@ -250,3 +250,18 @@ def test_the_plant_starts_once_the_loop_is_there_and_no_step_is_lost(mode):
         assert truths == measurements == {k * 100_000_000 for k in range(31)}
         assert estimates[0] == 0 and estimates == [k * 100_000_000 for k in range(len(estimates))]
         assert len(estimates) >= 30
+
+
+def test_an_integer_for_a_double_parameter_is_taken_as_that_double_and_a_string_is_refused_with_the_fix():
+    """ros2 run ... -p cw_plant:real_time_factor:=10 hands rclpy an integer for a double."""
+    with ros_context() as (context, executor, nodes):
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', mode='realtime', real_time_factor=10,
+                     duration=0.0, start=False)
+        value = plant.get_parameter('real_time_factor')
+        assert value.value == 10.0 and value.type_ == value.Type.DOUBLE
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller',
+                          lqr_state_weight=[1, 1, 1, 1, 1, 1], start=False)
+        assert list(controller.get_parameter('lqr_state_weight').value) == [1.0] * 6
+        fix = r'parameter real_time_factor must be a double \(e\.g\. real_time_factor:=1\)'
+        with pytest.raises(ValueError, match=fix):
+            make(PlantNode, context, executor, nodes, 'cw_plant', real_time_factor='fast', start=False)

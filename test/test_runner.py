@@ -264,3 +264,16 @@ def test_a_reset_storm_is_detected_and_reported():
     values = loop.runner.values()
     assert values['reinitialisations'] >= 3 and values['reset_storms'] == 1
     assert '1 reset storms' in '; '.join(loop.runner.problems())
+
+
+@pytest.mark.parametrize('clock_ns, cause', [(1_700_000_000 * NS, 'use_sim_time'), (50 * DT, 'arrive late')])
+def test_stamps_off_the_clock_name_the_likely_cause(clock_ns, cause):
+    """A wall clock against simulated stamps is a configuration error; a few seconds apart,
+    a process lagging (a starved CPU) is the likely cause."""
+    logs = []
+    scenario = rendezvous_scenario()
+    runner = FilterRunner(make_estimator('ekf', scenario.estimator, scenario.model), RunnerSettings(time_step=0.1),
+                          R, publish=lambda stamp: None, log=lambda level, message: logs.append(message))
+    runner.start('auto')
+    runner.measurement(10 * DT, X0, now_ns=clock_ns)
+    assert sum(cause in m for m in logs) == 1 and runner.events['stamps_off_the_clock'] == 1
