@@ -31,6 +31,7 @@ from std_srvs.srv import Trigger
 
 from snn_estimator import kernels, make_estimator
 from snn_estimator.costs import CostModel, energy_pj
+from snn_estimator.peers import PeerWatch
 from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
 
 from . import qos
@@ -83,6 +84,7 @@ class Inputs:
             qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
 
     def on_measurement(self, data: bytes) -> None:
+        self._node.peers.saw(qos.MEASUREMENT)
         runner = self._runner
         try:
             record = check_frame(decode_point(data), self._frame)
@@ -96,6 +98,7 @@ class Inputs:
             self._report()
 
     def on_control(self, data: bytes) -> None:
+        self._node.peers.saw(qos.CONTROL)
         try:
             record = check_frame(decode_accel(data), self._frame)
             u = control_of(record)
@@ -133,7 +136,8 @@ class Outputs:
         self._count = qos.publisher(node, events, UInt32, qos.SPIKE_COUNT, lifecycle=True)
         self._spikes = (qos.publisher(node, events, UInt32MultiArray, qos.SPIKES, lifecycle=True)
                         if p['publish_spikes'] else None)
-        self.diagnostics = DiagnosticsPublisher(node, 'estimator', p['diagnostics_period'], events, True)
+        self.diagnostics = DiagnosticsPublisher(node, 'estimator', p['diagnostics_period'], events, True,
+                                                peers=node.peers)
         self.publishers = [self._count, self.diagnostics.publisher] + [self._spikes] * bool(self._spikes)
         self._costs = costs
         self.answers = Answers()
@@ -282,6 +286,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         history = (collect_history(self, p['frame_id'], axes, p['history_wait'])
                    if p['initialization'] != 'parameters' else None)
         self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log)
+        self.peers = PeerWatch([qos.MEASUREMENT, qos.CONTROL, 'clock'], p['peer_timeout'], log=self.log)
+        self._last_clock_ns = 0
         self._out = Outputs(self, self.events, p, CostModel.of(estimator) if estimator.spiking else None)
         self._make_endpoints()
         started = self._runner.start(p['initialization'], history)
@@ -348,7 +354,13 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
 
     def _on_watchdog(self) -> None:
         runner = self._runner
-        runner.watchdog(clock_ns(self))
+        now = clock_ns(self)
+        runner.watchdog(now)
+        if now != self._last_clock_ns and self._last_clock_ns > 0:
+            self.peers.saw('clock')
+        self._last_clock_ns = now
+        if self.peers.check():
+            self._publish_diagnostics()
         estimate = self._out.estimate
         if self._announce and runner.started and estimate is not None and estimate.get_subscription_count() > 0:
             self._announce = False  # just activated: the controller can answer at once

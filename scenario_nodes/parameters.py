@@ -75,6 +75,9 @@ MODEL = (
          'along-track, y opposite the orbit normal, z radial toward Earth)'),
     Spec('child_frame_id', 'chaser', 'child_frame_id of the state messages'),
     Spec('diagnostics_period', 1.0, 'Simulated s between diagnostics messages (0: every step)', low=0.0),
+    Spec('peer_timeout', 2.0, 'Wall-clock s without an input (truth, measurement, estimate, control, '
+         'the clock) after which its publisher counts as gone: logged once, diagnostics WARN (ERROR '
+         'after 5x), cleared when it comes back', low=1e-3),
     Spec('control_validity', 0.5, 'Simulated s a control stays in force after its stamp when no newer '
          'one came: then the plant applies zero thrust and the estimator predicts with zero thrust '
          '(the same rule, so both agree on what was applied; default: the controller\'s estimate_timeout)',

@@ -18,6 +18,7 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMessage
 
 from snn_estimator.blocks import Plant
+from snn_estimator.peers import PeerWatch
 from snn_estimator.plant_runner import PlantRunner, PlantSettings, StartGate
 
 from . import qos
@@ -75,7 +76,10 @@ class PlantNode(ProcessHooks, Node):
         self._truth_pub = qos.publisher(self, self._events, Odometry, qos.TRUTH)
         self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
                            if p['publish_clock'] else None)
-        self._diagnostics = DiagnosticsPublisher(self, self.NAME, p['diagnostics_period'], self._events)
+        self._peers = PeerWatch([qos.CONTROL], p['peer_timeout'], log=self._log)
+        self._diagnostics = DiagnosticsPublisher(self, self.NAME, p['diagnostics_period'], self._events,
+                                                 peers=self._peers)
+        self.create_timer(0.1, self._on_peer_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         qos.subscription(self, self._events, AccelStamped, qos.CONTROL, self._on_control)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -107,7 +111,12 @@ class PlantNode(ProcessHooks, Node):
         self._runner.begin()
 
     # ---------------------------------------------------------------- events
+    def _on_peer_check(self) -> None:
+        if self._peers.check() and not self._p['paused']:
+            self._publish_diagnostics()
+
     def _on_control(self, data: bytes) -> None:
+        self._peers.saw(qos.CONTROL)
         try:
             control = check_frame(decode_accel(data), self._p['frame_id'])
             u = control_of(control)

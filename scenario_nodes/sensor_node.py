@@ -6,16 +6,18 @@ from functools import partial
 
 from geometry_msgs.msg import PointStamped
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from snn_estimator.blocks import PositionSensor
 from snn_estimator.gates import NewestFirst
+from snn_estimator.peers import PeerWatch
 
 from . import qos
 from .codec import MessageError, check_frame, decode_odometry, encode_point, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, cw_model, declare
-from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
+from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 
 class SensorNode(ProcessHooks, Node):
@@ -37,12 +39,20 @@ class SensorNode(ProcessHooks, Node):
         self._answers = Answers()
         self._events = qos.QosEvents(self)
         self._pub = qos.publisher(self, self._events, PointStamped, qos.MEASUREMENT)
-        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events)
+        self._peers = PeerWatch([qos.TRUTH], p['peer_timeout'], log=ThrottledLog(self.get_logger()))
+        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events,
+                                                 peers=self._peers)
+        self.create_timer(0.1, self._on_peer_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
 
+    def _on_peer_check(self) -> None:
+        if self._peers.check() and self._gate.last_ns is not None:
+            self._publish_diagnostics(self._gate.last_ns)
+
     def _on_truth(self, data: bytes) -> None:
+        self._peers.saw(qos.TRUTH)
         try:
             truth = check_frame(decode_odometry(data), self._p['frame_id'])
             x = state_of(truth)
