@@ -130,8 +130,11 @@ class ControllerNode(ProcessHooks, Node):
             self._time_jumps += 1
             self._answers.clear()
         self._last_estimate_ns = stamp_ns
-        if self._safe and self._unsafe(clock_ns(self)) is None:
+        reason = self._unsafe(clock_ns(self))
+        if self._safe and reason is None:
             self._leave_safe_mode(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s')
+        elif reason is not None and not self._safe:
+            self._enter_safe_mode(reason)
         if self._safe:
             self._publish_control(np.zeros(3), stamp_ns)  # predicted without a sensor: no thrust
             return
@@ -159,9 +162,7 @@ class ControllerNode(ProcessHooks, Node):
         changed = self._peers.check()
         reason = self._unsafe(now)
         if reason is not None and not self._safe:
-            self._safe, self._safe_reason = True, reason
-            self.get_logger().error(f'{reason}: safe mode, zero thrust')
-            self._safe_timer = self.create_timer(self._p['time_step'], self._on_safe_step)
+            self._enter_safe_mode(reason)
             self._on_safe_step()
             changed = True
         elif reason is None and self._safe:
@@ -169,6 +170,11 @@ class ControllerNode(ProcessHooks, Node):
             changed = True
         if changed and self._gate.last_ns is not None:
             self._publish_diagnostics(max(now, self._gate.last_ns))
+
+    def _enter_safe_mode(self, reason: str) -> None:
+        self._safe, self._safe_reason = True, reason
+        self.get_logger().error(f'{reason}: safe mode, zero thrust')
+        self._safe_timer = self.create_timer(self._p['time_step'], self._on_safe_step)
 
     def _on_safe_step(self) -> None:
         """Simulated-time timer while in safe mode: zero thrust for every new step."""

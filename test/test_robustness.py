@@ -560,8 +560,10 @@ def test_controller_safe_mode_covers_a_dead_sensor_and_reports_its_peers(control
         assert step(k, settle=0.05).accel.linear.x != 0.0
     for k in range(5, 15):  # 1 s of simulated time without measurements
         step(k, measured=False)
-    assert spin_until(executor, lambda: controller.safe_mode)
     assert step(15, measured=False).accel.linear.x == 0.0  # steering on predictions: no thrust
+    assert controller.safe_mode  # within a step, long before the clock could count as stopped
+    assert spin_until(executor, lambda: 'no measurement since t = 0.400 s' in
+                      harness.received[qos.DIAGNOSTICS][-1].status[0].message, timeout=1.0)
     # peer_timeout (2 s wall): the sensor counts as gone, and the clock as stopped
     assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('peer.measurement') == 'WARN'
                       and harness.diagnostics('lqr_controller').get('peer.clock') == 'WARN', timeout=5.0)
