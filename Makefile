@@ -7,6 +7,7 @@
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make bench | bench-loop | bench-campaign    speed figures -> results/
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
+#   make faults [CELLS=controller:kill,...]   kill/stop each node mid-run -> results/faults.json, docs/robustness.md
 PYTHON ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -22,7 +23,7 @@ SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign report clean
+.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign report faults clean
 
 venv: $(STAMP)
 
@@ -77,6 +78,10 @@ bench-campaign: $(STAMP)
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)
 	$(BIN)/report $(RUN)
+
+# ten realtime x10 runs of 360 s (~10 min on an idle 2-core machine)
+faults: $(STAMP)
+	$(BIN)/python -m snn_tools.faults --out results/faults.json $(if $(CELLS),--cells $(CELLS))
 
 clean:
 	rm -rf build install log *.egg-info
