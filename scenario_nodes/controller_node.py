@@ -63,7 +63,7 @@ class ControllerNode(ProcessHooks, Node):
                                 log=ThrottledLog(self.get_logger()))
         self._answers = Answers()
         self._events = qos.QosEvents(self)
-        self._pub = qos.publisher(self, self._events, AccelStamped, qos.CONTROL)
+        self._pub = qos.HistoryPublisher(self, self._events, AccelStamped, qos.CONTROL)
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events,
                                                  peers=self._peers)
         qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)

@@ -148,7 +148,7 @@ class Outputs:
         """Create the `estimate` publisher (on activation), with a liveliness lease of
         standby_timeout: a standby learns within it that this estimator is gone."""
         if self.estimate is None:
-            self.estimate = qos.publisher(self._node, self._events, Odometry, qos.ESTIMATE, profile=self._estimate_qos)
+            self.estimate = qos.HistoryPublisher(self._node, self._events, Odometry, qos.ESTIMATE, self._estimate_qos)
 
     def published_within(self, seconds: float) -> bool:
         return time.monotonic() - self._published_wall < seconds
@@ -156,7 +156,7 @@ class Outputs:
     def close(self) -> None:
         """Destroy the `estimate` publisher (on deactivation): the node no longer looks active."""
         if self.estimate is not None:
-            self._node.destroy_publisher(self.estimate)
+            self.estimate.destroy(self._node)
             self.estimate = None
 
     def publish(self, estimator, stamp_ns: int, active: bool) -> None:

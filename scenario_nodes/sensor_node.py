@@ -38,7 +38,7 @@ class SensorNode(ProcessHooks, Node):
         self._time_jumps = 0
         self._answers = Answers()
         self._events = qos.QosEvents(self)
-        self._pub = qos.publisher(self, self._events, PointStamped, qos.MEASUREMENT)
+        self._pub = qos.HistoryPublisher(self, self._events, PointStamped, qos.MEASUREMENT)
         self._peers = PeerWatch([qos.TRUTH], p['peer_timeout'], log=ThrottledLog(self.get_logger()))
         self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events,
                                                  peers=self._peers)

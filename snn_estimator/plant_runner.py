@@ -122,6 +122,7 @@ class PlantRunner:
         self._controls: dict[int, np.ndarray] = {}  # received, by stamp (early ones and the newest)
         self._held = None  # lockstep: the control of a step that came while paused
         self._expired = False  # stepping with zero thrust: the newest control expired
+        self._expired_before = 0  # zero-thrust steps before the current outage
         self._sent_at = 0.0
         self._waiting_since = None
         self.started_wall = self.finished_wall = None
@@ -170,8 +171,10 @@ class PlantRunner:
         self._prune()
         if self._expired:
             self._expired = False
-            self._log('info', f'controls are back at t = {stamp_ns / NS:.3f} s after '
-                      f"{self.counts['expired_control_steps']} zero-thrust steps so far")
+            if self.counts['expired_control_steps'] - self._expired_before >= 10:  # not every late control
+                self._log('info', f'controls are back at t = {stamp_ns / NS:.3f} s after '
+                          f"{self.counts['expired_control_steps'] - self._expired_before} zero-thrust steps")
+            self._expired_before = self.counts['expired_control_steps']
 
     def _prune(self) -> None:
         """Forget controls before the plant's time, except the newest of them (it may still

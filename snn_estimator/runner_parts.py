@@ -40,7 +40,8 @@ class Gating:
                          f'{stamp_ns / NS:.3f} s', 'time_jumps')
         if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
             return self._say('duplicate', f'second {where}')
-        if self.started and stamp_ns < self._newest_ns - seconds_to_ns(s.max_input_age):
+        if (self.started and self._newest_ns is not None  # None: a warm start without measurement history
+                and stamp_ns < self._newest_ns - seconds_to_ns(s.max_input_age)):
             return self._say('too_old', f'{where} is more than {s.max_input_age} s older than the '
                              f'newest measurement ({self._newest_ns / NS:.3f} s)')
         if self.started and stamp_ns < self.time_ns:

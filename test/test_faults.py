@@ -41,8 +41,8 @@ class Monitor:
         self.now = 0.0
         self.newest_estimate = 0.0
         self.node.create_subscription(Clock, '/clock', self._on_clock, qos.CLOCK_QOS)
-        # with history: an estimate published before this reader matched a new estimator counts too
-        self.node.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.HISTORY_QOS)
+        # the newest estimate from history: one published before this reader matched a new estimator counts too
+        self.node.create_subscription(Odometry, qos.history_topic(qos.ESTIMATE), self._on_estimate, qos.HISTORY_QOS)
 
     def _on_clock(self, msg):
         self.now = stamp_to_ns(msg.clock) * 1e-9

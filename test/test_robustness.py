@@ -472,7 +472,7 @@ def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequen
         controller = make(ControllerNode, context, executor, nodes, 'lqr_controller',
                           cli_args=['--ros-args', '-r', 'control:=answers'])
         controls = []  # what the controller itself publishes
-        harness.node.create_subscription(AccelStamped, 'answers', controls.append, qos.HISTORY_QOS)
+        harness.node.create_subscription(AccelStamped, 'answers', controls.append, qos.LISTENER_QOS)
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         measurements = 0
         for kind, values, k, frame in sequence:
