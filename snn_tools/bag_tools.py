@@ -80,25 +80,8 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
                     if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE_TOPICS]
         messages = reader.messages(connections=pipeline) if pipeline else ()  # [] reads all
         for connection, timestamp, raw in messages:
-            topic = connection.topic
-            receive[topic].append(timestamp)
-            name = topic[len(prefix):]
-            if name in ('truth', 'estimate'):
-                record = codec.decode_odometry(raw)
-                series[name].append((record.stamp_ns, record.state, np.diag(record.covariance)))
-            elif name in ('measurement', 'control'):
-                record = codec.decode_point(raw) if name == 'measurement' else codec.decode_accel(raw)
-                series[name].append((record.stamp_ns, record.vector))
-            elif name == 'spike_count':
-                series[name].append(codec.decode_uint32(raw))
-            elif name == 'spikes':
-                series[name].append(codec.decode_spikes(raw))
-            elif name == 'diagnostics':
-                msg = typestore.deserialize_cdr(raw, connection.msgtype)
-                stamp = _stamp(msg.header) / NS
-                for status in msg.status:
-                    values = {kv.key: kv.value for kv in status.values}
-                    run.diagnostics.setdefault(status.name, []).append((stamp, values))
+            receive[connection.topic].append(timestamp)
+            _decode(run, series, typestore, connection, connection.topic[len(prefix):], raw)
     run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}
     for name in ('truth', 'estimate', 'measurement', 'control'):
         series[name], run.repeats[name] = _first_per_stamp(series[name])
@@ -120,6 +103,25 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
         for row, counts in zip(run.spikes, series['spikes']):
             row[:len(counts)] = counts
     return run
+
+
+def _decode(run: RunData, series: dict, typestore, connection, name: str, raw: bytes) -> None:
+    """One pipeline message into its series (diagnostics into ``run.diagnostics``)."""
+    if name in ('truth', 'estimate'):
+        record = codec.decode_odometry(raw)
+        series[name].append((record.stamp_ns, record.state, np.diag(record.covariance)))
+    elif name in ('measurement', 'control'):
+        record = codec.decode_point(raw) if name == 'measurement' else codec.decode_accel(raw)
+        series[name].append((record.stamp_ns, record.vector))
+    elif name == 'spike_count':
+        series[name].append(codec.decode_uint32(raw))
+    elif name == 'spikes':
+        series[name].append(codec.decode_spikes(raw))
+    elif name == 'diagnostics':
+        msg = typestore.deserialize_cdr(raw, connection.msgtype)
+        stamp = _stamp(msg.header) / NS
+        for status in msg.status:
+            run.diagnostics.setdefault(status.name, []).append((stamp, {kv.key: kv.value for kv in status.values}))
 
 
 def _first_per_stamp(samples: list) -> tuple[list, int]:
@@ -221,14 +223,7 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'spikes': int(_number(estimator, 'spikes_published', estimates)),
     }
     recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
-    restarted = restarts(run)
-    gaps = stamp_gaps(run)
-    duplicates = max(0, run.repeats.get('estimate', 0) - int(_number(estimator, 'estimates_resent')))
-    # a restarted node's totals count from its restart and two estimators publish twice: then
-    # completeness is judged per stamp alone
-    counts_comparable = not any(restarted.values()) and not duplicates
-    complete = all(not runs for runs in gaps.values()) and (
-        not counts_comparable or all(recorded[n] == published[n] for n in published))
+    completeness = _completeness(run, estimator, published, recorded)
     return {
         'estimator': estimator.get('filter', 'unknown'),
         'sim_time_s': _number(plant, 'sim_time'),
@@ -247,8 +242,18 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'estimator_spikes_total': int(_number(estimator, 'spikes_total')),
         'neurons': neurons,
         'messages': {name: {'published': published[name], 'recorded': recorded[name]} for name in published},
-        'recording_complete': complete,
-        'restarts': restarted,
-        'duplicate_estimates': duplicates,
-        'gaps': gaps,
+        **completeness,
     }
+
+
+def _completeness(run: RunData, estimator: dict, published: dict, recorded: dict) -> dict:
+    """Whether the bag holds the whole run: every stamp of the truth's grid in each series and,
+    when the nodes' totals can be compared (no restart, nobody publishing twice), every message
+    they published (a restarted node counts from its restart)."""
+    restarted = restarts(run)
+    gaps = stamp_gaps(run)
+    duplicates = max(0, run.repeats.get('estimate', 0) - int(_number(estimator, 'estimates_resent')))
+    comparable = not any(restarted.values()) and not duplicates
+    complete = all(not runs for runs in gaps.values()) and (
+        not comparable or all(recorded[n] == published[n] for n in published))
+    return {'recording_complete': complete, 'restarts': restarted, 'duplicate_estimates': duplicates, 'gaps': gaps}
