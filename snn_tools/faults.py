@@ -122,8 +122,9 @@ def peers_reported(run, watchers) -> dict:
 def evaluate(node: str, fault: str, run_dir: Path, crashed: list, wall: float) -> dict:
     """The cell's result from its bag (the restarted recorder's bag when the recorder was killed)."""
     bag = run_dir / ('bag_restarted' if node == 'recorder' and fault == 'kill' else 'bag')
+    comes_back = fault == 'stop' or COMES_BACK[node]  # a stopped plant resumes its flight
     result = {'node': node, 'fault': fault, 'run': str(run_dir), 'wall_s': round(wall, 1), 'crashed': crashed,
-              'comes_back': COMES_BACK[node]}
+              'comes_back': comes_back}
     try:
         run = read_bag(bag)
     except Exception as error:  # a bag that cannot be read is the cell's result, not a crash of the tool
@@ -150,7 +151,7 @@ def evaluate(node: str, fault: str, run_dir: Path, crashed: list, wall: float) -
         result['report'] = str(run_dir / 'report' / 'report.md')
     except Exception as error:  # the report must read any bag: a failure here is a finding
         result['report_error'] = f'{type(error).__name__}: {error}'
-    range_ok = not COMES_BACK[node] or summary['final_range_m'] < FINAL_RANGE_LIMIT
+    range_ok = not comes_back or summary['final_range_m'] < FINAL_RANGE_LIMIT
     result['passed'] = bool(not crashed and finite and range_ok and all(result['peers'].values())
                             and 'report_error' not in result)
     return result
@@ -159,7 +160,8 @@ def evaluate(node: str, fault: str, run_dir: Path, crashed: list, wall: float) -
 def markdown(results: list[dict], meta: dict) -> str:
     lines = [f"Realtime x{meta['real_time_factor']:g}, {meta['duration']:g} s simulated, the fault at "
              f"{meta['at']:g} s, {meta['outage']:g} s wall outage (kill: then restarted; stop: then SIGCONT); "
-             f"load average {meta['load_average']} on {meta['cpus']} CPUs (a shared machine: timings vary).", '',
+             f"load average {meta['load_average']} on {meta['cpus']} CPUs (a shared machine: timings vary), "
+             f"commit {meta.get('commit', 'unknown')}.", '',
              '| node | fault | final range [m] | crashed | NaN-free | peers reported | safe-mode steps | '
              'zero-thrust steps (expired) | re-inits | report | passed |',
              '|---|---|---|---|---|---|---|---|---|---|---|']
@@ -190,6 +192,15 @@ def write_results(results: list[dict], meta: dict, out: Path) -> None:
             ROBUSTNESS_DOC.write_text(head + BEGIN + '\n' + table + END + rest.split(END, 1)[1])
 
 
+def _commit() -> str:
+    import subprocess
+    try:
+        return subprocess.run(['git', 'rev-parse', '--short', 'HEAD'], cwd=Path(__file__).parent, text=True,
+                              capture_output=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return 'unknown'
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='snn_faults', description=__doc__.split('\n\n')[0])
     parser.add_argument('--cells', help="e.g. 'controller:kill,sensor:stop' (default: all ten)")
@@ -208,7 +219,8 @@ def main(argv=None) -> int:
         parser.error(str(error))
     domain = args.domain_id if args.domain_id is not None else int(os.environ.get('ROS_DOMAIN_ID', '0'))
     meta = {'real_time_factor': args.real_time_factor, 'duration': args.duration, 'at': args.at,
-            'outage': args.outage, 'cpus': os.cpu_count(), 'load_average': round(os.getloadavg()[0], 1)}
+            'outage': args.outage, 'cpus': os.cpu_count(), 'load_average': round(os.getloadavg()[0], 1),
+            'commit': _commit()}
     results = []
     for node, fault in cells:
         print(f'snn_faults: {node} {fault} ...', flush=True)
