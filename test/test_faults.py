@@ -145,7 +145,11 @@ def test_estimator_hot_swap_safe_mode_and_recovery(tmp_path):
           f"{controller.get('safe_mode_steps')}, control timeouts {summary['control_timeouts']}")
     assert summary['steps'] == 3600
     assert summary['final_range_m'] < 0.5
-    assert int(controller['safe_mode_steps']) > 0 and controller['safe_mode'] == 'False'
+    assert int(controller['safe_mode_steps']) > 0
+    # safe mode ended once estimates came back (at the very end it may be on again: the plant
+    # is done, so the clock stops, which the controller reports as a stopped clock)
+    assert any(values['safe_mode'] == 'False' for stamp, values in data.diagnostics['lqr_controller']
+               if 150.0 < stamp < 350.0)
     # the killed process took its estimate history with it: the new one fits the sensor history
     assert estimator['filter'] == 'snn_ekf'
     assert 'started from a least-squares fit of' in swap_log
