@@ -8,6 +8,7 @@
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make bench | bench-loop | bench-campaign | bench-live    speed figures -> results/
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
+#   make faults [CELLS=controller:kill,...]   kill/stop each node mid-run -> results/faults.json, docs/robustness.md
 PYTHON ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
@@ -25,7 +26,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live \
-	docs-screenshots report clean
+	docs-screenshots report faults clean
 
 venv: $(STAMP)
 
@@ -94,6 +95,10 @@ docs-screenshots: $(STAMP)
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)
 	$(BIN)/report $(RUN)
+
+# ten realtime x10 runs of 360 s (~10 min on an idle 2-core machine)
+faults: $(STAMP)
+	$(BIN)/python -m snn_tools.faults --out results/faults.json $(if $(CELLS),--cells $(CELLS))
 
 clean:
 	rm -rf build install log *.egg-info

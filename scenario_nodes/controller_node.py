@@ -1,7 +1,9 @@
 """lqr_controller: u = -K x_hat (Eq. 42) from each state estimate, stamped with the estimate's time.
 
-Safe mode: when no usable estimate came for ``estimate_timeout`` simulated seconds (estimator
-down), it commands zero thrust at every simulated step and says so, until estimates return.
+Safe mode: zero thrust at every simulated step, said once and reported, while the estimator is
+down (no usable estimate for ``estimate_timeout`` simulated seconds), the sensor is down (no
+measurement for as long: the estimates are predictions) or the clock stopped (``peer_timeout``
+wall seconds: the plant is gone); it ends when the cause does.
 """
 
 from __future__ import annotations
@@ -9,7 +11,7 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
-from geometry_msgs.msg import AccelStamped
+from geometry_msgs.msg import AccelStamped, PointStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
@@ -17,13 +19,14 @@ from rclpy.node import Node
 
 from snn_estimator.blocks import lqr_control, lqr_gain
 from snn_estimator.gates import NewestFirst
+from snn_estimator.peers import OK, PeerWatch
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
-from .codec import MessageError, check_frame, decode_odometry, encode_accel, seconds_to_ns, state_of
+from .codec import MessageError, check_frame, decode_odometry, decode_point, encode_accel, seconds_to_ns, state_of
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
-from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
+from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
@@ -48,16 +51,23 @@ class ControllerNode(ProcessHooks, Node):
         self._published = 0
         self._safe_steps = 0
         self._safe = False
+        self._safe_reason = ''
         self._time_jumps = 0
         self._rejected = Rejections()
         self._gate = NewestFirst(p['time_jump_threshold'], p['max_input_age'], p['time_step'])
         self._now = partial(clock_ns, self)  # the gate reads the clock only when it needs it
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
+        self._last_measurement_ns = None  # and of the newest measurement (is the sensor there?)
+        self._last_clock_ns = 0
+        self._peers = PeerWatch([qos.ESTIMATE, qos.MEASUREMENT, 'clock'], p['peer_timeout'],
+                                log=ThrottledLog(self.get_logger()))
         self._answers = Answers()
         self._events = qos.QosEvents(self)
-        self._pub = qos.publisher(self, self._events, AccelStamped, qos.CONTROL)
-        self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events)
+        self._pub = qos.HistoryPublisher(self, self._events, AccelStamped, qos.CONTROL)
+        self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events,
+                                                 peers=self._peers)
         qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)
+        qos.subscription(self, self._events, PointStamped, qos.MEASUREMENT, self._on_measurement)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -85,7 +95,17 @@ class ControllerNode(ProcessHooks, Node):
         self.get_logger().warning(f'rejected estimate ({detail})', throttle_duration_sec=5.0)
         self._publish_diagnostics(max(stamp_ns, self._gate.last_ns or 0))
 
+    def _on_measurement(self, data: bytes) -> None:
+        """Only whether the sensor is there: its newest stamp."""
+        self._peers.saw(qos.MEASUREMENT)
+        try:
+            stamp_ns = decode_point(data).stamp_ns
+        except MessageError:
+            return
+        self._last_measurement_ns = max(stamp_ns, self._last_measurement_ns or stamp_ns)
+
     def _on_estimate(self, data: bytes) -> None:
+        self._peers.saw(qos.ESTIMATE)
         try:
             estimate = check_frame(decode_odometry(data), self._p['frame_id'])
             x_hat = state_of(estimate)
@@ -110,21 +130,51 @@ class ControllerNode(ProcessHooks, Node):
             self._time_jumps += 1
             self._answers.clear()
         self._last_estimate_ns = stamp_ns
-        if self._safe:
+        reason = self._unsafe(clock_ns(self))
+        if self._safe and reason is None:
             self._leave_safe_mode(f'estimates are back at t = {stamp_ns * 1e-9:.3f} s')
+        elif reason is not None and not self._safe:
+            self._enter_safe_mode(reason)
+        if self._safe:
+            self._publish_control(np.zeros(3), stamp_ns)  # predicted without a sensor: no thrust
+            return
         self._publish_control(lqr_control(self._gain, x_hat - self._setpoint), stamp_ns)
 
+    def _unsafe(self, now: int) -> str | None:
+        """Why the loop is not safe to steer now (None: it is)."""
+        timeout = seconds_to_ns(self._p['estimate_timeout'])
+        if self._last_estimate_ns is None:
+            return None  # not started
+        if now > 0 and now - self._last_estimate_ns > timeout:
+            return f'no estimate since t = {self._last_estimate_ns * 1e-9:.3f} s'
+        if self._last_measurement_ns is not None and now > 0 and now - self._last_measurement_ns > timeout:
+            return f'no measurement since t = {self._last_measurement_ns * 1e-9:.3f} s (the estimates are predictions)'
+        if self._peers.levels['clock'] != OK:
+            return f'the clock stopped at t = {now * 1e-9:.3f} s'
+        return None
+
     def _on_watchdog(self) -> None:
-        """Wall-clock check: a stale estimate switches safe mode on."""
+        """Wall-clock check: peers, and whether safe mode starts or ends."""
         now = clock_ns(self)
-        if self._safe or now <= 0 or self._last_estimate_ns is None:
-            return
-        if now - self._last_estimate_ns > seconds_to_ns(self._p['estimate_timeout']):
-            self._safe = True
-            self.get_logger().error(
-                f"no estimate since t = {self._last_estimate_ns * 1e-9:.3f} s: safe mode, zero thrust")
-            self._safe_timer = self.create_timer(self._p['time_step'], self._on_safe_step)
+        if now != self._last_clock_ns and self._last_clock_ns > 0:
+            self._peers.saw('clock')
+        self._last_clock_ns = now
+        changed = self._peers.check()
+        reason = self._unsafe(now)
+        if reason is not None and not self._safe:
+            self._enter_safe_mode(reason)
             self._on_safe_step()
+            changed = True
+        elif reason is None and self._safe:
+            self._leave_safe_mode(f"{self._safe_reason.split(' (')[0]}: over")
+            changed = True
+        if changed and self._gate.last_ns is not None:
+            self._publish_diagnostics(max(now, self._gate.last_ns))
+
+    def _enter_safe_mode(self, reason: str) -> None:
+        self._safe, self._safe_reason = True, reason
+        self.get_logger().error(f'{reason}: safe mode, zero thrust')
+        self._safe_timer = self.create_timer(self._p['time_step'], self._on_safe_step)
 
     def _on_safe_step(self) -> None:
         """Simulated-time timer while in safe mode: zero thrust for every new step."""
@@ -187,7 +237,7 @@ class ControllerNode(ProcessHooks, Node):
                   **self._rejected.as_values('estimates')}
         problems = [f'{self._rejected.total} estimates rejected'] if self._rejected.total else []
         if self._safe:
-            problems.append('safe mode: zero thrust, no estimate')
+            problems.append(f'safe mode: zero thrust ({self._safe_reason})')
         self._diagnostics.publish(stamp_ns, values, problems)
 
     def close(self) -> None:

@@ -24,9 +24,11 @@ class Rejections(Counter):
 
 
 def diagnostic_array(stamp_ns: int, name: str, node_name: str, values: dict,
-                     problems: list[str] | None = None) -> DiagnosticArray:
-    """One status named ``name``; WARN with the problems listed when there are any."""
-    level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
+                     problems: list[str] | None = None, level: int = 0) -> DiagnosticArray:
+    """One status named ``name``; WARN with the problems listed when there are any, or
+    ``level`` (0 OK, 1 WARN, 2 ERROR: a peer gone) if higher."""
+    level = max(int(level), 1 if problems else 0)
+    level = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)[min(level, 2)]
     message = '; '.join(problems) if problems else 'OK'
     array = DiagnosticArray()
     array.header.stamp = ns_to_stamp(stamp_ns)
@@ -38,8 +40,10 @@ class DiagnosticsPublisher:
     """Publishes one node's status on `diagnostics` at most every ``period`` simulated seconds.
     The node's incompatible-QoS counts (``events``) go into every status."""
 
-    def __init__(self, node, name: str, period: float, events: qos.QosEvents, lifecycle: bool = False):
+    def __init__(self, node, name: str, period: float, events: qos.QosEvents, lifecycle: bool = False,
+                 peers=None):
         self._node = node
+        self.peers = peers  # a snn_estimator.peers.PeerWatch: its levels go into every status
         self._name = name
         self._events = events
         self._period_ns = int(round(period * 1e9))
@@ -55,10 +59,15 @@ class DiagnosticsPublisher:
         self._last_ns = stamp_ns
         values = dict(values, **self._events.values())
         problems = list(problems or [])
+        level = 0
+        if self.peers is not None:
+            values.update(self.peers.values())
+            problems += self.peers.problems()
+            level = self.peers.level
         if self._events.incompatible:
             problems.append(f"incompatible QoS on {', '.join(sorted(self._events.incompatible))}")
         self.publisher.publish(diagnostic_array(
-            stamp_ns, self._name, self._node.get_fully_qualified_name(), values, problems))
+            stamp_ns, self._name, self._node.get_fully_qualified_name(), values, problems, level))
 
     def flush(self, timeout: float = 1.0) -> None:
         """Wait until subscribers acknowledged what was published (before the process exits)."""

@@ -6,8 +6,10 @@ the controller's controls) and start from it (snn_estimator.runner: hot swap, le
 restart, or the parameters at the first measurement); from then on the filter runs on every
 input. activate: publish the estimates. deactivate: stop publishing, keep running (warm).
 cleanup/shutdown: release everything. With ``autostart`` (default) the node configures and
-activates itself; with ``standby`` it stays inactive until the active estimator stops
-publishing, then activates itself (hot standby).
+activates itself; with ``standby`` it stays inactive until every other estimator on `estimate`
+is gone (liveliness), then activates itself (hot standby). Exactly one is active: the
+`estimate` publisher exists only while active (the plant starts only once there is one), and
+an active estimator that sees another one alive yields by name (snn_estimator.runner.Standby).
 
 Timing (snn_estimator.runner): the estimate x_hat_k stamped t_k is published; the controller
 answers with u_k; when z_k and u_k are both here the filter steps and x_hat_{k+1} is published
@@ -15,6 +17,8 @@ stamped t_k + time_step.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 from geometry_msgs.msg import AccelStamped, PointStamped
@@ -27,6 +31,7 @@ from std_srvs.srv import Trigger
 
 from snn_estimator import kernels, make_estimator
 from snn_estimator.costs import CostModel, energy_pj
+from snn_estimator.peers import PeerWatch
 from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
 
 from . import qos
@@ -59,7 +64,8 @@ def runner_settings(p: dict) -> RunnerSettings:
     return RunnerSettings(time_step=p['time_step'], max_input_age=p['max_input_age'],
                           nis_threshold=p['nis_threshold'], nis_window=p['nis_window'],
                           initial_fit_window=p['initial_fit_window'],
-                          time_jump_threshold=p['time_jump_threshold'])
+                          time_jump_threshold=p['time_jump_threshold'],
+                          control_validity=p['control_validity'])
 
 
 class Inputs:
@@ -78,6 +84,7 @@ class Inputs:
             qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
 
     def on_measurement(self, data: bytes) -> None:
+        self._node.peers.saw(qos.MEASUREMENT)
         runner = self._runner
         try:
             record = check_frame(decode_point(data), self._frame)
@@ -91,6 +98,7 @@ class Inputs:
             self._report()
 
     def on_control(self, data: bytes) -> None:
+        self._node.peers.saw(qos.CONTROL)
         try:
             record = check_frame(decode_accel(data), self._frame)
             u = control_of(record)
@@ -121,23 +129,43 @@ class Outputs:
     stamp (also while inactive) so a repeated input can be answered again after activation."""
 
     def __init__(self, node, events: qos.QosEvents, p: dict, costs: CostModel | None):
+        self._node, self._events = node, events
         self._frame, self._child = p['frame_id'], p['child_frame_id']
-        self.estimate = qos.publisher(node, events, Odometry, qos.ESTIMATE, lifecycle=True)
+        self._estimate_qos = qos.with_liveliness(qos.PUBLISHER_QOS, p['standby_timeout'])
+        self.estimate = None  # only while active: the graph shows who is active (the plant waits for one)
         self._count = qos.publisher(node, events, UInt32, qos.SPIKE_COUNT, lifecycle=True)
         self._spikes = (qos.publisher(node, events, UInt32MultiArray, qos.SPIKES, lifecycle=True)
                         if p['publish_spikes'] else None)
-        self.diagnostics = DiagnosticsPublisher(node, 'estimator', p['diagnostics_period'], events, True)
-        self.publishers = [self.estimate, self._count, self.diagnostics.publisher] + [self._spikes] * bool(self._spikes)
+        self.diagnostics = DiagnosticsPublisher(node, 'estimator', p['diagnostics_period'], events, True,
+                                                peers=node.peers)
+        self.publishers = [self._count, self.diagnostics.publisher] + [self._spikes] * bool(self._spikes)
         self._costs = costs
         self.answers = Answers()
         self.published = self.spikes_published = 0
+        self._published_wall = -1e9
+
+    def open(self) -> None:
+        """Create the `estimate` publisher (on activation), with a liveliness lease of
+        standby_timeout: a standby learns within it that this estimator is gone."""
+        if self.estimate is None:
+            self.estimate = qos.HistoryPublisher(self._node, self._events, Odometry, qos.ESTIMATE, self._estimate_qos)
+
+    def published_within(self, seconds: float) -> bool:
+        return time.monotonic() - self._published_wall < seconds
+
+    def close(self) -> None:
+        """Destroy the `estimate` publisher (on deactivation): the node no longer looks active."""
+        if self.estimate is not None:
+            self.estimate.destroy(self._node)
+            self.estimate = None
 
     def publish(self, estimator, stamp_ns: int, active: bool) -> None:
         data = encode_odometry(estimator.x_hat, estimator.P, stamp_ns, self._frame, self._child)
         self.answers.remember(stamp_ns, data)  # inactive too: a resend after activation needs it
-        if not active:
+        if not active or self.estimate is None:
             return
         self.estimate.publish(data)
+        self._published_wall = time.monotonic()
         self._count.publish(encode_uint32(estimator.spike_count))
         if self._spikes is not None:
             self._spikes.publish(encode_spikes(estimator.spikes if estimator.spiking else ()))
@@ -146,6 +174,8 @@ class Outputs:
 
     def resend(self, stamp_ns: int) -> bool:
         """Publish again the estimate that answered the measurement at ``stamp_ns``."""
+        if self.estimate is None:
+            return False
         sent = self.answers.resend(stamp_ns, self.estimate)
         self.published += sent
         return sent
@@ -196,9 +226,12 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self._runner: FilterRunner | None = None
         self._out: Outputs | None = None
         self._owned_subscriptions: list = []
-        self._watchdog = self._monitor = None
+        self._watchdog = None
         self._active = self._announce = False
-        self._standby: Standby | None = None
+        self._announced = None  # (stamp, subscribers) of the estimate announced on activation
+        self._standby = Standby()
+        self._standing_by = False  # inactive, ready to take over (standby, or yielded)
+        self._alive_on_estimate = 0  # live publishers on `estimate`, ours included
         self.configure_error: str | None = None
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -253,6 +286,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         history = (collect_history(self, p['frame_id'], axes, p['history_wait'])
                    if p['initialization'] != 'parameters' else None)
         self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log)
+        self.peers = PeerWatch([qos.MEASUREMENT, qos.CONTROL, 'clock'], p['peer_timeout'], log=self.log)
+        self._last_clock_ns = 0
         self._out = Outputs(self, self.events, p, CostModel.of(estimator) if estimator.spiking else None)
         self._make_endpoints()
         started = self._runner.start(p['initialization'], history)
@@ -261,30 +296,29 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
             f"of {p['time_step']} s, axes {axes}); start: {started}")
 
     def _make_endpoints(self) -> None:
-        events, p = self.events, self._p
+        p = self._p
         self._owned_subscriptions = Inputs(self, self._runner, self._out, p, self._publish_diagnostics).subscriptions
         self._watchdog = self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        if p['standby']:  # watch the active estimator
-            self._standby = Standby(p['standby_timeout'], p['time_step'])
-            self._monitor = qos.subscription(self, events, Odometry, qos.ESTIMATE, self._on_foreign_estimate)
-            self._owned_subscriptions.append(self._monitor)
+        # who else publishes estimates, by their liveliness (a standby waits for them to go, an
+        # active estimator yields to another by the rule of snn_estimator.runner.Standby)
+        self._standby, self._standing_by = Standby(), bool(p['standby'])
+        self._owned_subscriptions.append(qos.liveliness_monitor(
+            self, Odometry, qos.ESTIMATE, p['standby_timeout'], self._on_liveliness))
 
     def on_activate(self, state) -> TransitionCallbackReturn:
         super().on_activate(state)  # enables the lifecycle publishers
-        self._active = True
-        if self._monitor is not None:
-            self._owned_subscriptions.remove(self._monitor)
-            self.destroy_subscription(self._monitor)  # from now on `estimate` carries our own
-            self._monitor = None
+        self._out.open()
+        self._active, self._standing_by = True, False
         # a filter already running (hot swap, standby) publishes its current estimate as soon as
         # a subscriber matched (watchdog); one that waits for its first measurement publishes then
-        self._announce = self._runner.started
+        self._announce, self._announced = self._runner.started, None
         self._on_watchdog()
         self.get_logger().info('active: publishing estimates')
         return SUCCESS
 
     def on_deactivate(self, state) -> TransitionCallbackReturn:
         super().on_deactivate(state)
+        self._out.close()
         self._active = self._announce = False
         self.get_logger().info('inactive: the filter keeps running, nothing is published')
         return SUCCESS
@@ -302,6 +336,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     def _release(self) -> TransitionCallbackReturn:
         """Destroy every endpoint and timer and drop the filter."""
         self._active = False
+        if self._out is not None:
+            self._out.close()
         for publisher in self._out.publishers if self._out else ():
             self.destroy_lifecycle_publisher(publisher)
         for subscription in self._owned_subscriptions:
@@ -309,27 +345,59 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         if self._watchdog is not None:
             self.destroy_timer(self._watchdog)
         self._owned_subscriptions = []
-        self._runner = self._out = self._watchdog = self._monitor = self._standby = None
+        self._runner = self._out = self._watchdog = None
         return SUCCESS
 
     # ---------------------------------------------------------------- inputs
-    def _on_foreign_estimate(self, data: bytes) -> None:
-        try:
-            self._standby.saw(decode_odometry(data).stamp_ns)
-        except MessageError:
-            pass
+    def _on_liveliness(self, info) -> None:
+        self._alive_on_estimate = info.alive_count
 
     def _on_watchdog(self) -> None:
         runner = self._runner
-        runner.watchdog(clock_ns(self))
-        if self._announce and runner.started and self._out.estimate.get_subscription_count() > 0:
+        now = clock_ns(self)
+        runner.watchdog(now)
+        if now != self._last_clock_ns and self._last_clock_ns > 0:
+            self.peers.saw('clock')
+        self._last_clock_ns = now
+        if self.peers.check():
+            self._publish_diagnostics()
+        estimate = self._out.estimate
+        if self._announce and runner.started and estimate is not None and estimate.get_subscription_count() > 0:
             self._announce = False  # just activated: the controller can answer at once
             self._publish(runner.time_ns)
-        if self._standby and not self._active and runner.started and self._standby.due(runner.time_ns, runner.start_ns):
-            self.get_logger().warning(f'standby: no estimate newer than t = {self._standby.foreign_ns * 1e-9:.3f} s '
-                                      f"on '{qos.ESTIMATE}': activating")
+            self._announced = (runner.time_ns, estimate.get_subscription_count())
+        elif self._active and self._announced and self._announced[0] == runner.time_ns:
+            # the publisher is new: a subscriber that matched after the announcement (the
+            # controller, best effort) gets the current estimate again until the next step
+            if estimate.get_subscription_count() > self._announced[1]:
+                self._out.resend(runner.time_ns)
+                self._announced = (runner.time_ns, estimate.get_subscription_count())
+        self._standby.update(*self._estimators_alive())
+        if self._standing_by and not self._active and self._standby.takes_over(runner.started):
+            self.get_logger().warning(f"standby: no other estimator is alive on '{qos.ESTIMATE}': activating")
             runner.events['standby_activations'] += 1
             self.trigger_activate()
+        elif self._active and self._standby.yields(self.get_name()):
+            self.get_logger().warning(f"another estimator is active on '{qos.ESTIMATE}' "
+                                      f"({', '.join(self._standby.others)}): yielding (the first name in "
+                                      'order publishes); standing by')
+            runner.events['yields'] += 1
+            self.trigger_deactivate()
+            self._standing_by = True
+
+    def _estimators_alive(self) -> tuple[int, list[str]]:
+        """How many other estimators of this package are alive on `estimate` (the live
+        publishers, less our own and those without a liveliness lease: ``ros2 topic pub``, a
+        third-party filter) and their node names (from the graph)."""
+        infos = self.get_publishers_info_by_topic(self.resolve_topic_name(qos.ESTIMATE))
+        leased = [i for i in infos if i.qos_profile.liveliness_lease_duration.nanoseconds < 2 ** 62]
+        own = (self.get_namespace(), self.get_name())
+        others = {i.node_name for i in leased if (i.node_namespace, i.node_name) != own}
+        # our own publisher counts while it published within the lease (one participant: it is
+        # alive only while it publishes); counted generously, so another one is never imagined
+        lease = self._p['standby_timeout']
+        own_alive = self._out.estimate is not None and self._out.published_within(1.5 * lease)
+        return self._alive_on_estimate - own_alive, sorted(others)
 
     # ---------------------------------------------------------------- outputs
     def _publish(self, stamp_ns: int) -> None:
@@ -355,9 +423,11 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         if self._runner is None:
             response.success, response.message = False, 'not configured'
             return response
-        self._runner.restart('reset requested', 'resets')
+        start = self._runner.reset('reset requested')
         response.success = True
-        response.message = 'filter reset: the next measurement starts it from initial_state, P0'
+        response.message = ('filter reset: the next measurement re-initialises it from the recent measurements'
+                            if start == 'data' else
+                            'filter reset: the next measurement starts it from initial_state, P0')
         return response
 
     def _on_time_jump(self, seconds: float) -> None:

@@ -2,10 +2,10 @@
 
 A node that joins a running loop (a replacement estimator) starts better from the topics'
 history: the newest estimate of the estimator it replaces, the sensor's recent measurements,
-the controller's recent controls. The pipeline's publishers keep it (transient local), but its
-subscriptions are volatile so that any publisher matches them. So the history is read apart, by
-a short-lived transient-local reader per topic, the way ``ros2 topic echo
---qos-durability transient_local`` reads it, and only from publishers that offer it. It runs
+the controller's recent controls. The pipeline's publishers keep it on ``<topic>/history``
+(transient local; the topics themselves are volatile, so that a late joiner such as ``ros2
+topic echo`` sees the present). It is read by a short-lived transient-local reader per topic,
+the way ``ros2 topic echo --qos-durability transient_local`` reads it. It runs
 inside a lifecycle transition (the executor is busy running it), so it waits on its own wait
 set, as ``rclpy.wait_for_message`` does.
 """
@@ -43,8 +43,8 @@ QUIET = 0.1
 
 
 def keeping_publishers(node, topic: str) -> int:
-    """Publishers of ``topic`` that keep history for late joiners (transient local)."""
-    return sum(1 for info in node.get_publishers_info_by_topic(node.resolve_topic_name(topic))
+    """Publishers of ``topic``'s history for late joiners (transient local)."""
+    return sum(1 for info in node.get_publishers_info_by_topic(node.resolve_topic_name(qos.history_topic(topic)))
                if info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -66,7 +66,8 @@ def read_history(node, topics: dict, wait: float) -> dict[str, list[bytes]]:
             for topic in topics:
                 if topic not in readers and keeping_publishers(node, topic):
                     readers[topic] = node.create_subscription(
-                        topics[topic], topic, lambda _: None, HISTORY_QOS, raw=True, event_callbacks=quiet_events)
+                        topics[topic], qos.history_topic(topic), lambda _: None, HISTORY_QOS, raw=True,
+                        event_callbacks=quiet_events)
                     matched_since = None
             if _take(node, readers, samples):
                 last_sample = time.monotonic()

@@ -77,6 +77,13 @@ MODEL = (
          'along-track, y opposite the orbit normal, z radial toward Earth)'),
     Spec('child_frame_id', 'chaser', 'child_frame_id of the state messages'),
     Spec('diagnostics_period', 1.0, 'Simulated s between diagnostics messages (0: every step)', low=0.0),
+    Spec('peer_timeout', 2.0, 'Wall-clock s without an input (truth, measurement, estimate, control, '
+         'the clock) after which its publisher counts as gone: logged once, diagnostics WARN (ERROR '
+         'after 5x), cleared when it comes back', low=1e-3),
+    Spec('control_validity', 0.5, 'Simulated s a control stays in force after its stamp when no newer '
+         'one came: then the plant applies zero thrust and the estimator predicts with zero thrust '
+         '(the same rule, so both agree on what was applied; default: the controller\'s estimate_timeout)',
+         low=1e-6),
 )
 
 PLANT = MODEL + (
@@ -90,7 +97,8 @@ PLANT = MODEL + (
     Spec('real_time_factor', 1.0, 'realtime mode: simulated seconds per wall-clock second',
          low=1e-3, high=1e6),
     Spec('control_timeout', 1.0, 'lockstep: wall-clock s to wait for the control of a step before '
-         'holding the last control (counted as a control timeout)', low=1e-3),
+         'stepping with the control in force (the last one until control_validity, then zero thrust; '
+         'counted as a control timeout)', low=1e-3),
     Spec('resend_period', 0.25, 'lockstep: wall-clock s without the control of a step after which '
          'the state is sent again (each node answers a repeated input again: a sample lost on a '
          'best-effort link does not stall the loop)', low=1e-3),
@@ -218,9 +226,11 @@ ESTIMATOR = MODEL + (
     Spec('autostart', True, 'Configure and activate at start-up (a managed node otherwise: ros2 '
          'lifecycle set /estimator configure, activate)'),
     Spec('standby', False, 'Hot standby: configure, run on the same inputs but do not publish, and '
-         'activate when the active estimator stops publishing (standby_timeout)'),
-    Spec('standby_timeout', 0.1, 'standby: activate when our estimate is newer than the newest one '
-         'on `estimate` for this many wall-clock s, or by two time steps of simulated time', low=1e-3),
+         'activate when every other estimator on `estimate` is gone (its liveliness lease expired). '
+         'Of two active estimators, the one whose node name sorts last yields and stands by'),
+    Spec('standby_timeout', 0.25, 'Liveliness lease of the `estimate` publisher, wall-clock s: a '
+         'killed, stopped or deactivated active estimator is known to be gone within it, and a '
+         'standby takes over', low=1e-3),
     Spec('initialization', 'auto', 'How the filter starts: parameters (initial_state at the first '
          'measurement), last_estimate (the newest estimate on `estimate`, replaying the inputs since: '
          'hot swap), history (a least-squares fit of the measurement history: restart after a crash); '
@@ -298,10 +308,60 @@ def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
             except ParameterUninitializedException:
                 values[spec.name] = None
         else:
-            values[spec.name] = node.declare_parameter(spec.name, spec.default, spec.descriptor()).value
+            values[spec.name] = _declare_with_coercion(node, spec)
     if check:
         check_choices(values, specs)
     return values
+
+
+def _is_double(default) -> bool:
+    return (isinstance(default, float)
+            or (isinstance(default, list) and bool(default) and all(isinstance(v, float) for v in default)))
+
+
+def coerce(spec: Spec, value):
+    """``value`` as the type of ``spec``'s default where that is exact: an integer (or a list
+    of integers) given for a double (``-p real_time_factor:=10``) becomes a double; anything
+    else is returned as it is."""
+    if isinstance(spec.default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if (_is_double(spec.default) and isinstance(value, (list, tuple)) and value
+            and all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
+        return [float(v) for v in value]
+    return value
+
+
+def _declare_with_coercion(node, spec: Spec):
+    """Declare ``spec`` with its value from the overrides, an integer given for a double
+    accepted as that double; a value of another type refused naming the parameter and the fix."""
+    from rcl_interfaces.msg import ParameterDescriptor
+    from rclpy.exceptions import InvalidParameterTypeException
+    if not _is_double(spec.default):
+        return _declare_static(node, spec, spec.default, ignore_override=False)
+    # read the override as given (any type), then declare the parameter with its type
+    probe = ParameterDescriptor(name=spec.name, dynamic_typing=True)
+    given = node.declare_parameter(spec.name, spec.default, probe).value
+    node.undeclare_parameter(spec.name)
+    value = coerce(spec, given)
+    scalar = isinstance(spec.default, float)
+    if not (isinstance(value, float) if scalar else
+            not isinstance(value, (str, bytes)) and all(isinstance(v, float) for v in value)):
+        kind = 'double' if scalar else 'list of doubles'
+        raise ValueError(f'parameter {spec.name} must be a {kind} (e.g. {spec.name}:={_show(spec.default)}); '
+                         f'got {given!r}')
+    try:
+        return node.declare_parameter(spec.name, value, spec.descriptor(), ignore_override=True).value
+    except InvalidParameterTypeException as error:  # not expected after the check: say it anyway
+        raise ValueError(f'parameter {spec.name}: {error}') from None
+
+
+def _declare_static(node, spec: Spec, default, ignore_override: bool):
+    from rclpy.exceptions import InvalidParameterTypeException
+    try:
+        return node.declare_parameter(spec.name, default, spec.descriptor(), ignore_override=ignore_override).value
+    except InvalidParameterTypeException as error:
+        raise ValueError(f'parameter {spec.name} must be of the type of its default '
+                         f'{_show(spec.default)} ({error})') from None
 
 
 def read(node, specs: Sequence[Spec]) -> dict:

@@ -1,9 +1,12 @@
 """QoS of the pipeline, defined once, and the helpers every node creates its endpoints with.
 
 * every publisher (truth, measurement, control, estimate, spike_count, spikes, diagnostics):
-  reliable, transient local, keep last 5000. It matches any subscriber, a lagging recorder
-  never loses a sample, and a node that joins late can read the topic's history (hot swap,
-  restart after a crash).
+  reliable, volatile, keep last 5000. It matches any subscriber, a lagging recorder never
+  loses a sample, and a late joiner gets the present (``ros2 topic echo --once`` adapts to
+  the publisher's durability: with transient local it printed the oldest sample it was given).
+* the history of the topics a joining estimator starts from, on ``<topic>/history``
+  (measurement, control: keep last 200, 20 s; estimate: the newest one): reliable, transient
+  local, published beside the topic (2 us a sample with nobody listening).
 * every subscription of the loop: best effort, volatile, keep last 100 (the estimator's
   inputs 1000). It matches publishers with the default profile (``ros2 topic pub``,
   robot_localization), the sensor-data profile (drivers) and ours, as nav2 and
@@ -23,8 +26,9 @@ from __future__ import annotations
 
 from collections import Counter
 
+from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 # The topic names live in .topics (no rclpy there); re-exported here beside their QoS.
@@ -47,7 +51,9 @@ def _profile(reliability, durability, depth: int) -> QoSProfile:
                       durability=durability)
 
 
-PUBLISHER_QOS = _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL, 5000)
+PUBLISHER_QOS = _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE, 5000)
+#: Samples each ``<topic>/history`` keeps for late joiners (a least-squares start fits 10 s).
+HISTORY_DEPTHS = {'measurement': 200, 'control': 200, 'estimate': 1}
 SUBSCRIPTION_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 100)
 #: The estimator's inputs: a deeper queue, so a burst (a replayed bag) is not cut.
 INPUT_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 1000)
@@ -57,7 +63,9 @@ HISTORY_QOS = _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LO
 #: its Python side has not written yet (it may lag behind the loop and catch up later).
 RECORDER_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_ALL,
-    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: A reliable reader of the pipeline topics that keeps everything (tests, tools).
+LISTENER_QOS = RECORDER_QOS
 
 #: /clock as rosgraph expects it (rclpy's time source subscribes best-effort, depth 1).
 CLOCK_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 1)
@@ -108,10 +116,47 @@ def describe(profile: QoSProfile) -> str:
             f'{profile.history.name.lower()} {profile.depth}')
 
 
-def publisher(node, events: QosEvents, message_type, topic: str, lifecycle: bool = False):
-    """A pipeline publisher: PUBLISHER_QOS, overridable, incompatibilities counted."""
+def history_topic(topic: str) -> str:
+    """Where ``topic``'s recent samples are kept for late joiners."""
+    return f'{topic}/history'
+
+
+class HistoryPublisher:
+    """A pipeline publisher and, beside it, the transient-local ``<topic>/history`` one:
+    ``publish`` sends each sample on both."""
+
+    def __init__(self, node, events: QosEvents, message_type, topic: str, profile: QoSProfile | None = None):
+        self.topic = publisher(node, events, message_type, topic, profile=profile)
+        self.history = node.create_publisher(
+            message_type, history_topic(topic),
+            _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL, HISTORY_DEPTHS[topic]))
+
+    def publish(self, data) -> None:
+        self.topic.publish(data)
+        self.history.publish(data)
+
+    def get_subscription_count(self) -> int:
+        return self.topic.get_subscription_count()
+
+    def destroy(self, node) -> None:
+        node.destroy_publisher(self.topic)
+        node.destroy_publisher(self.history)
+
+
+def with_liveliness(profile: QoSProfile, lease: float) -> QoSProfile:
+    """``profile`` whose publisher asserts liveliness automatically within ``lease`` wall s:
+    its subscribers learn within the lease that a killed or stopped process is gone (a
+    subscription with the default profile requests an infinite lease: it matches)."""
+    return QoSProfile(history=profile.history, depth=profile.depth, reliability=profile.reliability,
+                      durability=profile.durability, liveliness=LivelinessPolicy.AUTOMATIC,
+                      liveliness_lease_duration=Duration(nanoseconds=int(lease * 1e9)))
+
+
+def publisher(node, events: QosEvents, message_type, topic: str, lifecycle: bool = False,
+              profile: QoSProfile | None = None):
+    """A pipeline publisher: PUBLISHER_QOS (or ``profile``), overridable, incompatibilities counted."""
     create = node.create_lifecycle_publisher if lifecycle else node.create_publisher
-    return create(message_type, topic, PUBLISHER_QOS, event_callbacks=events.publisher_callbacks(topic),
+    return create(message_type, topic, profile or PUBLISHER_QOS, event_callbacks=events.publisher_callbacks(topic),
                   qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
 
 
@@ -122,3 +167,14 @@ def subscription(node, events: QosEvents, message_type, topic: str, callback, pr
         message_type, topic, callback, profile or SUBSCRIPTION_QOS, raw=True,
         event_callbacks=events.subscription_callbacks(topic),
         qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
+
+
+def liveliness_monitor(node, message_type, topic: str, lease: float, on_change):
+    """A subscription that only watches which publishers of ``topic`` are alive: it requests
+    a liveliness lease of ``lease`` wall s (Fast DDS times a writer out on the reader's lease),
+    so it matches only publishers that offer one at most that long (ours, see
+    :func:`with_liveliness`), quietly; ``on_change(info)`` gets the live count. Within one
+    process (one DDS participant) a writer counts as alive only while it publishes."""
+    callbacks = SubscriptionEventCallbacks(incompatible_qos=lambda event: None, liveliness=on_change)
+    return node.create_subscription(message_type, topic, lambda data: None,
+                                    with_liveliness(SUBSCRIPTION_QOS, lease), raw=True, event_callbacks=callbacks)

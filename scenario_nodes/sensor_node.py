@@ -8,18 +8,20 @@ from functools import partial
 
 import numpy as np
 from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from snn_estimator.blocks import MeasurementSensor, SamplePeriod
 from snn_estimator.gates import NewestFirst
 from snn_estimator.measurements import REASONS, VALID, make_model
+from snn_estimator.peers import PeerWatch
 
 from . import qos
 from .codec import MessageError, check_frame, decode_odometry, encode_measurement, state_of
 from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, declare
-from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
+from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 #: An angle variance (rad^2) from which the node warns: 0.1 rad (5.7 deg) of noise.
 ANGLE_VARIANCE_WARNING = 1e-2
@@ -53,8 +55,11 @@ class SensorNode(ProcessHooks, Node):
         self._time_jumps = 0
         self._answers = Answers()
         self._events = qos.QosEvents(self)
-        self._pub = qos.publisher(self, self._events, MEASUREMENT_CLASSES[model.message_form], qos.MEASUREMENT)
-        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events)
+        self._pub = qos.HistoryPublisher(self, self._events, MEASUREMENT_CLASSES[model.message_form], qos.MEASUREMENT)
+        self._peers = PeerWatch([qos.TRUTH], p['peer_timeout'], log=ThrottledLog(self.get_logger()))
+        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events,
+                                                 peers=self._peers)
+        self.create_timer(0.1, self._on_peer_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         if model.message_form == 'point':
@@ -68,7 +73,12 @@ class SensorNode(ProcessHooks, Node):
                     f'{np.degrees(np.sqrt(angles.max())):.1f} deg: R is in rad^2 for angles '
                     '(the default 1e-2 is the position noise of Table 6; docs/sensors.md)')
 
+    def _on_peer_check(self) -> None:
+        if self._peers.check() and self._gate.last_ns is not None:
+            self._publish_diagnostics(self._gate.last_ns)
+
     def _on_truth(self, data: bytes) -> None:
+        self._peers.saw(qos.TRUTH)
         try:
             truth = check_frame(decode_odometry(data), self._p['frame_id'])
             x = state_of(truth)

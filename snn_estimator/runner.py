@@ -14,9 +14,12 @@ else:
 * start-up (:meth:`start`): from the configured initial state at the first measurement, from
   an earlier estimator's newest estimate (hot swap: the measurements since then are
   replayed), or from a least-squares fit of a measurement history (a restart after a crash);
-* recovery: a persistently inconsistent innovation (NIS) or a non-finite state re-initialises
-  the filter from the measurement; a restart (clock jump, reset) waits for the next
-  measurement.
+* recovery: a persistently inconsistent innovation (NIS), a non-finite state or a reset on
+  request re-initialises the filter from the data (:mod:`snn_estimator.recovery`: a
+  least-squares fit of the recent measurements, never the parameters' initial state
+  mid-flight; reset storms are reported); a new time base (the clock or the stamps went
+  back) starts again from the parameters at the next measurement;
+* a missing control: the one in force by the plant's rule (:mod:`snn_estimator.plant_runner`).
 
 Stamps are integer nanoseconds. The caller supplies the clock reading ``now_ns`` (0 when there
 is no clock yet), a wall clock (for the dropout wait) and a ``publish(stamp_ns)`` callback
@@ -28,14 +31,16 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Callable, Mapping
+from typing import Callable, Iterable
 
 import numpy as np
 
 from .catalog import START_MODES  # noqa: F401 (re-exported)
 from .estimators import Estimator
-from .gates import NS, seconds_ahead, seconds_to_ns
-from .initialization import least_squares_start
+from .gates import NS, seconds_to_ns
+from .plant_runner import control_in_force
+from .recovery import Recovery
+from .runner_parts import Gating, History, Reporting, StartUp  # noqa: F401 (History re-exported)
 
 #: Controls kept for pairing and replay.
 CONTROL_MEMORY = 2000
@@ -61,19 +66,12 @@ class RunnerSettings:
     #: Without a running clock, a measurement this far before the estimate time means the time
     #: base restarted.
     time_jump_threshold: float = 1.0
+    #: Simulated s a control stays in force after its stamp (then zero thrust), as the plant
+    #: applies it (snn_estimator.plant_runner.control_in_force).
+    control_validity: float = 0.5
 
 
-@dataclass
-class History:
-    """What the topics held when the filter joined: stamp (ns) -> value."""
-
-    measurements: Mapping[int, np.ndarray]
-    controls: Mapping[int, np.ndarray]
-    #: Estimates an earlier estimator published: stamp -> (x, covariance or None).
-    estimates: Mapping[int, tuple]
-
-
-class FilterRunner:
+class FilterRunner(Gating, StartUp, Reporting):
     """Steps ``estimator`` from time-stamped inputs (see the module docstring)."""
 
     def __init__(self, estimator: Estimator, settings: RunnerSettings, measurement_covariance,
@@ -95,7 +93,8 @@ class FilterRunner:
         self._last_measurement_ns: int | None = None
         self._newest_ns: int | None = None
         self._last_arrival = wall_clock()
-        self._held_control = np.zeros(estimator.model.n_input)
+        self._held = {}  # stamp -> u: the newest control used, while it may still be in force
+        self._expired = False
         self._high_nis = 0
         self._clock_agrees: bool | None = None  # stamps on the clock's time base (None: not known)
         self._awaiting_start = False
@@ -109,6 +108,10 @@ class FilterRunner:
         self.controls_missing = 0
         self.dropout_steps = 0
         self.step_seconds: list[float] = []
+        #: Where a re-initialisation starts from (recent data, never the parameters mid-flight).
+        self.recovery = Recovery(estimator, self.measurement_covariance, settings.initial_fit_window,
+                                 settings.time_step, log=self._log)
+        self._reset_requested: tuple[str, str] | None = None
 
     # ---------------------------------------------------------------- state
     @property
@@ -158,33 +161,6 @@ class FilterRunner:
         self._process()
         return None
 
-    def _gate_measurement(self, stamp_ns: int, now_ns: int) -> str | None:
-        s = self.settings
-        where = f'measurement at {stamp_ns / NS:.3f} s'
-        if (self.started and now_ns <= 0
-                and stamp_ns < self.time_ns - seconds_to_ns(s.time_jump_threshold)):
-            # no clock: stamps far in the past mean the time base restarted (a bag loop)
-            self.restart(f'measurement time went back from {self.time_ns / NS:.3f} s to '
-                         f'{stamp_ns / NS:.3f} s', 'time_jumps')
-        if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
-            return self._say('duplicate', f'second {where}')
-        if self.started and stamp_ns < self._newest_ns - seconds_to_ns(s.max_input_age):
-            return self._say('too_old', f'{where} is more than {s.max_input_age} s older than the '
-                             f'newest measurement ({self._newest_ns / NS:.3f} s)')
-        if self.started and stamp_ns < self.time_ns:
-            return self._say('stale', f'{where} is older than the estimate at {self.time_ns / NS:.3f} s')
-        if self.started and (stamp_ns - self.time_ns) % self._dt_ns:
-            return self._say('misaligned', f'{where} does not fall on the estimate time '
-                             f'{self.time_ns / NS:.3f} s plus steps of {s.time_step} s (time_step?)')
-        ahead = self.seconds_ahead(stamp_ns, now_ns)
-        if ahead:  # queued, it would make every real measurement 'too_old'
-            return self._say('future', f'{where} is {ahead:.3f} s ahead of the clock')
-        return None
-
-    def seconds_ahead(self, stamp_ns: int, now_ns: int) -> float:
-        """See :func:`snn_estimator.gates.seconds_ahead`."""
-        return seconds_ahead(stamp_ns, now_ns, self.settings.max_input_age, self.settings.time_step)
-
     def control(self, stamp_ns: int, u: np.ndarray) -> str | None:
         """Offer u stamped ``stamp_ns``; None if accepted, else the rejection reason."""
         if self.start_ns is not None and stamp_ns < self.start_ns:
@@ -216,127 +192,6 @@ class FilterRunner:
             while self.time_ns + self._dt_ns <= now_ns:
                 self._step(None, self.time_ns)
 
-    def _check_time_base(self, stamp_ns: int, now_ns: int) -> None:
-        """Note whether measurement stamps and the clock share a time base (within
-        max_input_age plus two steps); say so once when they do not."""
-        if now_ns <= 0:
-            return  # no clock yet: nothing to compare with
-        lead = seconds_to_ns(self.settings.max_input_age + 2 * self.settings.time_step)
-        agrees = abs(now_ns - stamp_ns) <= lead
-        if not agrees and self._clock_agrees is not False:
-            self.events['stamps_off_the_clock'] += 1
-            self._log('warning', f'measurement stamped {stamp_ns / NS:.3f} s with the clock at '
-                      f'{now_ns / NS:.3f} s: not predicting over sensor dropouts (is use_sim_time set '
-                      'as the sensor stamps?)')
-        self._clock_agrees = agrees
-
-    # ---------------------------------------------------------------- start-up
-    def start(self, mode: str, history: History | None = None) -> str:
-        """Choose how to start (see :data:`snn_estimator.catalog.START_MODES`) and do it; returns what was done:
-        'last_estimate' (warm start, replaying the queued measurements), 'history'
-        (least-squares fit), or 'waiting' (the configured initial state at the next
-        measurement). 'auto' takes the first that the history allows, in that order."""
-        if mode not in START_MODES:
-            raise ValueError(f'start mode must be one of {", ".join(START_MODES)}; got {mode!r}')
-        history = history or History({}, {}, {})
-        for stamp_ns, z in sorted(history.measurements.items()):
-            if stamp_ns not in self._pending:
-                self._pending[stamp_ns] = np.asarray(z, dtype=float)
-                self._from_history.add(stamp_ns)
-            self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
-        self.events['history_measurements'] += len(self._from_history)
-        for stamp_ns, u in history.controls.items():
-            self._controls.setdefault(stamp_ns, np.asarray(u, dtype=float))
-        if mode in ('auto', 'last_estimate') and history.estimates:
-            stamp_ns = max(history.estimates)
-            x, covariance = history.estimates[stamp_ns]
-            if self._warm_start(stamp_ns, x, covariance):
-                return 'last_estimate'
-        if mode in ('auto', 'history') and self._fit_start():
-            return 'history'
-        if mode in ('last_estimate', 'history'):
-            self._log('warning', f'no {mode} to start from: starting from the parameters at the next measurement')
-        # a fresh loop: the first measurement (queued or next) starts the filter
-        self._awaiting_start = True
-        if self._pending:
-            self._begin(min(self._pending), publish=True)
-            self.events['cold_starts'] += 1
-            self._log('info', f'started from the parameters at t = {self.start_ns / NS:.3f} s '
-                      f'({len(self._pending)} measurements queued)')
-            self._process()
-            return 'parameters'
-        return 'waiting'
-
-    def _warm_start(self, stamp_ns: int, x: np.ndarray, covariance: np.ndarray | None) -> bool:
-        """Start from an earlier estimator's estimate at ``stamp_ns`` (hot swap)."""
-        estimator = self.estimator
-        estimator.reset()
-        try:
-            estimator.set_state(x, self.usable_covariance(covariance))
-        except ValueError as error:
-            self._log('warning', f'cannot warm start from the earlier estimate: {error}')
-            return False
-        self._drop({t for t in self._pending if t < stamp_ns}, 'it predates the warm start')
-        self._begin(stamp_ns, publish=False)
-        self.events['warm_starts'] += 1
-        self._log('info', f'warm start from the estimate of {stamp_ns / NS:.3f} s; replaying '
-                  f'{len(self._pending)} measurements')
-        self._process()
-        return True
-
-    def _fit_start(self) -> bool:
-        """Least-squares start over the newest initial_fit_window seconds of queued
-        measurements (controls from the controls' history, the last one held where missing);
-        the filter starts at the newest, which its next step uses."""
-        window_ns = seconds_to_ns(self.settings.initial_fit_window)
-        if not self._pending:
-            return False
-        newest = max(self._pending)
-        stamps = sorted(t for t in self._pending if t >= newest - window_ns)
-        if (newest - stamps[0]) < window_ns - self._dt_ns // 2:
-            return False  # not a full window: the filter did not join a running loop
-        known, held = [], self._held_control
-        for stamp_ns in stamps:
-            u = self._control_for(stamp_ns)
-            held = u if u is not None else held
-            known.append(held)
-        try:
-            x, covariance = least_squares_start(
-                self.estimator.model, np.asarray(stamps) / NS, [self._pending[t] for t in stamps],
-                known, self.measurement_covariance)
-            self.estimator.reset()
-            self.estimator.set_state(x, covariance if self.estimator.has_covariance else None)
-        except (ValueError, np.linalg.LinAlgError) as error:
-            self._log('warning', f'no least-squares start from the history: {error}')
-            return False
-        self._drop({t for t in self._pending if t < stamps[0]}, 'older than the least-squares window')
-        for stamp_ns in stamps[:-1]:
-            del self._pending[stamp_ns]
-        self.measurements_used += len(stamps) - 1
-        self.events['history_starts'] += 1
-        self._begin(stamps[-1], publish=True)
-        self._log('info', f'started from a least-squares fit of {len(stamps) - 1} measurements '
-                  f'({stamps[0] / NS:.1f}-{stamps[-2] / NS:.1f} s) at t = {stamps[-1] / NS:.3f} s')
-        self._process()
-        return True
-
-    def usable_covariance(self, blocks: np.ndarray | None) -> np.ndarray | None:
-        """A received covariance if it is one (finite, symmetric, positive definite on each
-        published block), else P0; None for a filter without a covariance."""
-        if not self.estimator.has_covariance:
-            return None
-        p0 = self.estimator.settings.initial_covariance
-        if blocks is None:
-            return p0
-        blocks = np.asarray(blocks, dtype=float)
-        n = blocks.shape[0]
-        half = n // 2
-        if (np.all(np.isfinite(blocks)) and np.allclose(blocks, blocks.T)
-                and np.all(np.linalg.eigvalsh(blocks[:half, :half]) > 0)
-                and np.all(np.linalg.eigvalsh(blocks[half:, half:]) > 0)):
-            return blocks
-        return p0
-
     def _begin(self, stamp_ns: int, publish: bool) -> None:
         self.time_ns = self.start_ns = stamp_ns
         self._from_history = {t for t in self._from_history if t in self._pending}
@@ -345,11 +200,25 @@ class FilterRunner:
         if publish:
             self._publish(stamp_ns)
 
+    def reset(self, why: str) -> str:
+        """A reset on request: mid-flight, the next measurement's step re-initialises the
+        filter from the data (:class:`snn_estimator.recovery.Recovery`), returns 'data'; before
+        the filter ran, it starts from the parameters at the next measurement ('parameters')."""
+        if self.started and self.measurements_used:
+            self.events['resets'] += 1
+            self._reset_requested = (why, 'reset')
+            return 'data'
+        self.restart(why, 'resets')
+        return 'parameters'
+
     def restart(self, why: str, event: str) -> None:
-        """Back to the configured initial state, started again by the next measurement."""
+        """A new time base (the clock or the stamps went back: a new flight): back to the
+        configured initial state, started again by the next measurement."""
         self.events[event] += 1
         self._log('warning', f'{why}: restarting the filter from its initial state')
         self.estimator.reset()
+        self.recovery.clear()
+        self._reset_requested = None
         self.time_ns = self.start_ns = self._last_measurement_ns = self._newest_ns = None
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()
@@ -395,24 +264,43 @@ class FilterRunner:
                 return  # wait: the next measurement may overtake this step's control
             self._step(self._pending.pop(first) if first == self.time_ns else None, self.time_ns)
 
+    def _in_force(self, stamp_ns: int) -> np.ndarray:
+        """The control the plant applied from ``stamp_ns`` when none stamped for it came: the
+        last one while younger than control_validity, else zero thrust (the plant's rule)."""
+        validity_ns = seconds_to_ns(self.settings.control_validity)
+        u, stamp = control_in_force(self._held, stamp_ns, validity_ns, self.estimator.model.n_input)
+        if stamp is None and self._held:
+            self.events['controls_expired'] += 1
+            if not self._expired:
+                self._log('warning', f'the control of t = {max(self._held) / NS:.3f} s expired at t = '
+                          f'{stamp_ns / NS:.3f} s: predicting with zero thrust, as the plant applies')
+            self._expired = True
+        return u
+
     def _step(self, z: np.ndarray | None, stamp_ns: int) -> None:
         u = self._control_for(stamp_ns)
         if u is None:
-            u = self._held_control
+            u = self._in_force(stamp_ns)
             self.controls_missing += 1
-            self._log('warning', f'no control for t = {stamp_ns / NS:.3f} s: holding the last one')
-        self._held_control = u
+            self._log('warning', f'no control for t = {stamp_ns / NS:.3f} s: using the one in force')
+        else:
+            self._held, self._expired = {stamp_ns: u}, False
         if z is None:
             self.dropout_steps += 1
         else:
             self.measurements_used += 1
             self._last_measurement_ns = stamp_ns
-            self._check_consistency(z)
+            why = self._reset_requested or self._inconsistency(z)
+            if why:
+                self._reinitialise(z, stamp_ns, *why)
+            elif self._high_nis == 0:
+                self.recovery.trusted(stamp_ns)
         started = time.perf_counter()
         try:
             self.estimator.step(z, u, self.settings.time_step)
         except FloatingPointError as error:
-            self._reinitialise(z, str(error), 'non_finite_state')
+            self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
+        self.recovery.record(stamp_ns, z, u)
         self.step_seconds.append(time.perf_counter() - started)
         if len(self.step_seconds) > 2000:
             del self.step_seconds[:1000]
@@ -420,102 +308,63 @@ class FilterRunner:
         self._controls = {t: v for t, v in self._controls.items() if t > stamp_ns}
         self._publish(self.time_ns)
 
-    def _check_consistency(self, z: np.ndarray) -> None:
+    def _inconsistency(self, z: np.ndarray) -> tuple[str, str] | None:
         """NIS over nis_threshold for nis_window steps in a row means the filter lost the
-        truth: re-initialise from the measurement."""
+        truth: (why, reason) of the re-initialisation it needs, else None."""
         nis = float(self.estimator.innovation_nis(z, self.measurement_covariance)[0])
         s = self.settings
         self._high_nis = self._high_nis + 1 if nis > s.nis_threshold else 0
         if self._high_nis >= s.nis_window > 0:
-            self._reinitialise(z, f'normalised innovation squared {nis:.1f} > {s.nis_threshold} '
-                               f'for {self._high_nis} steps', 'inconsistent_innovation')
+            return (f'normalised innovation squared {nis:.1f} > {s.nis_threshold} for {self._high_nis} steps',
+                    'inconsistent_innovation')
+        return None
 
-    def _reinitialise(self, z: np.ndarray | None, why: str, reason: str) -> None:
-        """Measured states from ``z``, the rest of the estimate kept where finite (else the
-        initial state), covariance P0."""
-        est = self.estimator
-        x = np.array(est.x_hat, dtype=float)
-        x = np.where(np.isfinite(x), x, est.settings.initial_state)
-        if z is not None:
-            c = est.model.measurement_matrix
-            measured = np.flatnonzero(np.abs(c).sum(axis=0))
-            x[measured] = np.linalg.pinv(c)[measured] @ z
-        try:
-            est.reset(x, est.settings.initial_covariance)
-        except ValueError:  # not representable (absurd measurement): back to the parameters
-            est.reset()
+    def _reinitialise(self, z: np.ndarray | None, stamp_ns: int, why: str, reason: str) -> None:
+        """Restart the filter at ``stamp_ns`` from the data (never the parameters' initial
+        state mid-flight); a state the filter cannot represent leaves it as it is, counted."""
+        self._reset_requested = None
         self._high_nis = 0
-        self.events[f'reinitialisations.{reason}'] += 1
-        self._log('error', f'filter re-initialised from the measurement: {why}')
-
-    # ---------------------------------------------------------------- reporting
-    def values(self) -> dict:
-        """Counters for diagnostics: measurements received = rejected + used + dropped + pending +
-        repeated."""
+        x, covariance, source = self.recovery.restart_state(stamp_ns, z)
         est = self.estimator
-        steps = est.steps
-        times = np.asarray(self.step_seconds[-1000:]) * 1e6
-        values = {
-            'filter': est.kind, 'neurons': est.neuron_count, 'steps': steps,
-            'measurements_received': self.measurements_received,
-            'measurements_used': self.measurements_used, 'measurements_dropped': self.measurements_dropped,
-            'measurements_repeated': self.measurements_repeated,
-            'measurements_pending': len(self._pending),
-            'spikes_total': est.total_spikes,
-            'spike_fraction': (est.total_spikes / (steps * est.neuron_count)
-                               if steps and est.neuron_count else 0.0),
-            'silenced_neurons': len(est.silenced),
-            'step_time_us_last': float(times[-1]) if times.size else 0.0,
-            'step_time_us_median': float(np.median(times)) if times.size else 0.0,
-            'controls_missing': self.controls_missing, 'dropout_steps': self.dropout_steps,
-        }
-        values['measurements_rejected'] = sum(self.rejected.values())
-        values.update({f'measurements_rejected.{k}': v for k, v in sorted(self.rejected.items())})
-        values['controls_rejected'] = sum(self.control_rejected.values())
-        values.update({f'controls_rejected.{k}': v for k, v in sorted(self.control_rejected.items())})
-        values.update(sorted(self.events.items()))
-        values['reinitialisations'] = sum(v for k, v in self.events.items() if k.startswith('reinit'))
-        return values
-
-    def problems(self) -> list[str]:
-        """What a diagnostics status should warn about."""
-        problems = []
-        rejected = sum(self.rejected.values()) + sum(self.control_rejected.values())
-        if rejected:
-            problems.append(f'{rejected} inputs rejected')
-        if self.controls_missing:
-            problems.append(f'{self.controls_missing} controls missing')
-        if self.dropout_steps:
-            problems.append(f'{self.dropout_steps} steps without measurement')
-        reinit = sum(v for k, v in self.events.items() if k.startswith('reinit'))
-        if reinit:
-            problems.append(f'{reinit} re-initialisations')
-        return problems
+        try:
+            est.reset(x, covariance if est.has_covariance else None)
+        except ValueError as error:
+            self.events['reinitialisations_failed'] += 1
+            self._log('error', f'cannot re-initialise from {source} ({error}): the filter goes on')
+            return
+        self.events[f'reinitialisations.{reason}'] += 1
+        self.events[f'restarts_from.{source}'] += 1
+        self.recovery.note_reset(stamp_ns)
+        self._log('error', f'filter re-initialised at t = {stamp_ns / NS:.3f} s from {source.replace("_", " ")}: {why}')
 
 
 
 class Standby:
-    """When a standby estimator should take over: its own estimate is newer than the newest one
-    the active estimator published for ``timeout`` wall-clock seconds, or by two steps of
-    simulated time (the active one died or was deactivated; in lockstep the clock stops with
-    it, so the wall clock decides; in realtime the clock runs on, so it does)."""
+    """Exactly one active estimator (docs/decisions.md, 24), decided from who is alive, not from
+    the age of estimates (at start-up a late estimate says nothing about its estimator).
+    :meth:`update` gives the number of other live estimators on `estimate` (liveliness QoS)
+    and their node names (the graph):
 
-    def __init__(self, timeout: float, time_step: float, wall_clock: Callable[[], float] = time.monotonic):
-        self.timeout = timeout
-        self._lag_ns = 2 * seconds_to_ns(time_step)
-        self._wall = wall_clock
-        self.foreign_ns = -1  # newest estimate another estimator published
-        self._ahead_since: float | None = None
+    * a standby takes over when every other estimator it has seen is gone (killed, stopped,
+      deactivated: its liveliness lease expired or it left), once its own filter runs;
+    * an active estimator that sees another live one yields (deactivates and stands by) when
+      the other's node name sorts before its own: of two started together, after a
+      make-before-break swap or when a stopped one comes back, the first name keeps publishing.
+    """
 
-    def saw(self, stamp_ns: int) -> None:
-        """An estimate another estimator published."""
-        self.foreign_ns = max(self.foreign_ns, stamp_ns)
+    def __init__(self):
+        self.others_alive = 0
+        self.others: list[str] = []
+        self.seen = False  # another estimator was alive once
 
-    def due(self, own_ns: int, start_ns: int) -> bool:
-        """True when the standby, whose estimate is at ``own_ns``, should activate."""
-        if own_ns <= self.foreign_ns:
-            self._ahead_since = None
-            return False
-        self._ahead_since = self._ahead_since or self._wall()
-        lag_ns = own_ns - max(self.foreign_ns, start_ns)
-        return self._wall() - self._ahead_since >= self.timeout or lag_ns >= self._lag_ns
+    def update(self, others_alive: int, others: Iterable[str]) -> None:
+        self.others_alive = max(0, others_alive)
+        self.others = sorted(others)
+        self.seen = self.seen or (self.others_alive > 0 and bool(self.others))
+
+    def takes_over(self, started: bool) -> bool:
+        return started and self.seen and self.others_alive == 0
+
+    def yields(self, own_name: str) -> bool:
+        """True when an active estimator named ``own_name`` should stand down."""
+        return self.others_alive > 0 and any(other < own_name for other in self.others)

@@ -80,25 +80,8 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
                     if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE_TOPICS]
         messages = reader.messages(connections=pipeline) if pipeline else ()  # [] reads all
         for connection, timestamp, raw in messages:
-            topic = connection.topic
-            receive[topic].append(timestamp)
-            name = topic[len(prefix):]
-            if name in ('truth', 'estimate'):
-                record = codec.decode_odometry(raw)
-                series[name].append((record.stamp_ns, record.state, np.diag(record.covariance)))
-            elif name in ('measurement', 'control'):
-                record = codec.decode_point(raw) if name == 'measurement' else codec.decode_accel(raw)
-                series[name].append((record.stamp_ns, record.vector))
-            elif name == 'spike_count':
-                series[name].append(codec.decode_uint32(raw))
-            elif name == 'spikes':
-                series[name].append(codec.decode_spikes(raw))
-            elif name == 'diagnostics':
-                msg = typestore.deserialize_cdr(raw, connection.msgtype)
-                stamp = _stamp(msg.header) / NS
-                for status in msg.status:
-                    values = {kv.key: kv.value for kv in status.values}
-                    run.diagnostics.setdefault(status.name, []).append((stamp, values))
+            receive[connection.topic].append(timestamp)
+            _decode(run, series, typestore, connection, connection.topic[len(prefix):], raw)
     run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}
     for name in ('truth', 'estimate', 'measurement', 'control'):
         series[name], run.repeats[name] = _first_per_stamp(series[name])
@@ -120,6 +103,25 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
         for row, counts in zip(run.spikes, series['spikes']):
             row[:len(counts)] = counts
     return run
+
+
+def _decode(run: RunData, series: dict, typestore, connection, name: str, raw: bytes) -> None:
+    """One pipeline message into its series (diagnostics into ``run.diagnostics``)."""
+    if name in ('truth', 'estimate'):
+        record = codec.decode_odometry(raw)
+        series[name].append((record.stamp_ns, record.state, np.diag(record.covariance)))
+    elif name in ('measurement', 'control'):
+        record = codec.decode_point(raw) if name == 'measurement' else codec.decode_accel(raw)
+        series[name].append((record.stamp_ns, record.vector))
+    elif name == 'spike_count':
+        series[name].append(codec.decode_uint32(raw))
+    elif name == 'spikes':
+        series[name].append(codec.decode_spikes(raw))
+    elif name == 'diagnostics':
+        msg = typestore.deserialize_cdr(raw, connection.msgtype)
+        stamp = _stamp(msg.header) / NS
+        for status in msg.status:
+            run.diagnostics.setdefault(status.name, []).append((stamp, {kv.key: kv.value for kv in status.values}))
 
 
 def _first_per_stamp(samples: list) -> tuple[list, int]:
@@ -146,6 +148,45 @@ def matched_errors(run: RunData) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(times), np.asarray(errors).reshape(-1, 6)
 
 
+#: Each node's counter of what it published: one that goes down in the bag means a restart.
+PUBLISHED_COUNTERS = {'cw_plant': 'truth_published', 'basilisk_plant': 'truth_published',
+                      'position_sensor': 'measurements_published', 'lqr_controller': 'controls_published',
+                      'estimator': 'estimates_published'}
+
+
+def restarts(run: RunData) -> dict:
+    """Node status name -> how many times it restarted during the bag (its published counter
+    went down; a restarted node counts again from zero)."""
+    found = {}
+    for name, key in PUBLISHED_COUNTERS.items():
+        values = [_number(v, key, -1.0) for _, v in run.diagnostics.get(name, ())]
+        values = [v for v in values if v >= 0]
+        found[name] = int(sum(b < a for a, b in zip(values, values[1:])))
+    return {name: n for name, n in found.items() if name in run.diagnostics}
+
+
+def stamp_gaps(run: RunData) -> dict:
+    """Per recorded series (measurement, control, estimate), the stamps of the truth's grid it
+    lacks, as [first, last] runs in seconds (the last truth stamp needs no control)."""
+    grid = np.unique(np.round(run.truth_t * NS).astype(np.int64))
+    gaps = {}
+    for name, times, tail in (('measurement', run.measurement_t, 0), ('control', run.control_t, 1),
+                              ('estimate', run.estimate_t, 0)):
+        if not times.size or not grid.size:
+            continue  # not recorded (or no truth to judge against)
+        expected = grid[:grid.size - tail]
+        missing = np.setdiff1d(expected, np.round(times * NS).astype(np.int64))
+        runs, start = [], None
+        for i, stamp in enumerate(missing):
+            start = stamp if start is None else start
+            following = missing[i + 1] if i + 1 < missing.size else None
+            if following is None or np.searchsorted(grid, following) != np.searchsorted(grid, stamp) + 1:
+                runs.append([start / NS, stamp / NS])
+                start = None
+        gaps[name] = runs
+    return gaps
+
+
 def _number(values: dict, key: str, default=0.0) -> float:
     try:
         return float(values.get(key, default))
@@ -166,8 +207,10 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
     else:
         rmse = np.full(6, np.nan)
     neurons = int(_number(estimator, 'neurons'))
-    steps = int(_number(estimator, 'steps'))
     spikes_total = int(run.spike_count.sum())
+    # per recorded step (one spike count per published estimate, whichever estimator sent it):
+    # mean spikes per neuron and step, whatever restarted or published twice
+    spike_steps = run.spike_count.size
     prefix = run.namespace + '/'
     estimates = _number(estimator, 'estimates_published')
     published = {
@@ -180,6 +223,7 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'spikes': int(_number(estimator, 'spikes_published', estimates)),
     }
     recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
+    completeness = _completeness(run, estimator, published, recorded)
     return {
         'estimator': estimator.get('filter', 'unknown'),
         'sim_time_s': _number(plant, 'sim_time'),
@@ -189,7 +233,7 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'rmse_last_60s': {state: float(value) for state, value in zip(STATES, rmse)},
         'final_range_m': float(np.linalg.norm(run.truth[-1, :3])) if run.truth.size else float('nan'),
         'spikes_total': spikes_total,
-        'spike_fraction': spikes_total / (neurons * steps) if neurons and steps else 0.0,
+        'spike_fraction': spikes_total / (neurons * spike_steps) if neurons and spike_steps else 0.0,
         'control_timeouts': int(_number(plant, 'control_timeouts')),
         'plant': 'basilisk_plant' if run.last_diagnostics('basilisk_plant') else 'cw_plant',
         'saturated_steps': int(_number(plant, 'saturated_steps')),
@@ -198,5 +242,18 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'estimator_spikes_total': int(_number(estimator, 'spikes_total')),
         'neurons': neurons,
         'messages': {name: {'published': published[name], 'recorded': recorded[name]} for name in published},
-        'recording_complete': all(recorded[n] == published[n] for n in published),
+        **completeness,
     }
+
+
+def _completeness(run: RunData, estimator: dict, published: dict, recorded: dict) -> dict:
+    """Whether the bag holds the whole run: every stamp of the truth's grid in each series and,
+    when the nodes' totals can be compared (no restart, nobody publishing twice), every message
+    they published (a restarted node counts from its restart)."""
+    restarted = restarts(run)
+    gaps = stamp_gaps(run)
+    duplicates = max(0, run.repeats.get('estimate', 0) - int(_number(estimator, 'estimates_resent')))
+    comparable = not any(restarted.values()) and not duplicates
+    complete = all(not runs for runs in gaps.values()) and (
+        not comparable or all(recorded[n] == published[n] for n in published))
+    return {'recording_complete': complete, 'restarts': restarted, 'duplicate_estimates': duplicates, 'gaps': gaps}

@@ -78,10 +78,12 @@ def write_report(runs, out: Path) -> Path:
         figures.append(rmse_figure(padded, times, STATES, out / 'rmse.png',
                                    f'RMSE over the preceding {RMS_WINDOW:.0f} s (Fig. 11)', colours))
     for label, data, summary in loaded:
-        if data.spikes.size:
+        if data.spikes.size and data.estimate_t.size:
             name = f"spikes_{summary['estimator']}.png" if len(loaded) > 1 else 'spikes.png'
-            step_times = data.estimate_t[:len(data.spikes)]
-            figures.append(raster_figure(step_times, data.spikes, out / name,
+            # spike arrays carry no stamp: paired with the estimates in order (with two
+            # publishers or a restart there are more arrays than estimate stamps)
+            rows = min(len(data.spikes), data.estimate_t.size)
+            figures.append(raster_figure(data.estimate_t[:rows], data.spikes[:rows], out / name,
                                          f'{label}: spike raster and spikes per step (Fig. 7)'))
     if any(c[1].size for c in controls.values()):
         figures.append(control_figure(controls, out / 'control.png', 'Commanded specific force (LQR)'))
@@ -101,7 +103,7 @@ def _pad(values: np.ndarray, length: int) -> np.ndarray:
 def _markdown(loaded, figures, out: Path) -> str:
     lines = ['# Rendezvous run report', '',
              'Computed from the recorded bag(s). RMSE over the last 60 s of simulated time; '
-             'spike fraction = spikes / (N x estimator steps).', '',
+             'spike fraction = spikes / (N x recorded estimator steps).', '',
              '| run | steps | sim time [s] | wall [s] | real-time factor | final range [m] | '
              'RMSE x, y, z [m] | RMSE vx, vy, vz [m/s] | spikes | spike fraction | control timeouts | '
              'measurements rejected |',
@@ -118,6 +120,14 @@ def _markdown(loaded, figures, out: Path) -> str:
     for label, _, s in loaded:
         counts = ', '.join(f"{k} {v['recorded']}/{v['published']}" for k, v in s['messages'].items())
         lines.append(f'- {label}: {counts}' + ('' if s['recording_complete'] else ' (INCOMPLETE)'))
+        notes = [f"{node} restarted {n}x" for node, n in s.get('restarts', {}).items() if n]
+        if s.get('duplicate_estimates'):
+            notes.append(f"{s['duplicate_estimates']} estimate stamps published twice (two estimators)")
+        notes += [f"{name} missing {', '.join(f'{a:.1f}-{b:.1f} s' for a, b in runs[:5])}"
+                  + (f' and {len(runs) - 5} more gaps' if len(runs) > 5 else '')
+                  for name, runs in s.get('gaps', {}).items() if runs]
+        if notes:
+            lines.append(f"  - {'; '.join(notes)} (completeness judged per stamp)")
     lines += ['', '## Figures', '']
     for figure in figures:
         lines.append(f'![{figure.stem}]({Path(figure).relative_to(out)})')

@@ -91,7 +91,7 @@ class Probe:
                  qos.DIAGNOSTICS: DiagnosticArray}
         self.publishers = {}
         for topic, kind in types.items():
-            self.node.create_subscription(kind, topic, self.received[topic].append, qos.HISTORY_QOS)
+            self.node.create_subscription(kind, topic, self.received[topic].append, qos.LISTENER_QOS)
             if publish:
                 self.publishers[topic] = self.node.create_publisher(kind, topic, qos.PUBLISHER_QOS)
 

@@ -113,3 +113,42 @@ def test_spikes_expected_are_the_ones_the_estimator_published(tmp_path, spikes_p
     summary = summarize(read_bag(write_bag(tmp_path / 'bag', messages)))
     assert summary['messages']['spikes'] == {'published': spikes_recorded, 'recorded': spikes_recorded}
     assert summary['recording_complete']
+
+
+def test_a_bag_with_two_estimators_a_restarted_plant_and_a_gap_is_reported_per_stamp(tmp_path):
+    """What the fault matrix records: an estimate per stamp from two estimators at once (each
+    with its spikes), a plant whose counters restart from zero, measurements missing for 0.3 s."""
+    from scenario_nodes.codec import encode_point
+    messages = []
+    for k in range(20):
+        x = np.arange(6.0) + k
+        messages.append(('/truth', KNOWN_TYPES['truth'], encode_odometry(x, None, k * STEP_NS, 'lvlh', 'chaser')))
+        if not 5 <= k <= 7:
+            messages.append(('/measurement', KNOWN_TYPES['measurement'],
+                             encode_point(x[:3], (0, 1, 2), k * STEP_NS, 'lvlh')))
+        for _ in range(2 if k >= 10 else 1):  # a second estimator from step 10
+            messages.append(('/estimate', KNOWN_TYPES['estimate'],
+                             encode_odometry(x + 0.5, np.eye(6), k * STEP_NS, 'lvlh', 'chaser')))
+            messages.append(('/spike_count', KNOWN_TYPES['spike_count'], encode_uint32(2)))
+            messages.append(('/spikes', KNOWN_TYPES['spikes'], encode_spikes([1, 1, 0, 0])))
+    messages += [diagnostics('cw_plant', truth_published=15), diagnostics('cw_plant', truth_published=5),
+                 diagnostics('estimator', filter='snn_ekf', neurons=4, steps=10, estimates_published=10)]
+    run = read_bag(write_bag(tmp_path / 'bag', messages))
+    summary = summarize(run)
+    assert summary['restarts'] == {'cw_plant': 1, 'estimator': 0}
+    assert summary['duplicate_estimates'] == 10
+    assert summary['gaps'] == {'measurement': [[0.5, 0.7]], 'estimate': []}
+    assert not summary['recording_complete']  # the gap, not the restarted plant's totals
+    # 60 spikes over 30 recorded steps of 4 neurons: 0.5, not 60 / (4 x 10 steps of the last estimator)
+    assert summary['spike_fraction'] == pytest.approx(0.5)
+    report = write_report([tmp_path / 'bag'], tmp_path / 'report')  # no crash on the longer spike record
+    text = report.read_text()
+    assert 'cw_plant restarted 1x' in text and 'measurement missing 0.5-0.7 s' in text
+    assert (tmp_path / 'report' / 'spikes.png').exists()
+
+
+def test_a_complete_bag_without_restarts_is_complete(tmp_path):
+    messages = steps(5) + [diagnostics('cw_plant', truth_published=5),
+                           diagnostics('estimator', filter='ekf', estimates_published=5, spikes_published=0)]
+    summary = summarize(read_bag(write_bag(tmp_path / 'bag', messages)))
+    assert summary['recording_complete'] and summary['gaps'] == {'estimate': []}

@@ -41,8 +41,8 @@ class Monitor:
         self.now = 0.0
         self.newest_estimate = 0.0
         self.node.create_subscription(Clock, '/clock', self._on_clock, qos.CLOCK_QOS)
-        # with history: an estimate published before this reader matched a new estimator counts too
-        self.node.create_subscription(Odometry, qos.ESTIMATE, self._on_estimate, qos.HISTORY_QOS)
+        # the newest estimate from history: one published before this reader matched a new estimator counts too
+        self.node.create_subscription(Odometry, qos.history_topic(qos.ESTIMATE), self._on_estimate, qos.HISTORY_QOS)
 
     def _on_clock(self, msg):
         self.now = stamp_to_ns(msg.clock) * 1e-9
@@ -145,7 +145,11 @@ def test_estimator_hot_swap_safe_mode_and_recovery(tmp_path):
           f"{controller.get('safe_mode_steps')}, control timeouts {summary['control_timeouts']}")
     assert summary['steps'] == 3600
     assert summary['final_range_m'] < 0.5
-    assert int(controller['safe_mode_steps']) > 0 and controller['safe_mode'] == 'False'
+    assert int(controller['safe_mode_steps']) > 0
+    # safe mode ended once estimates came back (at the very end it may be on again: the plant
+    # is done, so the clock stops, which the controller reports as a stopped clock)
+    assert any(values['safe_mode'] == 'False' for stamp, values in data.diagnostics['lqr_controller']
+               if 150.0 < stamp < 350.0)
     # the killed process took its estimate history with it: the new one fits the sensor history
     assert estimator['filter'] == 'snn_ekf'
     assert 'started from a least-squares fit of' in swap_log
@@ -177,7 +181,7 @@ def test_a_hot_standby_takes_over_when_the_active_estimator_dies(tmp_path):
           f"{controller.get('safe_mode_steps')}, control timeouts {summary['control_timeouts']}")
     assert summary['steps'] == 3600 and summary['final_range_m'] < 0.1
     assert int(controller['safe_mode_steps']) <= 5
-    assert 'standby: no estimate newer than' in standby_log and 'active: publishing estimates' in standby_log
+    assert 'standby: no other estimator is alive' in standby_log and 'active: publishing estimates' in standby_log
     after = data.estimate_t > 101.0
     assert np.all(np.diff(data.estimate_t[after]) >= 0) and data.estimate_t[-1] >= 360.0
 

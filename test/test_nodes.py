@@ -250,3 +250,55 @@ def test_the_plant_starts_once_the_loop_is_there_and_no_step_is_lost(mode):
         assert truths == measurements == {k * 100_000_000 for k in range(31)}
         assert estimates[0] == 0 and estimates == [k * 100_000_000 for k in range(len(estimates))]
         assert len(estimates) >= 30
+
+
+def test_an_integer_for_a_double_parameter_is_taken_as_that_double_and_a_string_is_refused_with_the_fix():
+    """ros2 run ... -p cw_plant:real_time_factor:=10 hands rclpy an integer for a double."""
+    with ros_context() as (context, executor, nodes):
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', mode='realtime', real_time_factor=10,
+                     duration=0.0, start=False)
+        value = plant.get_parameter('real_time_factor')
+        assert value.value == 10.0 and value.type_ == value.Type.DOUBLE
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller',
+                          lqr_state_weight=[1, 1, 1, 1, 1, 1], start=False)
+        assert list(controller.get_parameter('lqr_state_weight').value) == [1.0] * 6
+        fix = r'parameter real_time_factor must be a double \(e\.g\. real_time_factor:=1\)'
+        with pytest.raises(ValueError, match=fix):
+            make(PlantNode, context, executor, nodes, 'cw_plant', real_time_factor='fast', start=False)
+
+
+def test_a_late_volatile_subscriber_gets_the_present_and_a_late_history_reader_the_recent_past():
+    """ros2 topic echo --once adapts to the publishers' durability: it gets a current sample
+    (the topics are volatile), while <topic>/history keeps what a joining estimator needs."""
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, publish=False)
+        make(ControllerNode, context, executor, nodes, 'lqr_controller')
+        make(EstimatorNode, context, executor, nodes, 'estimator', filter_type='ekf', history_wait=0.0)
+        make(SensorNode, context, executor, nodes, 'position_sensor')
+        make(PlantNode, context, executor, nodes, 'cw_plant', duration=0.0, control_timeout=30.0)
+        assert spin_until(executor, lambda: len(probe.received[qos.ESTIMATE]) > 300, timeout=90.0)
+        late = Node('late_echo', context=context)
+        executor.add_node(late)
+        nodes.append(late)
+        infos = late.get_publishers_info_by_topic('/estimate')
+        latched = all(i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos)
+        assert infos and not latched  # so the CLI subscribes volatile
+        echo, history = [], []
+        late.create_subscription(Odometry, qos.ESTIMATE, echo.append, QoSProfile(
+            depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE))
+        late.create_subscription(nav_msgs_point(), qos.history_topic(qos.MEASUREMENT), history.append, QoSProfile(
+            history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        newest = max(stamp_to_ns(m.header.stamp) for m in probe.received[qos.ESTIMATE])
+        assert spin_until(executor, lambda: echo and len(history) >= 200, timeout=20.0)
+        assert stamp_to_ns(echo[0].header.stamp) >= newest  # the present, not the first estimate (0 s)
+        stamps = [stamp_to_ns(m.header.stamp) for m in history[:200]]
+        # the 20 s before the join (a repeated sample, a lockstep resend, may shift it by a step)
+        assert stamps == sorted(stamps) and stamps[0] > 0 and stamps[-1] - stamps[0] >= 150 * 100_000_000
+
+
+def nav_msgs_point():
+    from geometry_msgs.msg import PointStamped
+    return PointStamped

@@ -252,11 +252,11 @@ def test_reset_service_and_set_state_topic(estimator_rig):
     np.testing.assert_allclose(node.estimator.x_hat, target, atol=1e-6)
     np.testing.assert_allclose(np.diag(node.estimator.P), np.diag(covariance))
     response = harness.call(Trigger, '/estimator/reset', Trigger.Request())
-    assert response.success and 'initial_state' in response.message
-    assert not node.runner.started
-    harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 20 * DT, 'lvlh'))
-    assert spin_until(harness.executor, lambda: harness.estimates()[-1][0] == 20 * DT)
-    np.testing.assert_allclose(harness.estimates()[-1][1], [70, 30, -5, -1.7, -0.9, 0.25], atol=1e-6)
+    # mid-flight: from the data at the next measurement, never the parameters' initial state
+    assert response.success and 'recent measurements' in response.message and node.runner.started
+    step(harness, DT, 3)
+    assert node.values()['restarts_from.last_trusted'] == 1  # too few measurements for a fit yet
+    np.testing.assert_allclose(harness.estimates()[-1][1][:3], X0, atol=0.5)  # the measurement, not target
 
 
 def test_a_persistently_inconsistent_innovation_re_initialises_from_the_measurement(estimator_rig):
@@ -472,7 +472,7 @@ def test_random_and_malformed_inputs_never_escape_and_outputs_stay_finite(sequen
         controller = make(ControllerNode, context, executor, nodes, 'lqr_controller',
                           cli_args=['--ros-args', '-r', 'control:=answers'])
         controls = []  # what the controller itself publishes
-        harness.node.create_subscription(AccelStamped, 'answers', controls.append, qos.HISTORY_QOS)
+        harness.node.create_subscription(AccelStamped, 'answers', controls.append, qos.LISTENER_QOS)
         assert spin_until(executor, lambda: harness.node.count_subscribers(qos.MEASUREMENT) > 0)
         measurements = 0
         for kind, values, k, frame in sequence:
@@ -536,3 +536,39 @@ def test_a_second_estimator_warm_starts_from_the_running_ones_estimates():
         assert spin_until(executor, lambda: second.estimator.steps == 1 and first.estimator.steps == 21), (
             second.estimator.steps, first.estimator.steps, second.values())
         assert np.abs(second.estimator.x_hat - first.estimator.x_hat).max() < 0.5
+
+
+def test_controller_safe_mode_covers_a_dead_sensor_and_reports_its_peers(controller_rig):
+    """Estimates keep coming (predictions) but the measurements stopped: zero thrust, the
+    'measurement' peer WARN in diagnostics; measurements back: LQR again, the level clears."""
+    harness, controller = controller_rig
+    executor = harness.executor
+    assert harness.set_parameters('lqr_controller', peer_timeout=0.3)[0].successful is False  # read-only
+    x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+
+    def step(k, measured=True, settle=0.0):
+        harness.clock(k * DT)
+        if measured:
+            harness.publish(qos.MEASUREMENT, measurement_to_point(x[:3], (0, 1, 2), k * DT, 'lvlh'))
+        spin_until(executor, lambda: False, timeout=settle)
+        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, k * DT, 'lvlh', 'c'))
+        assert spin_until(executor, lambda: any(stamp_to_ns(m.header.stamp) == k * DT
+                                                for m in harness.received[qos.CONTROL]))
+        return [m for m in harness.received[qos.CONTROL] if stamp_to_ns(m.header.stamp) == k * DT][-1]
+
+    for k in range(1, 5):
+        assert step(k, settle=0.05).accel.linear.x != 0.0
+    for k in range(5, 15):  # 1 s of simulated time without measurements
+        step(k, measured=False)
+    assert step(15, measured=False).accel.linear.x == 0.0  # steering on predictions: no thrust
+    assert controller.safe_mode  # within a step, long before the clock could count as stopped
+    assert spin_until(executor, lambda: 'no measurement since t = 0.400 s' in
+                      harness.received[qos.DIAGNOSTICS][-1].status[0].message, timeout=1.0)
+    # peer_timeout (2 s wall): the sensor counts as gone, and the clock as stopped
+    assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('peer.measurement') == 'WARN'
+                      and harness.diagnostics('lqr_controller').get('peer.clock') == 'WARN', timeout=5.0)
+    assert 'safe mode' in harness.received[qos.DIAGNOSTICS][-1].status[0].message
+    assert harness.received[qos.DIAGNOSTICS][-1].status[0].level == b'\x01'  # WARN
+    step(16, settle=0.3)  # both back (the safe-mode timer may answer this step first, with zero)
+    assert step(17).accel.linear.x != 0.0 and not controller.safe_mode
+    assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('peer.measurement') == 'OK')

@@ -207,3 +207,79 @@ def test_has_measurement_tells_a_resend_from_new_information():
     runner.measurement(DT, X0)
     assert runner.has_measurement(0) and runner.has_measurement(DT) and not runner.has_measurement(2 * DT)
     assert NS == 10 * DT
+
+
+class Loop:
+    """The closed loop around a runner (truth, sensor, LQR on the published estimate), seeded."""
+
+    def __init__(self, kind='ekf', seed=5, **settings):
+        scenario = rendezvous_scenario()
+        self.model = scenario.model
+        self.plant = Plant(self.model, scenario.x0, scenario.process_noise, [seed])
+        self.sensor = PositionSensor(self.model, scenario.measurement_noise, [seed])
+        self.gain = lqr_gain(self.model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+        self.runner, self.published, _ = make_runner(kind, **settings)
+        self.runner.start('auto')
+        self.k = 0
+        self.sensor_offset = np.zeros(3)
+
+    def run(self, steps):
+        for _ in range(steps):
+            truth = self.plant.x[0].copy()
+            self.runner.measurement(self.k * DT, self.sensor.measure(self.plant.x)[0] + self.sensor_offset)
+            u = lqr_control(self.gain, self.published[-1][1])
+            self.runner.control(self.k * DT, u)
+            self.plant.step(u, 0.1)
+            self.k += 1
+        return truth  # the truth at the last measurement's stamp
+
+
+WRONG = np.array([170.0, -40.0, 20.0, 1.0, -1.0, 0.5])  # 100 m and ~1.5 m/s off
+
+
+def test_a_reset_mid_flight_starts_from_the_recent_measurements_near_the_truth():
+    loop = Loop()
+    loop.run(150)
+    loop.runner.set_state(WRONG, np.eye(6))  # whatever the filter holds now, the reset ignores it
+    assert loop.runner.reset('test') == 'data'
+    loop.run(1)  # the next step re-initialises from the measurements of the last 10 s, then updates
+    error = loop.published[-1][1] - loop.plant.x[0]
+    assert loop.runner.events['restarts_from.least_squares'] == 1
+    assert np.abs(error[:3]).max() < 0.2 and np.abs(error[3:]).max() < 0.02, error
+    parameters = loop.runner.estimator.settings.initial_state
+    assert np.abs(parameters[:3] - loop.plant.x[0, :3]).max() > 10.0  # the parameters are far from here
+
+
+def test_an_inconsistent_filter_is_re_initialised_from_the_recent_measurements_velocity_included():
+    loop = Loop(nis_window=5)
+    loop.run(150)
+    loop.runner.set_state(WRONG, np.diag([1e-2] * 3 + [1e-4] * 3))  # confidently wrong
+    loop.run(6)  # five inconsistent steps, then the re-initialisation and one update
+    assert loop.runner.events['reinitialisations.inconsistent_innovation'] == 1
+    error = loop.published[-1][1] - loop.plant.x[0]
+    assert np.abs(error[:3]).max() < 0.2 and np.abs(error[3:]).max() < 0.02, error  # velocity from the fit
+    assert loop.runner.values()['reset_storms'] == 0
+
+
+def test_a_reset_storm_is_detected_and_reported():
+    loop = Loop(nis_window=3)
+    loop.run(100)
+    for jump in range(4):  # the sensor jumps 50 m every 2 s: the filter is re-initialised each time
+        loop.sensor_offset = np.full(3, 50.0 * (jump + 1))
+        loop.run(20)
+    values = loop.runner.values()
+    assert values['reinitialisations'] >= 3 and values['reset_storms'] == 1
+    assert '1 reset storms' in '; '.join(loop.runner.problems())
+
+
+@pytest.mark.parametrize('clock_ns, cause', [(1_700_000_000 * NS, 'use_sim_time'), (50 * DT, 'arrive late')])
+def test_stamps_off_the_clock_name_the_likely_cause(clock_ns, cause):
+    """A wall clock against simulated stamps is a configuration error; a few seconds apart,
+    a process lagging (a starved CPU) is the likely cause."""
+    logs = []
+    scenario = rendezvous_scenario()
+    runner = FilterRunner(make_estimator('ekf', scenario.estimator, scenario.model), RunnerSettings(time_step=0.1),
+                          R, publish=lambda stamp: None, log=lambda level, message: logs.append(message))
+    runner.start('auto')
+    runner.measurement(10 * DT, X0, now_ns=clock_ns)
+    assert sum(cause in m for m in logs) == 1 and runner.events['stamps_off_the_clock'] == 1

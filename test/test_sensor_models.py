@@ -35,8 +35,8 @@ class Probe:
         executor.add_node(self.node)
         nodes.append(self.node)
         self.received, self.statuses = [], []
-        self.node.create_subscription(message_type, 'lidar', self.received.append, qos.HISTORY_QOS)
-        self.node.create_subscription(DiagnosticArray, qos.DIAGNOSTICS, self.statuses.append, qos.HISTORY_QOS)
+        self.node.create_subscription(message_type, 'lidar', self.received.append, qos.LISTENER_QOS)
+        self.node.create_subscription(DiagnosticArray, qos.DIAGNOSTICS, self.statuses.append, qos.LISTENER_QOS)
         self.truth = self.node.create_publisher(Odometry, qos.TRUTH, qos.PUBLISHER_QOS)
 
     def ready(self) -> bool:

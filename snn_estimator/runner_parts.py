@@ -1,0 +1,240 @@
+"""The gating, start-up and reporting parts of :class:`snn_estimator.runner.FilterRunner`.
+
+Mixins of that one class, split from it for size: they share its state (the queue, the
+counters, the estimator) and are not used on their own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from .catalog import START_MODES
+from .gates import NS, seconds_ahead, seconds_to_ns
+from .initialization import least_squares_start
+from .plant_runner import control_in_force
+
+
+@dataclass
+class History:
+    """What the topics held when the filter joined: stamp (ns) -> value."""
+
+    measurements: Mapping[int, np.ndarray]
+    controls: Mapping[int, np.ndarray]
+    #: Estimates an earlier estimator published: stamp -> (x, covariance or None).
+    estimates: Mapping[int, tuple]
+
+
+class Gating:
+    """Which measurements the runner takes, and whether their stamps share the clock's time base."""
+
+    def _gate_measurement(self, stamp_ns: int, now_ns: int) -> str | None:
+        s = self.settings
+        where = f'measurement at {stamp_ns / NS:.3f} s'
+        if (self.started and now_ns <= 0
+                and stamp_ns < self.time_ns - seconds_to_ns(s.time_jump_threshold)):
+            # no clock: stamps far in the past mean the time base restarted (a bag loop)
+            self.restart(f'measurement time went back from {self.time_ns / NS:.3f} s to '
+                         f'{stamp_ns / NS:.3f} s', 'time_jumps')
+        if stamp_ns in self._pending or stamp_ns == self._last_measurement_ns:
+            return self._say('duplicate', f'second {where}')
+        if (self.started and self._newest_ns is not None  # None: a warm start without measurement history
+                and stamp_ns < self._newest_ns - seconds_to_ns(s.max_input_age)):
+            return self._say('too_old', f'{where} is more than {s.max_input_age} s older than the '
+                             f'newest measurement ({self._newest_ns / NS:.3f} s)')
+        if self.started and stamp_ns < self.time_ns:
+            return self._say('stale', f'{where} is older than the estimate at {self.time_ns / NS:.3f} s')
+        if self.started and (stamp_ns - self.time_ns) % self._dt_ns:
+            return self._say('misaligned', f'{where} does not fall on the estimate time '
+                             f'{self.time_ns / NS:.3f} s plus steps of {s.time_step} s (time_step?)')
+        ahead = self.seconds_ahead(stamp_ns, now_ns)
+        if ahead:  # queued, it would make every real measurement 'too_old'
+            return self._say('future', f'{where} is {ahead:.3f} s ahead of the clock')
+        return None
+
+    def seconds_ahead(self, stamp_ns: int, now_ns: int) -> float:
+        """See :func:`snn_estimator.gates.seconds_ahead`."""
+        return seconds_ahead(stamp_ns, now_ns, self.settings.max_input_age, self.settings.time_step)
+
+    def _check_time_base(self, stamp_ns: int, now_ns: int) -> None:
+        """Note whether measurement stamps and the clock share a time base (within
+        max_input_age plus two steps); say so once when they do not."""
+        if now_ns <= 0:
+            return  # no clock yet: nothing to compare with
+        lead = seconds_to_ns(self.settings.max_input_age + 2 * self.settings.time_step)
+        agrees = abs(now_ns - stamp_ns) <= lead
+        if not agrees and self._clock_agrees is not False:
+            self.events['stamps_off_the_clock'] += 1
+            # far apart: another time base (wall against simulated); near: a process lagging
+            cause = ('is use_sim_time set as the sensor stamps?' if abs(now_ns - stamp_ns) > 1000 * NS
+                     else 'the clock or the measurements arrive late: a starved CPU or a delayed /clock?')
+            self._log('warning', f'measurement stamped {stamp_ns / NS:.3f} s with the clock at '
+                      f'{now_ns / NS:.3f} s: not predicting over sensor dropouts ({cause})')
+        self._clock_agrees = agrees
+
+
+class StartUp:
+    """How the runner starts: from an earlier estimator's estimate, a least-squares fit of the
+    measurement history, or the parameters at the first measurement."""
+
+    def start(self, mode: str, history: History | None = None) -> str:
+        """Choose how to start (see :data:`snn_estimator.catalog.START_MODES`) and do it; returns what was done:
+        'last_estimate' (warm start, replaying the queued measurements), 'history'
+        (least-squares fit), or 'waiting' (the configured initial state at the next
+        measurement). 'auto' takes the first that the history allows, in that order."""
+        if mode not in START_MODES:
+            raise ValueError(f'start mode must be one of {", ".join(START_MODES)}; got {mode!r}')
+        history = history or History({}, {}, {})
+        for stamp_ns, z in sorted(history.measurements.items()):
+            if stamp_ns not in self._pending:
+                self._pending[stamp_ns] = np.asarray(z, dtype=float)
+                self._from_history.add(stamp_ns)
+            self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
+        self.events['history_measurements'] += len(self._from_history)
+        for stamp_ns, u in history.controls.items():
+            self._controls.setdefault(stamp_ns, np.asarray(u, dtype=float))
+        if mode in ('auto', 'last_estimate') and history.estimates:
+            stamp_ns = max(history.estimates)
+            x, covariance = history.estimates[stamp_ns]
+            if self._warm_start(stamp_ns, x, covariance):
+                return 'last_estimate'
+        if mode in ('auto', 'history') and self._fit_start():
+            return 'history'
+        if mode in ('last_estimate', 'history'):
+            self._log('warning', f'no {mode} to start from: starting from the parameters at the next measurement')
+        # a fresh loop: the first measurement (queued or next) starts the filter
+        self._awaiting_start = True
+        if self._pending:
+            self._begin(min(self._pending), publish=True)
+            self.events['cold_starts'] += 1
+            self._log('info', f'started from the parameters at t = {self.start_ns / NS:.3f} s '
+                      f'({len(self._pending)} measurements queued)')
+            self._process()
+            return 'parameters'
+        return 'waiting'
+
+    def _warm_start(self, stamp_ns: int, x: np.ndarray, covariance: np.ndarray | None) -> bool:
+        """Start from an earlier estimator's estimate at ``stamp_ns`` (hot swap)."""
+        estimator = self.estimator
+        estimator.reset()
+        try:
+            estimator.set_state(x, self.usable_covariance(covariance))
+        except ValueError as error:
+            self._log('warning', f'cannot warm start from the earlier estimate: {error}')
+            return False
+        self._drop({t for t in self._pending if t < stamp_ns}, 'it predates the warm start')
+        self._begin(stamp_ns, publish=False)
+        self.events['warm_starts'] += 1
+        self._log('info', f'warm start from the estimate of {stamp_ns / NS:.3f} s; replaying '
+                  f'{len(self._pending)} measurements')
+        self._process()
+        return True
+
+    def _fit_start(self) -> bool:
+        """Least-squares start over the newest initial_fit_window seconds of queued
+        measurements (controls from the controls' history, the last one held where missing);
+        the filter starts at the newest, which its next step uses."""
+        window_ns = seconds_to_ns(self.settings.initial_fit_window)
+        if not self._pending:
+            return False
+        newest = max(self._pending)
+        stamps = sorted(t for t in self._pending if t >= newest - window_ns)
+        if (newest - stamps[0]) < window_ns - self._dt_ns // 2:
+            return False  # not a full window: the filter did not join a running loop
+        known, validity_ns = [], seconds_to_ns(self.settings.control_validity)
+        held = dict(self._held)
+        for stamp_ns in stamps:
+            u = self._control_for(stamp_ns)
+            if u is None:
+                u = control_in_force(held, stamp_ns, validity_ns, self.estimator.model.n_input)[0]
+            else:
+                held = {stamp_ns: u}
+            known.append(u)
+        try:
+            x, covariance = least_squares_start(
+                self.estimator.model, np.asarray(stamps) / NS, [self._pending[t] for t in stamps],
+                known, self.measurement_covariance)
+            self.estimator.reset()
+            self.estimator.set_state(x, covariance if self.estimator.has_covariance else None)
+        except (ValueError, np.linalg.LinAlgError) as error:
+            self._log('warning', f'no least-squares start from the history: {error}')
+            return False
+        self._drop({t for t in self._pending if t < stamps[0]}, 'older than the least-squares window')
+        for stamp_ns in stamps[:-1]:
+            del self._pending[stamp_ns]
+        self.measurements_used += len(stamps) - 1
+        self.events['history_starts'] += 1
+        self._begin(stamps[-1], publish=True)
+        self._log('info', f'started from a least-squares fit of {len(stamps) - 1} measurements '
+                  f'({stamps[0] / NS:.1f}-{stamps[-2] / NS:.1f} s) at t = {stamps[-1] / NS:.3f} s')
+        self._process()
+        return True
+
+    def usable_covariance(self, blocks: np.ndarray | None) -> np.ndarray | None:
+        """A received covariance if it is one (finite, symmetric, positive definite on each
+        published block), else P0; None for a filter without a covariance."""
+        if not self.estimator.has_covariance:
+            return None
+        p0 = self.estimator.settings.initial_covariance
+        if blocks is None:
+            return p0
+        blocks = np.asarray(blocks, dtype=float)
+        n = blocks.shape[0]
+        half = n // 2
+        if (np.all(np.isfinite(blocks)) and np.allclose(blocks, blocks.T)
+                and np.all(np.linalg.eigvalsh(blocks[:half, :half]) > 0)
+                and np.all(np.linalg.eigvalsh(blocks[half:, half:]) > 0)):
+            return blocks
+        return p0
+
+
+class Reporting:
+    """The runner's counters for diagnostics."""
+
+    def values(self) -> dict:
+        """Counters for diagnostics: measurements received = rejected + used + dropped + pending +
+        repeated."""
+        est = self.estimator
+        steps = est.steps
+        times = np.asarray(self.step_seconds[-1000:]) * 1e6
+        values = {
+            'filter': est.kind, 'neurons': est.neuron_count, 'steps': steps,
+            'measurements_received': self.measurements_received,
+            'measurements_used': self.measurements_used, 'measurements_dropped': self.measurements_dropped,
+            'measurements_repeated': self.measurements_repeated,
+            'measurements_pending': len(self._pending),
+            'spikes_total': est.total_spikes,
+            'spike_fraction': (est.total_spikes / (steps * est.neuron_count)
+                               if steps and est.neuron_count else 0.0),
+            'silenced_neurons': len(est.silenced),
+            'step_time_us_last': float(times[-1]) if times.size else 0.0,
+            'step_time_us_median': float(np.median(times)) if times.size else 0.0,
+            'controls_missing': self.controls_missing, 'dropout_steps': self.dropout_steps,
+        }
+        values['measurements_rejected'] = sum(self.rejected.values())
+        values.update({f'measurements_rejected.{k}': v for k, v in sorted(self.rejected.items())})
+        values['controls_rejected'] = sum(self.control_rejected.values())
+        values.update({f'controls_rejected.{k}': v for k, v in sorted(self.control_rejected.items())})
+        values.update(sorted(self.events.items()))
+        values['reinitialisations'] = sum(v for k, v in self.events.items() if k.startswith('reinitialisations.'))
+        values['reset_storms'] = self.recovery.storms
+        return values
+
+    def problems(self) -> list[str]:
+        """What a diagnostics status should warn about."""
+        problems = []
+        rejected = sum(self.rejected.values()) + sum(self.control_rejected.values())
+        if rejected:
+            problems.append(f'{rejected} inputs rejected')
+        if self.controls_missing:
+            problems.append(f'{self.controls_missing} controls missing')
+        if self.dropout_steps:
+            problems.append(f'{self.dropout_steps} steps without measurement')
+        reinit = sum(v for k, v in self.events.items() if k.startswith('reinitialisations.'))
+        if reinit:
+            problems.append(f'{reinit} re-initialisations')
+        if self.recovery.storms:
+            problems.append(f'{self.recovery.storms} reset storms')
+        return problems
