@@ -5,7 +5,7 @@
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
-#   make bench | bench-loop | bench-campaign    speed figures -> results/
+#   make bench | bench-loop | bench-campaign | bench-latency [SAMPLES=n]   speed figures -> results/
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 PYTHON ?= python3.11
 VENV ?= .venv
@@ -16,13 +16,14 @@ MODE ?= lockstep
 PLANT ?= cw
 RTF ?=
 RUNS ?=
+SAMPLES ?=
 SPEC ?= config/campaigns/example.yaml
 WORKERS ?= 2
 SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign report clean
+.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-latency report clean
 
 venv: $(STAMP)
 
@@ -68,7 +69,12 @@ bench: $(STAMP)
 
 # RUNS means Monte-Carlo runs (default: each spec's) for experiments; the loop bench takes 5 unless given
 bench-loop: $(STAMP)
-	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) \
+	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) --out results/loop_bench.json \
+		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+
+# realtime latency measurement -> estimate / control, 1x and 10x (10000 samples: ~25 min)
+bench-latency: $(STAMP)
+	$(BIN)/snn_latency_bench --out results/latency.json $(if $(SAMPLES),--samples $(SAMPLES)) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 bench-campaign: $(STAMP)

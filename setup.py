@@ -18,6 +18,7 @@ EXECUTABLES = {
     'snn_experiments': 'snn_tools.experiments:main',
     'snn_bench': 'snn_tools.bench:main',
     'snn_loop_bench': 'snn_tools.loop_bench:main',
+    'snn_latency_bench': 'snn_tools.latency_bench:main',
     'snn_export': 'snn_tools.nir_export:main',
     'snn_neuromorphic': 'snn_tools.neuromorphic:main',
     'snn_campaign': 'snn_tools.campaign:main',
@@ -68,7 +69,9 @@ setup(
         'campaign': ['dask[distributed]>=2024.1', 'pyarrow>=14'],
         # NIR export of the networks and the independent Brian2 simulation of them
         'neuromorphic': ['nir>=1.0', 'brian2==2.9.0'],
-        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6'],
+        'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6',
+                 # issue 25: make bench times filterpy's KalmanFilter beside the package's filters
+                 'filterpy>=1.4.5'],
     },
     zip_safe=True,
     maintainer='snn_rendezvous maintainers',
