@@ -71,6 +71,8 @@ bench: $(STAMP)
 bench-loop: $(STAMP)
 	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) --out results/loop_bench.json \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) --single-process \
+		--out results/loop_bench_single_process.json $(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 # realtime latency measurement -> estimate / control, 1x and 10x (10000 samples: ~25 min)
 bench-latency: $(STAMP)
