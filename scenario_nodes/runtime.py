@@ -183,7 +183,10 @@ def tune_process(nodes) -> None:
     if level:
         from rclpy.logging import LoggingSeverity
         severity = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
-                    'warn': LoggingSeverity.WARN, 'error': LoggingSeverity.ERROR}[level]
+                    'warn': LoggingSeverity.WARN, 'error': LoggingSeverity.ERROR}.get(level)
+        if severity is None:
+            print(f'SNN_LOG_LEVEL={level!r} ignored: expected debug, info, warn or error', file=sys.stderr)
+            return
         for node in nodes:
             node.get_logger().set_level(severity)
 

@@ -81,3 +81,37 @@ def test_a_short_realtime_run_writes_p50_p99_max_per_case_and_path(tmp_path, cap
         assert math.isfinite(figures['steady_max_ms'])
     # the control answers the estimate: it cannot arrive sooner, sample by sample in the median
     assert case['measurement_to_control']['p50_ms'] >= case['measurement_to_estimate']['p50_ms']
+
+
+def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_one(monkeypatch, capsys):
+    import gc
+
+    from scenario_nodes.runtime import tune_process
+
+    class Logger:
+        level = None
+
+        def set_level(self, level):
+            self.level = level
+
+    class Node:
+        logger = Logger()
+
+        def get_logger(self):
+            return self.logger
+
+    node = Node()
+    monkeypatch.setenv('SNN_LOG_LEVEL', 'loud')
+    tune_process([node])
+    assert node.logger.level is None and 'SNN_LOG_LEVEL' in capsys.readouterr().err
+    pytest.importorskip('rclpy')
+    from rclpy.logging import LoggingSeverity
+    monkeypatch.setenv('SNN_LOG_LEVEL', 'warn')
+    monkeypatch.setenv('SNN_GC', 'freeze')
+    try:
+        tune_process([node])
+        assert node.logger.level == LoggingSeverity.WARN
+        assert not gc.isenabled() and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+        gc.enable()
