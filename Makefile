@@ -6,7 +6,7 @@
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
-#   make bench | bench-loop | bench-campaign | bench-live    speed figures -> results/
+#   make bench | bench-loop | bench-campaign | bench-live | bench-latency [SAMPLES=n]   speed figures -> results/
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 #   make faults [CELLS=controller:kill,...]   kill/stop each node mid-run -> results/faults.json, docs/robustness.md
 PYTHON ?= python3.11
@@ -19,13 +19,14 @@ PLANT ?= cw
 RTF ?=
 LIVE ?=
 RUNS ?=
+SAMPLES ?=
 SPEC ?= config/campaigns/example.yaml
 WORKERS ?= 2
 SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live \
+.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -73,7 +74,14 @@ bench: $(STAMP)
 
 # RUNS means Monte-Carlo runs (default: each spec's) for experiments; the loop bench takes 5 unless given
 bench-loop: $(STAMP)
-	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) \
+	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) --out results/loop_bench.json \
+		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) --single-process \
+		--out results/loop_bench_single_process.json $(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+
+# realtime latency measurement -> estimate / control, 1x and 10x (10000 samples: ~25 min)
+bench-latency: $(STAMP)
+	$(BIN)/snn_latency_bench --out results/latency.json $(if $(SAMPLES),--samples $(SAMPLES)) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 bench-campaign: $(STAMP)

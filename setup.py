@@ -19,6 +19,7 @@ EXECUTABLES = {
     'snn_experiments': 'snn_tools.experiments:main',
     'snn_bench': 'snn_tools.bench:main',
     'snn_loop_bench': 'snn_tools.loop_bench:main',
+    'snn_latency_bench': 'snn_tools.latency_bench:main',
     'snn_export': 'snn_tools.nir_export:main',
     'snn_neuromorphic': 'snn_tools.neuromorphic:main',
     'snn_campaign': 'snn_tools.campaign:main',
@@ -75,7 +76,7 @@ setup(
         'live': ['foxglove-sdk==0.30.3'],
         # websockets and protobuf: the tests' Foxglove client decodes what the live view sends
         'test': ['pytest>=7', 'pytest-xdist>=3', 'hypothesis>=6', 'ruff>=0.6', 'websockets==17.4',
-                 'protobuf>=4.21', 'filterpy>=1.4'],
+                 'protobuf>=4.21', 'filterpy>=1.4.5'],
     },
     zip_safe=True,
     maintainer='snn_rendezvous maintainers',

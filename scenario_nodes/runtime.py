@@ -169,6 +169,28 @@ def make_executor():
     return SingleThreadedExecutor()
 
 
+def tune_process(nodes) -> None:
+    """Measurement switches of the latency bench (snn_tools.latency_bench), off unless set:
+    ``SNN_GC=freeze`` moves every object made so far out of the collector's reach and turns
+    automatic collection off (gc.freeze, gc.disable); ``SNN_LOG_LEVEL=debug|info|warn|error``
+    sets the nodes' logger level."""
+    if os.environ.get('SNN_GC') == 'freeze':
+        import gc
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+    level = os.environ.get('SNN_LOG_LEVEL')
+    if level:
+        from rclpy.logging import LoggingSeverity
+        severity = {'debug': LoggingSeverity.DEBUG, 'info': LoggingSeverity.INFO,
+                    'warn': LoggingSeverity.WARN, 'error': LoggingSeverity.ERROR}.get(level)
+        if severity is None:
+            print(f'SNN_LOG_LEVEL={level!r} ignored: expected debug, info, warn or error', file=sys.stderr)
+            return
+        for node in nodes:
+            node.get_logger().set_level(severity)
+
+
 def run_node(factory: Callable, args=None, name: str = 'node') -> int:
     """Create the node with ``factory()``, call its ``start()`` and spin it until a signal,
     shutdown or ``node.done`` (see :class:`ProcessHooks`). A configuration error (ValueError,
@@ -189,6 +211,7 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
         executor = make_executor()
         executor.add_node(node)
         node.start()
+        tune_process([node])
         spin_once = executor.spin_once
         while rclpy.ok() and not stop.requested and not node.done:
             # checked per callback, rclpy.ok() took 13 % of the recorder's main thread (py-spy);

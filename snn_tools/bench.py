@@ -5,6 +5,11 @@ closed-loop rendezvous through a fresh single-run estimator and reports the medi
 of ``step`` (best of three passes), next to :mod:`snn_estimator.reference` (plain numpy that
 forms the paper's N x N weight products every step) timed in the same run. It also times a
 100-run Monte Carlo of each filter. Results go to stdout and ``--out`` (JSON).
+
+In the same run it times filterpy's ``KalmanFilter`` (``predict(u)`` then ``update(z)``, plain
+numpy, the usual reference a Python user would reach for) on the same CW model, dimensions
+(6 states, 3 inputs, 3 measurements), noise and inputs: key ``filterpy_kf_us``, printed with
+its ratio to SNN-EMSIF at N = 300 (``filterpy_kf_over_snn_emsif_300``).
 """
 
 from __future__ import annotations
@@ -45,6 +50,37 @@ def record_inputs(scenario, steps: int):
     return zs, us
 
 
+class FilterpyStep:
+    """filterpy's linear ``KalmanFilter`` on the scenario's discretised CW model, with the
+    estimators' ``step(z, u, dt)`` signature so :func:`time_steps` times it alike."""
+
+    def __init__(self, scenario):
+        from filterpy.kalman import KalmanFilter
+        model = scenario.model
+        phi, gamma = model.discrete_matrices(scenario.dt)
+        kf = KalmanFilter(dim_x=model.n_state, dim_z=model.n_meas, dim_u=model.n_input)
+        kf.F, kf.B, kf.H = phi, gamma, model.measurement_matrix
+        kf.Q = np.asarray(scenario.process_noise, dtype=float)
+        kf.R = np.asarray(scenario.measurement_noise, dtype=float) * np.eye(model.n_meas)
+        kf.x = np.asarray(scenario.x0, dtype=float).reshape(-1, 1).copy()
+        self.kf = kf
+
+    def step(self, z, u, dt):
+        self.kf.predict(u=u.reshape(-1, 1))
+        self.kf.update(z.reshape(-1, 1))
+        return self.kf.x
+
+
+def time_filterpy(scenario, zs, us) -> float | None:
+    """us per filterpy predict+update (best of three medians); None without filterpy."""
+    try:
+        FilterpyStep(scenario)
+    except ImportError:
+        return None
+    time_steps(FilterpyStep(scenario), zs[:100], us[:100], scenario.dt)
+    return best_median(lambda: FilterpyStep(scenario), zs, us, scenario.dt)
+
+
 def best_median(make, zs, us, dt, passes: int = 3) -> float:
     best = math.inf
     for _ in range(passes):
@@ -82,6 +118,17 @@ def main(argv=None) -> int:
                 'us_per_step': round(compiled, 2), 'dense_reference_us_per_step': round(dense, 2)}
             print(f'{kind:<16}{neurons:>5}{compiled:>18.1f}{dense:>15.1f}{dense / compiled:>7.0f}x')
             sys.stdout.flush()
+    filterpy_us = time_filterpy(scenario, zs, us)
+    if filterpy_us is None:
+        print('\nfilterpy KalmanFilter: not installed (pip install filterpy; it is in the test extra)')
+    else:
+        results['filterpy_kf_us'] = round(filterpy_us, 2)
+        snn = results.get('snn_emsif', {}).get('300', {}).get('us_per_step')
+        line = f'\nfilterpy KalmanFilter predict+update, same model: {filterpy_us:.1f} us/step'
+        if snn:
+            results['filterpy_kf_over_snn_emsif_300'] = round(filterpy_us / snn, 2)
+            line += f' = {filterpy_us / snn:.2f}x SNN-EMSIF N = 300 ({snn:.1f} us)'
+        print(line)
     print(f'\n{args.mc_runs}-run rendezvous Monte Carlo (360 s each), wall time:')
     monte_carlo = {}
     for kind in track(FILTER_KINDS, 'filters', 'Monte Carlo'):

@@ -79,7 +79,7 @@ class Pipeline:
 
     def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
                  namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw',
-                 live_view: bool = False):
+                 live_view: bool = False, single_process: bool = False):
         if scheduling not in SCHEDULING:
             raise ValueError(f'scheduling {scheduling!r}: expected one of {SCHEDULING}')
         if plant not in PLANTS:
@@ -87,7 +87,10 @@ class Pipeline:
         #: The plant's node name (cw_plant or basilisk_plant): the key of its process.
         self.plant = PLANTS[plant][0]
         self.namespace = namespace
-        self.cpus = cpu_plan(plant=plant) if pin_cpus else {}
+        #: Every node in one process and executor (snn_tools.single_process), keyed as the plant.
+        self.single_process = single_process
+        self.record = record
+        self.cpus = cpu_plan(plant=plant) if pin_cpus and not single_process else {}
         self.batch = scheduling == 'batch'
         self.refused_batch: list[str] = []  # nodes the kernel would not run under SCHED_BATCH
         self.run_dir = run_dir
@@ -106,7 +109,11 @@ class Pipeline:
     def command(self, name: str, module: str, node_name: str | None = None) -> list[str]:
         # Run-specific values go in a second parameter file: node-specific entries of the first
         # file would win over '-p' arguments, which rcl files under the /** wildcard.
-        command = [sys.executable, '-m', module, '--ros-args', '--params-file', str(self.params_file),
+        own = []
+        if module == 'snn_tools.single_process':
+            own = ['--plant', next(k for k, (n, _) in PLANTS.items() if n == self.plant)]
+            own += [] if self.record else ['--no-record']
+        command = [sys.executable, '-m', module, *own, '--ros-args', '--params-file', str(self.params_file),
                    '--params-file', str(self.overrides_file)]
         if self.namespace:
             command += ['-r', f'__ns:={self.namespace}']
@@ -119,6 +126,11 @@ class Pipeline:
         return self.run_dir / 'overrides.yaml'
 
     def start(self) -> None:
+        if self.single_process:
+            self.start_node(self.plant, 'snn_tools.single_process', log_name='single_process')
+            if LIVE_VIEW in self.nodes:  # the live view stays a process of its own
+                self.start_node(*LIVE_VIEW)
+            return
         for name, module in self.nodes:
             self.start_node(name, module)
 
@@ -202,7 +214,8 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
-                 scheduling: str = 'batch', plant: str = 'cw', live_view: bool = False) -> dict:
+                 scheduling: str = 'batch', plant: str = 'cw', live_view: bool = False,
+                 single_process: bool = False) -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
@@ -221,7 +234,8 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
-                        pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view)
+                        pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view,
+                        single_process=single_process)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)
@@ -316,6 +330,9 @@ def main(argv=None) -> int:
                              'preemption; faster lockstep) or normal (SCHED_OTHER)')
     parser.add_argument('--live-view', action='store_true',
                         help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
+    parser.add_argument('--single-process', action='store_true',
+                        help='every node in one process and one executor (default: one process '
+                             'per node); same results, see docs/performance.md')
     args = parser.parse_args(argv)
     name = args.name or f"{args.estimator}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     run_dir = (args.runs_dir / name).resolve()
@@ -328,7 +345,8 @@ def main(argv=None) -> int:
         result = run_pipeline(run_dir, args.estimator, args.mode, params_file, args.duration,
                               args.real_time_factor, args.domain_id, storage=args.storage,
                               pin_cpus=args.cpu_affinity == 'auto', scheduling=args.scheduling,
-                              plant=args.plant, live_view=args.live_view)
+                              plant=args.plant, live_view=args.live_view,
+                              single_process=args.single_process)
     except RuntimeError as error:
         print(f'snn_demo: {error}', file=sys.stderr)
         return 1
@@ -340,6 +358,7 @@ def main(argv=None) -> int:
     summary['exit_codes'] = result['exit_codes']
     # how the processes ran: the real-time factor depends on it
     summary['scheduling'], summary['cpu_affinity'] = result['scheduling'], args.cpu_affinity
+    summary['single_process'] = args.single_process
     (run_dir / 'summary.json').write_text(json.dumps(summary, indent=2) + '\n')
     if not args.no_report:
         from .report import write_report

@@ -494,6 +494,8 @@ def write_report(folder: Path) -> Path:
         lines += ['## Benchmark (make bench): rendezvous, us per step', '',
                   '| filter | N | compiled | dense reference | ratio |', '|---|---|---|---|---|']
         for kind, per_n in data.items():
+            if not isinstance(per_n, dict):  # scalar figures (filterpy_kf_us, issue 25)
+                continue
             for n, rec in per_n.items():
                 dense = rec.get('dense_reference_us_per_step')
                 ratio = f'{dense / rec["us_per_step"]:.0f}x' if dense else '-'

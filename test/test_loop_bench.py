@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 pytest.importorskip('rclpy')
@@ -73,7 +74,8 @@ def test_bad_arguments_are_refused():
 @pytest.mark.slow
 def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
     out = tmp_path / 'loop.json'
-    assert loop_bench.main(['--runs', '1', '--duration', '60', '--estimator', 'ekf', '--out', str(out)]) == 0
+    assert loop_bench.main(['--runs', '1', '--duration', '60', '--estimator', 'ekf', '--out', str(out),
+                            '--rtt-samples', '200']) == 0
     printed = capsys.readouterr().out
     assert 'run 1: real-time factor' in printed and 'median' in printed
     figures = json.loads(out.read_text())
@@ -88,6 +90,16 @@ def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
         # every node works each step; no node can use more than all CPUs for the whole step
         wall_ms_per_step = 1e3 * run['wall_time_s'] / run['steps']
         assert all(0 < ms < 1.5 * os.cpu_count() * wall_ms_per_step for ms in cpu.values())
+    # the floor comes from the round trip measured in the same invocation
+    rtt_us = figures['round_trip']['median_us']
+    assert rtt_us > 0
+    assert run['fraction_of_floor'] == pytest.approx(run['real_time_factor'] * rtt_us * 1e-6 / 0.1)
+    assert figures['fraction_of_floor'] == pytest.approx(run['fraction_of_floor'])
+    # every step sends /clock to the four nodes that use simulated time and the recorder
+    deliveries = run['deliveries_per_step']
+    assert deliveries['by_topic']['clock'] == run['subscribers']['clock'] >= 4
+    assert deliveries['by_topic']['truth'] == pytest.approx(2.0, abs=0.05)  # sensor and recorder
+    assert run['critical_path_hops'] == 2
 
 
 def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
@@ -171,3 +183,58 @@ def test_snn_demo_prints_and_writes_the_summary_with_how_the_nodes_ran(tmp_path)
             'measurements_rejected'} <= set(summary)
     assert summary['estimator'] == 'ekf' and summary['steps'] == 300
     assert summary['scheduling'] == 'normal' and summary['cpu_affinity'] == 'off'
+
+
+def test_the_fraction_of_the_floor_is_the_factor_over_dt_per_round_trip():
+    from snn_tools.round_trip import floor_factor
+    assert floor_factor(0.1, 160.0) == pytest.approx(625.0)  # 0.1 s / 160 us
+    assert loop_bench.fraction_of_floor(93.75, 0.1, 160.0) == pytest.approx(0.15)
+    with pytest.raises(ValueError):
+        floor_factor(0.1, 0.0)
+
+
+def test_deliveries_per_step_are_messages_times_matched_subscriptions():
+    published = {'truth': 1.0, 'clock': 1.0, 'estimate': 1.0, 'diagnostics': 0.1}
+    subscribers = {'truth': 2, 'clock': 4, 'estimate': 2, 'diagnostics': 1}
+    deliveries = loop_bench.deliveries_per_step(published, subscribers)
+    assert deliveries['by_topic'] == {'truth': 2.0, 'clock': 4.0, 'estimate': 2.0, 'diagnostics': 0.1}
+    assert deliveries['total'] == pytest.approx(8.1)
+
+
+def test_wakeups_per_step_use_the_same_window_and_read_this_process():
+    if not os.path.exists('/proc/self/task'):
+        pytest.skip('no /proc')
+    sampler = _sampler([])
+    # 20 switches per wall second while stepping 100 steps per second: 0.2 per step
+    sampler.switches = [(10.0 + 0.5 * k, {'estimator': 100 + 10 * k}) for k in range(21)]
+    assert sampler.wakeups_per_step(20.0, 10.0, 1000) == {'estimator': pytest.approx(0.2)}
+    assert loop_bench.voluntary_switches(os.getpid()) > 0
+
+
+@pytest.mark.slow
+def test_the_round_trip_pair_returns_a_positive_rtt():
+    from snn_tools.round_trip import measure_round_trip
+    figures = measure_round_trip(samples=200)
+    assert figures['samples'] == 200
+    assert 0 < figures['median_us'] <= figures['p99_us'] <= figures['max_us'] < 1e6
+
+
+@pytest.mark.slow
+def test_single_process_mode_gives_the_multi_process_results(tmp_path):
+    """All nodes in one process and one executor: the lockstep run is the same run, estimate by
+    estimate (and hence the same as the offline core, which the multi-process run is tested
+    against)."""
+    from snn_tools.bag_tools import read_bag, summarize
+    from snn_tools.demo import run_pipeline
+    runs = {}
+    for single in (False, True):
+        result = run_pipeline(tmp_path / str(single), 'snn_emsif', 'lockstep', duration=20.0,
+                              single_process=single)
+        runs[single] = read_bag(result['bag'])
+    multi, single = runs[False], runs[True]
+    assert summarize(single)['steps'] == summarize(multi)['steps'] == 200
+    assert single.estimate.shape == multi.estimate.shape and single.estimate.size
+    np.testing.assert_allclose(single.estimate_t, multi.estimate_t, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(single.estimate, multi.estimate, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(single.truth, multi.truth, rtol=0, atol=1e-9)
+    assert summarize(single)['final_range_m'] == pytest.approx(summarize(multi)['final_range_m'], abs=1e-9)

@@ -1,0 +1,237 @@
+"""snn_latency_bench: wall-clock latency from a measurement to its estimate and to its control, in realtime mode.
+
+Runs the demo pipeline (every node its own process, recorder included, the demo's CPU plan and
+scheduling) in realtime mode, where the plant steps on a wall-clock timer and the sensor
+publishes one measurement per step: 10 Hz at ``1x`` and 100 Hz at ``10x`` (the plant's
+``real_time_factor``). A probe process subscribes to ``measurement``, ``estimate`` and ``control``
+(raw CDR, best effort, the pipeline's executor) and takes each message's receive time at the
+entry of its callback on CLOCK_MONOTONIC (``time.monotonic_ns``). Every clock read is in the probe,
+one process on one host, so no clocks are compared across processes and no offset is needed;
+the header stamps (simulated time) only pair the messages: the estimate that used z_k is
+stamped t_k + time_step (x_hat_{k+1}, snn_estimator.runner), and the control answering it
+carries the same stamp. Latency = receive(estimate or control) - receive(measurement), so the
+probe's own delivery cost, the same on both ends, cancels to first order.
+
+Per case the tool reports p50 / p99 / max in milliseconds over ``--samples`` measurements
+(default 10,000; a 10x case then takes ~2 minutes, a 1x case ~17), plus the largest latency
+during the first second of stepping (start-up: the filter's first steps, caches) against the
+rest. The default cases name the causes of the tail by switching them off one at a time at 10x:
+``10x_gc_frozen`` runs every node with the garbage collector frozen and disabled after start-up
+(SNN_GC=freeze, see scenario_nodes.runtime.tune_process), ``10x_log_warn`` with the nodes'
+loggers at WARN (SNN_LOG_LEVEL). Results: stdout and ``--out`` (JSON: case -> path -> p50_ms,
+p99_ms, max_ms, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import signal
+import struct
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from tempfile import TemporaryDirectory
+
+import numpy as np
+
+from scenario_nodes.parameters import DEFAULT_FILTER
+from snn_estimator.estimators import FILTER_KINDS
+
+#: case -> (plant real_time_factor, extra environment of every node)
+CASES = {
+    '1x': (1.0, {}),
+    '10x': (10.0, {}),
+    '10x_gc_frozen': (10.0, {'SNN_GC': 'freeze'}),
+    '10x_log_warn': (10.0, {'SNN_LOG_LEVEL': 'warn'}),
+}
+DEFAULT_CASES = ('1x', '10x', '10x_gc_frozen', '10x_log_warn')
+#: Paths measured: name -> topic whose receive time ends it (each starts at the measurement).
+PATHS = {'measurement_to_estimate': 'estimate', 'measurement_to_control': 'control'}
+PROBE_TOPICS = ('measurement', 'estimate', 'control')
+#: Samples at the start of stepping reported apart (the first second at 10 Hz... 10x: 0.1 s).
+START_SAMPLES = 10
+_STAMP = struct.Struct('<iI')  # header.stamp after the 4-byte CDR encapsulation header
+
+
+def percentile(sorted_values: np.ndarray, q: float) -> float:
+    """The q-th percentile (0-100) of ascending values, interpolated linearly between the two
+    nearest ranks (numpy's default 'linear' method): rank q/100 * (n - 1)."""
+    n = len(sorted_values)
+    if n == 0:
+        raise ValueError('percentile of no samples')
+    if not 0.0 <= q <= 100.0:
+        raise ValueError(f'percentile q = {q}: expected 0-100')
+    rank = q / 100.0 * (n - 1)
+    low = int(math.floor(rank))
+    high = min(low + 1, n - 1)
+    return float(sorted_values[low] + (rank - low) * (sorted_values[high] - sorted_values[low]))
+
+
+def summary(latencies_ms) -> dict:
+    """p50 / p99 / max (and mean, count) of latencies in milliseconds; the start-up samples
+    (the first START_SAMPLES) and the rest are also given their own max."""
+    values = np.asarray(latencies_ms, dtype=float)
+    if values.size == 0:
+        raise ValueError('no latency samples: did the pipeline step? (see the run logs)')
+    ordered = np.sort(values)
+    return {'p50_ms': percentile(ordered, 50.0), 'p99_ms': percentile(ordered, 99.0),
+            'max_ms': float(ordered[-1]), 'mean_ms': float(values.mean()), 'samples': int(values.size),
+            'start_max_ms': float(values[:START_SAMPLES].max()),
+            'steady_max_ms': float(values[START_SAMPLES:].max()) if values.size > START_SAMPLES else None}
+
+
+def match_latencies(source: dict[int, int], target: dict[int, int], offset_ns: int) -> np.ndarray:
+    """Milliseconds from each source message (stamp -> receive ns) to the target message
+    stamped ``offset_ns`` later, in stamp order; source messages without one are skipped."""
+    pairs = [(target[stamp + offset_ns] - received) for stamp, received in sorted(source.items())
+             if stamp + offset_ns in target]
+    return np.asarray(pairs, dtype=float) * 1e-6
+
+
+def stamp_ns(data: bytes) -> int:
+    """The header stamp of a CDR message with a std_msgs/Header first (nanoseconds)."""
+    sec, nanosec = _STAMP.unpack_from(data, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
+# ------------------------------------------------------------------------------------ probe
+def probe_main(out: Path) -> int:
+    """(the probe process) Record (stamp, receive time) per topic until SIGINT/SIGTERM, then
+    write them to ``out`` (npz: one (n, 2) int64 array per topic)."""
+    from geometry_msgs.msg import AccelStamped, PointStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.node import Node
+
+    from scenario_nodes import qos
+    from scenario_nodes.runtime import ProcessHooks, run_node
+
+    types = {'measurement': PointStamped, 'estimate': Odometry, 'control': AccelStamped}
+
+    class Probe(ProcessHooks, Node):
+        def __init__(self):
+            super().__init__('latency_probe')
+            events = qos.QosEvents(self)
+            self.received = {topic: [] for topic in PROBE_TOPICS}
+            for topic in PROBE_TOPICS:
+                qos.subscription(self, events, types[topic], topic, self._on(self.received[topic]),
+                                 qos.INPUT_QOS)
+
+        @staticmethod
+        def _on(store):
+            clock = time.monotonic_ns
+
+            def callback(data: bytes) -> None:
+                store.append((clock(), data))  # decode after the run: nothing more in the callback
+            return callback
+
+        def close(self) -> None:
+            arrays = {topic: np.array([(stamp_ns(data), t) for t, data in rows], dtype=np.int64).reshape(-1, 2)
+                      for topic, rows in self.received.items()}
+            np.savez(out, **arrays)
+
+    return run_node(Probe, [], 'latency_probe')
+
+
+@contextmanager
+def environment(values: dict):
+    """os.environ with ``values`` set (the pipeline's node processes inherit it)."""
+    saved = {key: os.environ.get(key) for key in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: int,
+             time_step: float = 0.1) -> dict:
+    """One realtime run with the probe; returns the case's figures."""
+    from .demo import pipeline_env, run_pipeline
+    factor, env = CASES[case]
+    run_dir.mkdir(parents=True, exist_ok=True)
+    probe_file = run_dir / 'probe.npz'
+    with environment(env):
+        probe = subprocess.Popen([sys.executable, '-m', 'snn_tools.latency_bench', '--probe', str(probe_file)],
+                                 env=pipeline_env(domain_id), stdout=subprocess.DEVNULL,
+                                 stderr=open(run_dir / 'probe.log', 'w'), start_new_session=True)
+        try:
+            time.sleep(2.0)  # the probe's subscriptions are up before the first measurement
+            duration = (samples + START_SAMPLES + 5) * time_step
+            run_pipeline(run_dir, estimator, 'realtime', duration=duration, real_time_factor=factor,
+                         domain_id=domain_id)
+        finally:
+            probe.send_signal(signal.SIGINT)
+            try:
+                probe.wait(20.0)
+            except subprocess.TimeoutExpired:
+                probe.kill()
+                probe.wait()
+    if not probe_file.exists():
+        raise RuntimeError(f'the latency probe wrote nothing; see {run_dir / "probe.log"}')
+    recorded = np.load(probe_file)
+    received = {topic: dict(zip(recorded[topic][:, 0].tolist(), recorded[topic][:, 1].tolist()))
+                for topic in PROBE_TOPICS}
+    offset = int(round(time_step * 1e9))
+    figures = {'real_time_factor': factor, 'environment': env,
+               'measurements': len(received['measurement'])}
+    for path, topic in PATHS.items():
+        latencies = match_latencies(received['measurement'], received[topic], offset)
+        figures[path] = summary(latencies[:samples])
+    return figures
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='snn_latency_bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--samples', type=int, default=10_000,
+                        help='measurements per case (default 10000: ~17 min at 1x, ~2 min at 10x)')
+    parser.add_argument('--cases', nargs='+', default=list(DEFAULT_CASES), choices=tuple(CASES),
+                        help=f'cases to run (default: {" ".join(DEFAULT_CASES)})')
+    parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS))
+    parser.add_argument('--out', type=Path, help='also write the figures as JSON here')
+    parser.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or random)')
+    parser.add_argument('--probe', type=Path, help=argparse.SUPPRESS)  # (internal) the probe process
+    args = parser.parse_args(argv)
+    if args.probe is not None:
+        return probe_main(args.probe)
+    if args.samples < 2 * START_SAMPLES:
+        parser.error(f'--samples must be >= {2 * START_SAMPLES}')
+    domain = args.domain_id
+    if domain is None:
+        domain = int(os.environ.get('ROS_DOMAIN_ID') or random.randint(1, 100))
+    print(f'snn_latency_bench: {args.estimator}, realtime, {args.samples} measurements per case, '
+          f'{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}, ROS domain {domain}')
+    results = {}
+    with TemporaryDirectory(prefix='snn_latency_bench_') as folder:
+        for case in args.cases:
+            try:
+                figures = run_case(Path(folder) / case, case, args.samples, args.estimator, domain)
+            except (RuntimeError, ValueError) as error:
+                print(f'snn_latency_bench: case {case} failed: {error}', file=sys.stderr)
+                return 1
+            results[case] = figures
+            for path in PATHS:
+                f = figures[path]
+                print(f"{case:<14} {path:<24} p50 {f['p50_ms']:6.2f} ms  p99 {f['p99_ms']:6.2f}  "
+                      f"max {f['max_ms']:7.2f}  (start {f['start_max_ms']:.2f}, after "
+                      f"{f['steady_max_ms']:.2f})  n {f['samples']}", flush=True)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps({'estimator': args.estimator, 'samples': args.samples,
+                                        'cpus': os.cpu_count(), 'load_average_1min': os.getloadavg()[0],
+                                        'cases': results}, indent=2) + '\n')
+        print(f'wrote {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,117 @@
+"""snn_latency_bench: the percentile maths against numpy, the stamp pairing against hand-built
+samples, and one short realtime run through the real pipeline (the JSON keys, figures positive)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from snn_tools import latency_bench
+from snn_tools.latency_bench import match_latencies, percentile, stamp_ns, summary
+
+
+@pytest.mark.parametrize('values', [
+    [3.0],
+    [1.0, 2.0],
+    [5.0, 1.0, 4.0, 2.0, 3.0],
+    list(np.random.default_rng(7).exponential(0.4, 10_001)),  # a long tail, like latencies
+    list(np.random.default_rng(8).integers(0, 5, 999).astype(float)),  # many ties
+])
+def test_percentiles_equal_numpy_s_linear_method(values):
+    ordered = np.sort(np.asarray(values))
+    for q in (0.0, 1.0, 50.0, 90.0, 99.0, 99.9, 100.0):
+        assert percentile(ordered, q) == pytest.approx(np.percentile(values, q), rel=0, abs=1e-12), q
+
+
+def test_percentile_refuses_no_samples_and_a_q_outside_0_100():
+    with pytest.raises(ValueError):
+        percentile(np.array([]), 50)
+    with pytest.raises(ValueError, match='0-100'):
+        percentile(np.array([1.0]), 101)
+
+
+def test_summary_gives_p50_p99_max_and_the_start_apart():
+    values = np.r_[[40.0] + [1.0] * (latency_bench.START_SAMPLES - 1), np.arange(1.0, 1001.0) / 100]
+    figures = summary(values)
+    assert figures['p50_ms'] == pytest.approx(np.percentile(values, 50))
+    assert figures['p99_ms'] == pytest.approx(np.percentile(values, 99))
+    assert figures['max_ms'] == 40.0 and figures['samples'] == values.size
+    assert figures['start_max_ms'] == 40.0 and figures['steady_max_ms'] == 10.0
+    with pytest.raises(ValueError, match='no latency samples'):
+        summary([])
+
+
+def test_latencies_pair_each_measurement_with_the_answer_stamped_one_step_later():
+    step = 100_000_000
+    measurement = {0: 1_000, step: 2_000, 2 * step: 3_000, 3 * step: 4_000}
+    # the estimate using z_k is stamped t_k + step; z at 3*step has no answer yet (skipped)
+    estimate = {step: 1_500_000 + 1_000, 2 * step: 2_000 + 250_000, 3 * step: 3_000 + 4_000_000, 0: 7}
+    latencies = match_latencies(measurement, estimate, step)
+    assert latencies.tolist() == pytest.approx([1.5, 0.25, 4.0])
+
+
+def test_the_stamp_is_read_from_the_cdr_header():
+    from scenario_nodes.codec import encode_accel, encode_odometry, encode_point
+    stamp = 1_234 * 1_000_000_000 + 567_890_123
+    assert stamp_ns(encode_point(np.ones(3), (0, 1, 2), stamp, 'lvlh')) == stamp
+    assert stamp_ns(encode_accel(np.zeros(3), stamp, 'lvlh')) == stamp
+    assert stamp_ns(encode_odometry(np.zeros(6), None, stamp, 'lvlh', 'chaser')) == stamp
+
+
+def test_too_few_samples_are_refused():
+    with pytest.raises(SystemExit) as error:
+        latency_bench.main(['--samples', '3'])
+    assert error.value.code == 2
+
+
+@pytest.mark.slow
+def test_a_short_realtime_run_writes_p50_p99_max_per_case_and_path(tmp_path, capsys):
+    pytest.importorskip('rclpy')
+    out = tmp_path / 'latency.json'
+    assert latency_bench.main(['--samples', '60', '--cases', '10x', '--estimator', 'ekf',
+                               '--out', str(out)]) == 0
+    assert 'measurement_to_control' in capsys.readouterr().out
+    case = json.loads(out.read_text())['cases']['10x']
+    assert case['real_time_factor'] == 10.0
+    for path in ('measurement_to_estimate', 'measurement_to_control'):
+        figures = case[path]
+        assert figures['samples'] == 60
+        assert 0 < figures['p50_ms'] <= figures['p99_ms'] <= figures['max_ms'] < 1000
+        assert math.isfinite(figures['steady_max_ms'])
+    # the control answers the estimate: it cannot arrive sooner, sample by sample in the median
+    assert case['measurement_to_control']['p50_ms'] >= case['measurement_to_estimate']['p50_ms']
+
+
+def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_one(monkeypatch, capsys):
+    import gc
+
+    from scenario_nodes.runtime import tune_process
+
+    class Logger:
+        level = None
+
+        def set_level(self, level):
+            self.level = level
+
+    class Node:
+        logger = Logger()
+
+        def get_logger(self):
+            return self.logger
+
+    node = Node()
+    monkeypatch.setenv('SNN_LOG_LEVEL', 'loud')
+    tune_process([node])
+    assert node.logger.level is None and 'SNN_LOG_LEVEL' in capsys.readouterr().err
+    pytest.importorskip('rclpy')
+    from rclpy.logging import LoggingSeverity
+    monkeypatch.setenv('SNN_LOG_LEVEL', 'warn')
+    monkeypatch.setenv('SNN_GC', 'freeze')
+    try:
+        tune_process([node])
+        assert node.logger.level == LoggingSeverity.WARN
+        assert not gc.isenabled() and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+        gc.enable()
