@@ -28,6 +28,7 @@ from std_srvs.srv import Trigger
 from snn_estimator import kernels, make_estimator
 from snn_estimator.costs import CostModel, energy_pj
 from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
+from snn_estimator.schema import config_values
 
 from . import qos
 from .codec import (
@@ -45,13 +46,11 @@ from .codec import (
 )
 from .diagnostics import DiagnosticsPublisher
 from .history import collect_history
-from .parameters import ESTIMATOR, check_choices, cw_model, declare, estimator_config, read, silenced_set
+from .parameters import ESTIMATOR, ESTIMATOR_RUNTIME, check_choices, cw_model, declare, estimator_config, read, silenced_set
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
-#: Parameters applied between steps through the parameter services; everything else is read-only.
-RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
-           'membrane_noise', 'silenced_neurons', 'silenced_fraction', 'nis_threshold', 'nis_window',
-           'max_input_age'}
+#: Parameters applied between steps through the parameter services (the tables' read_only=False).
+RUNTIME = ESTIMATOR_RUNTIME
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 
@@ -171,16 +170,15 @@ def apply_runtime_changes(runner: FilterRunner, values: dict, changes: dict) -> 
                          'cleanup, then configure again)')
     estimator = runner.estimator
     values = dict(values, **changes)
-    retune = {k: changes[k] for k in estimator.RETUNABLE if k in changes}
-    if 'boundary_layer' in retune:
-        retune['boundary_layer'] = list(retune['boundary_layer'])
-    silenced = silenced_set(values, estimator.neuron_count, estimator.settings.seed)  # validate first
-    settings = runner_settings(values)
+    retune = config_values({k: changes[k] for k in estimator.RETUNABLE if k in changes})
+    silencing = 'silenced_neurons' in changes or 'silenced_fraction' in changes
+    if silencing:
+        retune['silenced_neurons'] = silenced_set(values, estimator.neuron_count, estimator.settings.seed)
+    settings = runner_settings(values)  # validate first
     if retune:
         estimator.retune(**retune)  # validated (also against the step in use) before it changes anything
     runner.replace_settings(settings)
-    if estimator.spiking and ('silenced_neurons' in changes or 'silenced_fraction' in changes):
-        estimator.silence(silenced)
+    if estimator.spiking and silencing:
         runner.events['silencing_changes'] += 1
     return values
 

@@ -43,6 +43,9 @@ TWIN_OF = {kind: spec.twin for kind, spec in FILTER_KINDS.items() if spec.twin}
 #: measurements and do not, and the hybrid corrects the velocity too slowly
 #: (results/rendezvous_dispersed.json).
 CONVERGES_FROM_DISPERSION = ('ekf', 'emsif_weighted', 'snn_ekf', 'snn_emsif_weighted')
+#: The spiking filter the estimator node runs unless told otherwise: the one that converges from
+#: a dispersed start in the Monte Carlo of results/rendezvous_dispersed.json (docs/decisions.md, 17).
+DEFAULT_FILTER = 'snn_ekf'
 #: Filters of the paper (the others are this package's remedies).
 PAPER_KINDS = ('ekf', 'emsif', 'esif', 'snn_ekf', 'snn_emsif', 'snn_emsif_star')
 

@@ -42,6 +42,7 @@ from . import kernels
 from .catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind  # noqa: F401 (re-exported)
 from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from .models import StateSpaceModel
+from .schema import RUNTIME
 
 NETWORK_STREAM = 3  # rng stream id of the decoder and membrane noise (README, "Time and seeds")
 DISPERSION_STREAM = 5  # rng stream id of the dispersed initial estimate
@@ -375,13 +376,13 @@ class Estimator:
             self._thresholds, self._alive, self._r, self._v, self._scale, self._spikes,
             self._total_spikes, self._x_hat)
 
-    #: Settings that may change between steps (the [runtime] parameters of docs/parameters.md).
-    RETUNABLE = ('leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
-                 'membrane_noise')
+    #: Settings that may change between steps (schema fields with runtime=True).
+    RETUNABLE = RUNTIME
 
     def retune(self, **changes) -> None:
-        """Change settings of :attr:`RETUNABLE` between steps. Validated first: a ValueError
-        leaves the filter exactly as it was."""
+        """Change settings of :attr:`RETUNABLE` between steps. Validated first (the step in
+        use included, once): a ValueError leaves the filter exactly as it was. A new
+        ``silenced_neurons`` set silences exactly those neurons (:meth:`silence`)."""
         unknown = set(changes) - set(self.RETUNABLE)
         if unknown:
             raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
@@ -392,7 +393,9 @@ class Estimator:
         self.config, self.settings = config, settings
         self._call.update(**_retunable_arguments(settings))
         if self._call_dt is not None:  # R of Eq. 5-6 and a constant gain depend on the settings too
-            self.prepare(self._call_dt)
+            self._set_step(self._call_dt)
+        if 'silenced_neurons' in changes and self.spiking:
+            self.silence(settings.silenced_neurons)
 
     def check_time_step(self, dt: float, settings: ResolvedConfig | None = None) -> None:
         """Raise ValueError when steps of ``dt`` cannot work: a network needs leak_rate * dt < 1
@@ -424,6 +427,10 @@ class Estimator:
         first time it sees a dt; calling it up front makes later :meth:`retune` calls check
         against that step too."""
         self.check_time_step(dt)
+        self._set_step(dt)
+
+    def _set_step(self, dt: float) -> None:
+        """What depends on a checked ``dt``: the R of Eq. 5-6 and a constant gain."""
         s = self.settings
         density = gain_noise_density(s, dt)
         changes = {'r_density': np.ascontiguousarray(density),
