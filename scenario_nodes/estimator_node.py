@@ -46,7 +46,16 @@ from .codec import (
 )
 from .diagnostics import DiagnosticsPublisher
 from .history import collect_history
-from .parameters import ESTIMATOR, ESTIMATOR_RUNTIME, check_choices, cw_model, declare, estimator_config, read, silenced_set
+from .parameters import (
+    ESTIMATOR,
+    ESTIMATOR_RUNTIME,
+    check_choices,
+    cw_model,
+    declare,
+    estimator_config,
+    read,
+    silenced_set,
+)
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 #: Parameters applied between steps through the parameter services (the tables' read_only=False).

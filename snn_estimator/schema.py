@@ -150,7 +150,8 @@ FIELDS: tuple[Field, ...] = (
     Field('process_noise', 'matrix', D.RENDEZVOUS_PROCESS_NOISE, 'true process-noise density the '
           "filter's Q_hat is scaled from", unit='(m/s^2)^2/Hz', symbol='Q', equation='Table 6: 1e-12 I6', size='n', singular=True),
     Field('measurement_noise', 'matrix', D.RENDEZVOUS_MEASUREMENT_NOISE, 'true measurement-noise covariance per '
-          "sample the filter's R_hat is scaled from", unit='m^2', symbol='R', equation='Table 6: 1e-2 I3', size='m'),
+          "sample the filter's R_hat is scaled from",
+          unit='m^2', symbol='R', equation='Table 6: 1e-2 I3', size='m'),
     Field('process_noise_scale', 'real', D.RENDEZVOUS_PROCESS_NOISE_SCALE, 'Q_hat = scale * Q',
           equation='Sec. 3.2: 0.9', low=0.0, runtime=True),
     Field('measurement_noise_scale', 'real', D.RENDEZVOUS_MEASUREMENT_NOISE_SCALE, 'R_hat = scale * R',
