@@ -148,7 +148,8 @@ FIELDS: tuple[Field, ...] = (
     Field('seed', 'integer', 0, 'Seed of the decoder, membrane noise and dispersed start (streams 3 '
           'and 5); run b of a batch uses seed + b', low=0),
     Field('process_noise', 'matrix', D.RENDEZVOUS_PROCESS_NOISE, 'true process-noise density the '
-          "filter's Q_hat is scaled from", unit='(m/s^2)^2/Hz', symbol='Q', equation='Table 6: 1e-12 I6', size='n', singular=True),
+          "filter's Q_hat is scaled from", unit='(m/s^2)^2/Hz', symbol='Q', equation='Table 6: 1e-12 I6',
+          size='n', singular=True),
     Field('measurement_noise', 'matrix', D.RENDEZVOUS_MEASUREMENT_NOISE, 'true measurement-noise covariance per '
           "sample the filter's R_hat is scaled from",
           unit='m^2', symbol='R', equation='Table 6: 1e-2 I3', size='m'),
