@@ -20,7 +20,7 @@ from snn_estimator.gates import NewestFirst
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
-from .codec import MessageError, check_frame, decode_odometry, encode_accel, seconds_to_ns, state_of
+from .codec import MessageError, encode_accel, read_input, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
 from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
@@ -87,8 +87,7 @@ class ControllerNode(ProcessHooks, Node):
 
     def _on_estimate(self, data: bytes) -> None:
         try:
-            estimate = check_frame(decode_odometry(data), self._p['frame_id'])
-            x_hat = state_of(estimate)
+            estimate, x_hat = read_input('state', data, self._p['frame_id'])
         except MessageError as error:
             self._reject(error.reason, str(error), 0)
             return

@@ -25,7 +25,7 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
-from snn_estimator import kernels, make_estimator
+from snn_estimator import make_estimator
 from snn_estimator.costs import CostModel, energy_pj
 from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
 from snn_estimator.schema import config_values
@@ -33,15 +33,11 @@ from snn_estimator.schema import config_values
 from . import qos
 from .codec import (
     MessageError,
-    check_frame,
-    control_of,
-    decode_accel,
     decode_odometry,
-    decode_point,
     encode_odometry,
     encode_spikes,
     encode_uint32,
-    measurement_of,
+    read_input,
     state_of,
 )
 from .diagnostics import DiagnosticsPublisher
@@ -88,8 +84,7 @@ class Inputs:
     def on_measurement(self, data: bytes) -> None:
         runner = self._runner
         try:
-            record = check_frame(decode_point(data), self._frame)
-            z = measurement_of(record, self._axes)
+            record, z = read_input('measurement', data, self._frame, self._axes)
         except MessageError as error:
             runner.measurements_received += 1
             return self._refuse(runner.rejected, 'measurement', error)
@@ -100,8 +95,7 @@ class Inputs:
 
     def on_control(self, data: bytes) -> None:
         try:
-            record = check_frame(decode_accel(data), self._frame)
-            u = control_of(record)
+            record, u = read_input('control', data, self._frame)
         except MessageError as error:
             return self._refuse(self._runner.control_rejected, 'control', error)
         if self._runner.control(record.stamp_ns, u) is not None:
@@ -255,7 +249,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         estimator = make_estimator(p['filter_type'], estimator_config(p),
                                    cw_model(p, form=p['cw_model'], measured_axes=axes))
         estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
-        kernels.warm_up()
+        estimator.warm_up()  # its kernels compiled (or loaded) now, not at the first step
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
         history = (collect_history(self, p['frame_id'], axes, p['history_wait'])
                    if p['initialization'] != 'parameters' else None)

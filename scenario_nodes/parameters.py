@@ -22,6 +22,7 @@ from snn_estimator import schema
 from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, START_MODES  # noqa: F401 (DEFAULT_FILTER re-exported)
 from snn_estimator.config import EstimatorConfig, silenced_neurons
 
+from . import registry
 from .topics import PIPELINE_TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -206,9 +207,9 @@ RECORDER = (
          'messages before closing the bag', low=0.0),
 )
 
-#: Node name -> its table, in the order the YAML files and docs/parameters.md list them.
-NODES = {'cw_plant': PLANT, 'basilisk_plant': BASILISK_PLANT, 'position_sensor': SENSOR,
-         'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR, 'recorder': RECORDER}
+#: Node name -> its table, in the order the YAML files and docs/parameters.md list them (the
+#: registry's).
+NODES = {entry.name: globals()[entry.parameters] for entry in registry.NODES}
 
 
 def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
@@ -427,12 +428,14 @@ def generated_files() -> dict[Path, str]:
     """Every file generated from the tables, with its content."""
     files = {ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
     files[ROOT / 'docs' / 'parameters.md'] = PARAMETERS_DOC + markdown()
+    for name in registry.executables():  # ros2 run entry points of a pip install (setup.py)
+        files[ROOT / 'wrappers' / name] = registry.WRAPPER.format(name=name)
     return files
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description='Print the parameter tables, or --write the '
-                                                 'generated files (config/*.yaml, docs/parameters.md).')
+    parser = argparse.ArgumentParser(description='Print the parameter tables, or --write the generated '
+                                                 'files (config/*.yaml, docs/parameters.md, wrappers/).')
     parser.add_argument('--write', action='store_true')
     args = parser.parse_args(argv)
     if not args.write:
@@ -441,6 +444,8 @@ def main(argv=None) -> int:
     for path, content in generated_files().items():
         if not path.exists() or path.read_text() != content:
             path.write_text(content)
+            if path.parent.name == 'wrappers':
+                path.chmod(0o755)
             print(f'wrote {path}')
     return 0
 

@@ -12,7 +12,7 @@ from snn_estimator.blocks import PositionSensor
 from snn_estimator.gates import NewestFirst
 
 from . import qos
-from .codec import MessageError, check_frame, decode_odometry, encode_point, state_of
+from .codec import MessageError, encode_point, read_input
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, cw_model, declare
 from .runtime import Answers, ProcessHooks, clock_ns, on_clock_jump_back, run_node
@@ -44,8 +44,7 @@ class SensorNode(ProcessHooks, Node):
 
     def _on_truth(self, data: bytes) -> None:
         try:
-            truth = check_frame(decode_odometry(data), self._p['frame_id'])
-            x = state_of(truth)
+            truth, x = read_input('state', data, self._p['frame_id'])
         except MessageError as error:
             self._rejected[error.reason] += 1
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)
