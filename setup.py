@@ -1,30 +1,15 @@
 """ament_python package snn_rendezvous; installable by colcon and by pip alike."""
 
 import os
+import runpy
 from glob import glob
 
 from setuptools import find_packages, setup
 
 PACKAGE = 'snn_rendezvous'
-EXECUTABLES = {
-    'cw_plant': 'scenario_nodes.plant_node:main',
-    'basilisk_plant': 'scenario_nodes.basilisk_plant_node:main',
-    'position_sensor': 'scenario_nodes.sensor_node:main',
-    'lqr_controller': 'scenario_nodes.controller_node:main',
-    'estimator': 'scenario_nodes.estimator_node:main',
-    'recorder': 'scenario_nodes.recorder_node:main',
-    'live_view': 'scenario_nodes.live_view_node:main',
-    'report': 'snn_tools.report:main',
-    'snn_demo': 'snn_tools.demo:main',
-    'snn_experiments': 'snn_tools.experiments:main',
-    'snn_bench': 'snn_tools.bench:main',
-    'snn_loop_bench': 'snn_tools.loop_bench:main',
-    'snn_latency_bench': 'snn_tools.latency_bench:main',
-    'snn_export': 'snn_tools.nir_export:main',
-    'snn_neuromorphic': 'snn_tools.neuromorphic:main',
-    'snn_campaign': 'snn_tools.campaign:main',
-    'snn_campaign_bench': 'snn_tools.campaign_bench:main',
-}
+# The executables are listed once, in scenario_nodes/registry.py (standard library only).
+EXECUTABLES = runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), 'scenario_nodes',
+                                          'registry.py'))['executables']()
 
 data_files = [
     ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),

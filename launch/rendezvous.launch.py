@@ -21,11 +21,12 @@ from launch_ros.parameter_descriptions import ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 from launch import LaunchDescription
+from scenario_nodes import registry
 from snn_estimator.catalog import FILTER_KINDS
 
 PACKAGE = 'snn_rendezvous'
 FILTERS = ' | '.join(FILTER_KINDS)
-PLANTS = {'cw': 'cw_plant', 'basilisk': 'basilisk_plant'}
+PLANTS = registry.PLANTS
 
 
 def generate_launch_description():
@@ -90,14 +91,12 @@ def _nodes(context):
         'mode': LaunchConfiguration('mode'), 'exit_when_done': end_with_plant,
         # typed: launch would pass real_time_factor:=10 as an integer, which a DOUBLE refuses
         'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'), value_type=float)})
-    actions = [
-        node('lqr_controller'),
-        node('estimator', {'filter_type': estimator} if estimator else None),
-        node('position_sensor'),
-        plant,
-        node('recorder', condition=IfCondition(LaunchConfiguration('record'))),
-        node('live_view', condition=IfCondition(LaunchConfiguration('live_view'))),
-    ]
+    extra = {'estimator': {'filter_type': estimator} if estimator else None}
+    options = {'recorder': {'condition': IfCondition(LaunchConfiguration('record'))},
+               'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}
+    actions = [node(entry.name, extra.get(entry.name), **options.get(entry.name, {}))
+               for entry in registry.LOOP + registry.OPTIONAL]
+    actions.append(plant)  # the registry's start order: consumers first, the plant last
     if end_with_plant:
         actions.append(RegisterEventHandler(OnProcessExit(
             target_action=plant,

@@ -465,3 +465,20 @@ def control_of(record: StampedVector) -> np.ndarray:
     if not np.isfinite(record.vector).all():
         raise MessageError('non_finite', f'control has NaN/Inf: {record.vector.tolist()}')
     return record.vector
+
+
+#: What each input of the loop is: its decoder and the checked value a node uses.
+_INPUTS = {
+    'state': (decode_odometry, lambda record, axes: state_of(record)),
+    'measurement': (decode_point, lambda record, axes: measurement_of(record, axes)),
+    'control': (decode_accel, lambda record, axes: control_of(record)),
+}
+
+
+def read_input(kind: str, data: bytes, frame_id: str, measured_axes: Sequence[int] = ()) -> tuple:
+    """Decode one input of the loop (``kind``: state | measurement | control, as raw CDR),
+    check its frame and extract its finite value: (record, value). Raises MessageError with the
+    reason (malformed, wrong_frame, non_finite), what every node counts and logs."""
+    decode, extract = _INPUTS[kind]
+    record = check_frame(decode(data), frame_id)
+    return record, extract(record, measured_axes)

@@ -23,7 +23,7 @@ from snn_estimator.peers import OK, PeerWatch
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
-from .codec import MessageError, check_frame, decode_odometry, decode_point, encode_accel, seconds_to_ns, state_of
+from .codec import MessageError, decode_point, encode_accel, read_input, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
@@ -107,8 +107,7 @@ class ControllerNode(ProcessHooks, Node):
     def _on_estimate(self, data: bytes) -> None:
         self._peers.saw(qos.ESTIMATE)
         try:
-            estimate = check_frame(decode_odometry(data), self._p['frame_id'])
-            x_hat = state_of(estimate)
+            estimate, x_hat = read_input('state', data, self._p['frame_id'])
         except MessageError as error:
             self._reject(error.reason, str(error), 0)
             return

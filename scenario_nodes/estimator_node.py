@@ -29,34 +29,38 @@ from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
-from snn_estimator import kernels, make_estimator
+from snn_estimator import make_estimator
 from snn_estimator.costs import CostModel, energy_pj
 from snn_estimator.peers import PeerWatch
 from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
+from snn_estimator.schema import config_values
 
 from . import qos
 from .codec import (
     MessageError,
-    check_frame,
-    control_of,
-    decode_accel,
     decode_odometry,
-    decode_point,
     encode_odometry,
     encode_spikes,
     encode_uint32,
-    measurement_of,
+    read_input,
     state_of,
 )
 from .diagnostics import DiagnosticsPublisher
 from .history import collect_history
-from .parameters import ESTIMATOR, check_choices, cw_model, declare, estimator_config, read, silenced_set
+from .parameters import (
+    ESTIMATOR,
+    ESTIMATOR_RUNTIME,
+    check_choices,
+    cw_model,
+    declare,
+    estimator_config,
+    read,
+    silenced_set,
+)
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
-#: Parameters applied between steps through the parameter services; everything else is read-only.
-RUNTIME = {'leak_rate', 'boundary_layer', 'process_noise_scale', 'measurement_noise_scale',
-           'membrane_noise', 'silenced_neurons', 'silenced_fraction', 'nis_threshold', 'nis_window',
-           'max_input_age'}
+#: Parameters applied between steps through the parameter services (the tables' read_only=False).
+RUNTIME = ESTIMATOR_RUNTIME
 SUCCESS, FAILURE = TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE
 
 
@@ -87,8 +91,7 @@ class Inputs:
         self._node.peers.saw(qos.MEASUREMENT)
         runner = self._runner
         try:
-            record = check_frame(decode_point(data), self._frame)
-            z = measurement_of(record, self._axes)
+            record, z = read_input('measurement', data, self._frame, self._axes)
         except MessageError as error:
             runner.measurements_received += 1
             return self._refuse(runner.rejected, 'measurement', error)
@@ -100,8 +103,7 @@ class Inputs:
     def on_control(self, data: bytes) -> None:
         self._node.peers.saw(qos.CONTROL)
         try:
-            record = check_frame(decode_accel(data), self._frame)
-            u = control_of(record)
+            record, u = read_input('control', data, self._frame)
         except MessageError as error:
             return self._refuse(self._runner.control_rejected, 'control', error)
         if self._runner.control(record.stamp_ns, u) is not None:
@@ -201,16 +203,15 @@ def apply_runtime_changes(runner: FilterRunner, values: dict, changes: dict) -> 
                          'cleanup, then configure again)')
     estimator = runner.estimator
     values = dict(values, **changes)
-    retune = {k: changes[k] for k in estimator.RETUNABLE if k in changes}
-    if 'boundary_layer' in retune:
-        retune['boundary_layer'] = list(retune['boundary_layer'])
-    silenced = silenced_set(values, estimator.neuron_count, estimator.settings.seed)  # validate first
-    settings = runner_settings(values)
+    retune = config_values({k: changes[k] for k in estimator.RETUNABLE if k in changes})
+    silencing = 'silenced_neurons' in changes or 'silenced_fraction' in changes
+    if silencing:
+        retune['silenced_neurons'] = silenced_set(values, estimator.neuron_count, estimator.settings.seed)
+    settings = runner_settings(values)  # validate first
     if retune:
         estimator.retune(**retune)  # validated (also against the step in use) before it changes anything
     runner.replace_settings(settings)
-    if estimator.spiking and ('silenced_neurons' in changes or 'silenced_fraction' in changes):
-        estimator.silence(silenced)
+    if estimator.spiking and silencing:
         runner.events['silencing_changes'] += 1
     return values
 
@@ -281,7 +282,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         estimator = make_estimator(p['filter_type'], estimator_config(p),
                                    cw_model(p, form=p['cw_model'], measured_axes=axes))
         estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
-        kernels.warm_up()
+        estimator.warm_up()  # its kernels compiled (or loaded) now, not at the first step
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
         history = (collect_history(self, p['frame_id'], axes, p['history_wait'])
                    if p['initialization'] != 'parameters' else None)

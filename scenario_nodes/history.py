@@ -23,16 +23,7 @@ from rclpy.qos import DurabilityPolicy
 from snn_estimator.runner import History
 
 from . import qos
-from .codec import (
-    MessageError,
-    check_frame,
-    control_of,
-    decode_accel,
-    decode_odometry,
-    decode_point,
-    measurement_of,
-    state_of,
-)
+from .codec import MessageError, read_input
 from .qos import HISTORY_QOS
 
 #: Seconds a node that has just started gives discovery to show it the publishers there are.
@@ -116,15 +107,13 @@ def collect_history(node, frame_id: str, axes, wait: float) -> History:
 def decode_history(raw: dict, frame_id: str, axes) -> History:
     """The history's samples as the runner takes them; malformed ones or ones in another frame
     are skipped (they are not inputs of this loop)."""
-    readers = {qos.MEASUREMENT: (decode_point, lambda record: measurement_of(record, axes)),
-               qos.CONTROL: (decode_accel, control_of),
-               qos.ESTIMATE: (decode_odometry, lambda record: (state_of(record), record.covariance))}
-    decoded = {topic: {} for topic in readers}
-    for topic, (decode, extract) in readers.items():
+    kinds = {qos.MEASUREMENT: 'measurement', qos.CONTROL: 'control', qos.ESTIMATE: 'state'}
+    decoded = {topic: {} for topic in kinds}
+    for topic, kind in kinds.items():
         for data in raw.get(topic, ()):
             try:
-                record = check_frame(decode(data), frame_id)
-                decoded[topic][record.stamp_ns] = extract(record)
+                record, value = read_input(kind, data, frame_id, axes)
             except MessageError:
                 continue
+            decoded[topic][record.stamp_ns] = (value, record.covariance) if kind == 'state' else value
     return History(decoded[qos.MEASUREMENT], decoded[qos.CONTROL], decoded[qos.ESTIMATE])

@@ -18,17 +18,16 @@ from typing import Any, Sequence
 import numpy as np
 
 from snn_estimator import defaults as D
-from snn_estimator.catalog import FILTER_KINDS, START_MODES
-from snn_estimator.config import GAIN_SCHEDULES, MEASUREMENT_NOISE_UNITS, SPIKE_RULES, EstimatorConfig, silenced_neurons
+from snn_estimator import schema
+from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, START_MODES  # noqa: F401 (DEFAULT_FILTER re-exported)
+from snn_estimator.config import EstimatorConfig, silenced_neurons
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
 
+from . import registry
 from .topics import PIPELINE_TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The spiking filter the estimator runs unless told otherwise: the one that converges from a
-#: dispersed start in the Monte Carlo of results/rendezvous_dispersed.json (docs/decisions.md, 17).
-DEFAULT_FILTER = 'snn_ekf'
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
 DOUBLE_ARRAY, INTEGER_ARRAY = 'double_array', 'integer_array'
 
@@ -179,47 +178,24 @@ CONTROLLER = MODEL + (
          'last one means the time base restarted: start over, s', low=0.0),
 )
 
-_CORE = EstimatorConfig()
+def _from_schema(field) -> Spec:
+    """The ROS parameter of a core estimator field (snn_estimator.schema): same name, default,
+    meaning, range; read-only unless the core may change it between steps."""
+    low = field.low
+    if field.strict and field.type == 'real':
+        low = 1e-300  # a descriptor range is closed: the smallest positive double stands for > 0
+    return Spec(field.name, field.parameter_default, field.text, read_only=not field.runtime,
+                low=low if field.type in ('integer', 'real') else None,
+                high=field.high if field.type in ('integer', 'real') else None, choices=field.choices,
+                kind=INTEGER_ARRAY if field.type == 'indices' else None)
+
+
 ESTIMATOR = MODEL + (
     Spec('filter_type', DEFAULT_FILTER, 'The estimator (README, "Filters")', choices=tuple(FILTER_KINDS)),
     Spec('cw_model', 'standard', "CW matrix of the filter's model: standard, or Eq. 41 as printed",
          choices=('standard', 'as_published')),
     Spec('measured_axes', [0, 1, 2], 'Position axes in the measurement (must match the sensor)'),
-    Spec('neuron_count', _CORE.neuron_count, 'N, number of LIF neurons (Table 6: 200)', low=1, high=100000),
-    Spec('leak_rate', _CORE.leak_rate, 'lambda, leak of v and r, 1/s (Eq. 10-11; Table 6: 0.001)',
-         read_only=False, low=0.0),
-    Spec('boundary_layer', [_CORE.boundary_layer], 'delta, sliding boundary layer per measured axis '
-         'or one for all, m (Eq. 7-8, 21-24; Table 6: 0.1)', read_only=False),
-    Spec('decoder_variance', _CORE.decoder_variance, 'Variance of the decoder entries, D ~ N(0, var) '
-         '(Sec. 3.2: 1/15)', low=1e-300),
-    Spec('seed', 0, 'Seed of the decoder, membrane noise and dispersed start (streams 3 and 5)', low=0),
-    Spec('process_noise', [_CORE.process_noise], "Q the filter's Q_hat is scaled from, (m/s^2)^2/Hz"),
-    Spec('measurement_noise', [_CORE.measurement_noise], "R the filter's R_hat is scaled from, m^2"),
-    Spec('process_noise_scale', _CORE.process_noise_scale, 'Q_hat = scale * Q (Sec. 3.2: 0.9)',
-         read_only=False, low=0.0),
-    Spec('measurement_noise_scale', _CORE.measurement_noise_scale, 'R_hat = scale * R (Sec. 3.2: 5)',
-         read_only=False, low=1e-300),
-    Spec('measurement_noise_units', _CORE.measurement_noise_units,
-         'What R_hat is to the Kalman gain and Riccati equation (Eq. 5-6): spectral_density (as '
-         'printed) or per_sample (variance of each sample: Eq. 5-6 use R_hat * time_step)',
-         choices=MEASUREMENT_NOISE_UNITS),
-    Spec('gain_schedule', _CORE.gain_schedule, 'time_varying: the gain follows P or the innovation '
-         'every step (the paper); steady_state: held at its value at the fixed point of Eq. 6 '
-         '(constant network weights)', choices=GAIN_SCHEDULES),
-    Spec('initial_covariance', _floats(_CORE.initial_covariance),
-         'P0, initial error covariance, m^2 and (m/s)^2 (not in the paper)'),
-    Spec('initial_state', _floats(_CORE.initial_state), 'x_hat0, m and m/s (Table 6: x0)'),
-    Spec('initial_state_dispersion', True, 'Start from x_hat0 + L xi (L L^T = P0, xi ~ N(0, I) from '
-         'the seed), not from x_hat0: the filter does not know the truth (the paper starts at the '
-         'truth: false)'),
-    Spec('spike_rule', _CORE.spike_rule, 'How neurons above threshold fire in one step', choices=SPIKE_RULES),
-    Spec('state_scale', _floats(_CORE.state_scale), 'Diagonal of S: the network encodes x~ = S^-1 x '
-         '(all 1: the literal network), m and m/s per unit'),
-    Spec('discretization', _CORE.discretization, 'Stepping of the continuous equations',
-         choices=('exact', 'euler')),
-    Spec('membrane_noise', 0.0, 'eta, membrane noise, per sqrt(s) (Eq. 10; 0 = off)', read_only=False, low=0.0),
-    Spec('max_spikes_per_step', 0, 'Cap on spikes per step for the greedy rule (0: 1000 N)', low=0),
-    Spec('silenced_neurons', None, 'Indices of silenced (dead) neurons', read_only=False, kind=INTEGER_ARRAY),
+) + tuple(_from_schema(field) for field in schema.FIELDS) + (
     Spec('silenced_fraction', 0.0, 'Fraction of neurons silenced, chosen at random with the seed '
          '(added to silenced_neurons)', read_only=False, low=0.0, high=1.0),
     Spec('publish_spikes', True, 'Publish per-neuron spike counts on `spikes` every step'),
@@ -283,10 +259,9 @@ LIVE_VIEW = MODEL + (
     Spec('raster_steps', 200, 'Steps shown across the spike raster', low=1, high=100000),
 )
 
-#: Node name -> its table, in the order the YAML files and docs/parameters.md list them.
-NODES = {'cw_plant': PLANT, 'basilisk_plant': BASILISK_PLANT, 'position_sensor': SENSOR,
-         'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR, 'recorder': RECORDER,
-         'live_view': LIVE_VIEW}
+#: Node name -> its table, in the order the YAML files and docs/parameters.md list them (the
+#: registry's).
+NODES = {entry.name: globals()[entry.parameters] for entry in registry.NODES}
 
 
 def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
@@ -385,22 +360,14 @@ def check_choices(values: dict, specs: Sequence[Spec]) -> None:
 
 
 def estimator_config(values: dict) -> EstimatorConfig:
-    """The core configuration from the estimator node's parameter values."""
-    return EstimatorConfig(
-        neuron_count=values['neuron_count'], leak_rate=values['leak_rate'],
-        boundary_layer=list(values['boundary_layer']), decoder_variance=values['decoder_variance'],
-        seed=values['seed'], process_noise=list(values['process_noise']),
-        measurement_noise=list(values['measurement_noise']),
-        process_noise_scale=values['process_noise_scale'],
-        measurement_noise_scale=values['measurement_noise_scale'],
-        measurement_noise_units=values['measurement_noise_units'],
-        gain_schedule=values['gain_schedule'],
-        initial_covariance=list(values['initial_covariance']),
-        initial_state=list(values['initial_state']),
-        initial_state_dispersion=values['initial_state_dispersion'], spike_rule=values['spike_rule'],
-        state_scale=list(values['state_scale']), discretization=values['discretization'],
-        membrane_noise=values['membrane_noise'], max_spikes_per_step=values['max_spikes_per_step'],
-        silenced_neurons=tuple(silenced_set(values, values['neuron_count'], values['seed'])))
+    """The core configuration from the estimator node's parameter values (every schema field;
+    silenced_neurons with silenced_fraction added)."""
+    silenced = tuple(silenced_set(values, values['neuron_count'], values['seed']))
+    return EstimatorConfig(**dict(schema.config_values(values), silenced_neurons=silenced))
+
+
+#: Parameters applied between steps through the parameter services; the others are read-only.
+ESTIMATOR_RUNTIME = frozenset(spec.name for spec in ESTIMATOR if not spec.read_only)
 
 
 def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
@@ -497,7 +464,8 @@ def _yaml_value(value) -> str:
 CONFIG_FILES = {
     'rendezvous.yaml': (
         "the paper's rendezvous scenario (Sec. 3.2, Table 6) with this package's numerical "
-        'defaults and a filter that does not know the truth (dispersed start).', {}),
+        'defaults and a filter that does not know the truth (dispersed start).',
+        {'initial_state_dispersion': True}),
     'rendezvous_as_published.yaml': (
         'the rendezvous scenario with the network exactly as Table 6 gives it: no state scaling, '
         'forward-Euler steps, the estimate starting at the truth. Expect ~0.1 m of spike quantisation.',
@@ -527,6 +495,8 @@ def yaml_document(header: str, estimator_overrides: dict) -> str:
             for line in textwrap.wrap(spec.description + choices + runtime, 92):
                 out.append(f'    # {line}')
             value = estimator_overrides.get(spec.name, spec.default) if specs is ESTIMATOR else spec.default
+            if value != spec.default:
+                out.append(f'    # (this file; the default is {_yaml_value(spec.default)})')
             prefix = '# ' if value is None else ''
             out.append(f'    {prefix}{spec.name}: {_yaml_value(value if value is not None else [])}')
         out.append('')
@@ -560,12 +530,14 @@ def generated_files() -> dict[Path, str]:
     """Every file generated from the tables, with its content."""
     files = {ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
     files[ROOT / 'docs' / 'parameters.md'] = PARAMETERS_DOC + markdown()
+    for name in registry.executables():  # ros2 run entry points of a pip install (setup.py)
+        files[ROOT / 'wrappers' / name] = registry.WRAPPER.format(name=name)
     return files
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description='Print the parameter tables, or --write the '
-                                                 'generated files (config/*.yaml, docs/parameters.md).')
+    parser = argparse.ArgumentParser(description='Print the parameter tables, or --write the generated '
+                                                 'files (config/*.yaml, docs/parameters.md, wrappers/).')
     parser.add_argument('--write', action='store_true')
     args = parser.parse_args(argv)
     if not args.write:
@@ -574,6 +546,8 @@ def main(argv=None) -> int:
     for path, content in generated_files().items():
         if not path.exists() or path.read_text() != content:
             path.write_text(content)
+            if path.parent.name == 'wrappers':
+                path.chmod(0o755)
             print(f'wrote {path}')
     return 0
 

@@ -17,7 +17,7 @@ from snn_estimator.measurements import REASONS, VALID, make_model
 from snn_estimator.peers import PeerWatch
 
 from . import qos
-from .codec import MessageError, check_frame, decode_odometry, encode_measurement, state_of
+from .codec import MessageError, encode_measurement, read_input
 from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, declare
@@ -80,8 +80,7 @@ class SensorNode(ProcessHooks, Node):
     def _on_truth(self, data: bytes) -> None:
         self._peers.saw(qos.TRUTH)
         try:
-            truth = check_frame(decode_odometry(data), self._p['frame_id'])
-            x = state_of(truth)
+            truth, x = read_input('state', data, self._p['frame_id'])
         except MessageError as error:
             self._rejected[error.reason] += 1
             self.get_logger().warning(f'rejected truth ({error})', throttle_duration_sec=5.0)

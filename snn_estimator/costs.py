@@ -21,8 +21,9 @@ Counting model (the constant-weight network that ``snn_export`` writes, run even
 
 The dense count is the paper's algebra evaluated per step as :mod:`snn_estimator.reference`
 does: (Omega_s + Omega_k) r as an N x N product, F u, F_k z, the leak of v and r, one Omega_f
-column per spike and the decoding S D r. The non-spiking count follows the loops of
-``kernels.estimator_step`` for n states, m measurements and nu inputs.
+column per spike and the decoding S D r. The non-spiking count follows the loops of the
+step kernels (snn_estimator.kernels; the laws' ``macs`` in snn_estimator.gains) for n states,
+m measurements and nu inputs.
 
 numpy only: the ROS estimator calls :meth:`CostModel.step` every diagnostics period.
 """
@@ -34,6 +35,8 @@ from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
+
+from . import gains
 
 #: Covariance laws of the filters (estimators.FILTER_KINDS): Eq. 6, the covariance of the gain
 #: used, or none.
@@ -99,7 +102,7 @@ class StepCosts(NamedTuple):
 @dataclass(frozen=True)
 class CostModel:
     """Operation counts of one spiking filter: N neurons, n states, m measurements, nu inputs,
-    its gain law (kalman | msif | sif | msif_hybrid | msif_weighted) and covariance law, and
+    its gain law (a module of snn_estimator.gains) and covariance law, and
     whether the gain (and so every weight) is constant. ``ticks``: chip time steps per
     estimate (1: the network is integrated once per sample and its spikes resolved in place,
     as the package's kernel does)."""
@@ -118,8 +121,8 @@ class CostModel:
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value or value < (0 if name == 'inputs' else 1):
                 raise ValueError(f'{name} must be a positive integer (inputs may be 0), got {value!r}')
-        if self.gain_law not in _GAIN_MACS:
-            raise ValueError(f'gain_law {self.gain_law!r} is unknown; choose one of {", ".join(_GAIN_MACS)}')
+        if self.gain_law not in gains.laws():
+            raise ValueError(f'gain_law {self.gain_law!r} is unknown; choose one of {", ".join(gains.laws())}')
         if self.covariance_law not in COVARIANCE_LAWS:
             raise ValueError(f'covariance_law {self.covariance_law!r} is unknown; choose one of '
                              f'{", ".join(COVARIANCE_LAWS)}')
@@ -213,38 +216,23 @@ def energy_pj(costs: StepCosts, chip: Chip | str):
             + np.asarray(costs.spikes) * chip.spike_pj)
 
 
-def _msif_gain(n: int, m: int) -> int:
-    return m * n + n * m                       # diag(C P C^T) (Eq. 9), C^+ sat(.) (Eq. 8)
-
-
-#: MACs of the gain itself given P C^T and P C^T R^-1, as estimator_step evaluates it.
-_GAIN_MACS = {
-    'kalman': lambda n, m: 0,                                           # K = P C^T R^-1 (Eq. 5)
-    'msif': _msif_gain,
-    'sif': lambda n, m: n * m,                                          # C^+ sat(|nu|/delta) (Eq. 7)
-    'msif_hybrid': lambda n, m: _msif_gain(n, m) + 2 * m * m * n,       # + (I - C^+ C) P C^T R^-1
-    'msif_weighted': lambda n, m: _msif_gain(n, m) + 2 * m * m * n + m ** 3 + n * m,  # P C^T (C P C^T)^-1
-}
-
-
 def filter_macs(n: int, m: int, nu: int, gain_law: str, covariance_law: str,
                 constant_gain: bool = False) -> dict:
-    """MACs of one step of the non-spiking filter (kernels.estimator_step), by part:
+    """MACs of one step of the non-spiking filter (the step kernels), by part:
 
     innovation z - C x_hat (m n); gain: P C^T and P C^T R^-1 (n^2 m + n m^2) when the law or
-    the covariance needs P, then the law's own products (none with a constant gain);
+    the covariance needs P, then the law's own products (its ``macs``) (none with a constant gain);
     state: A_d x_hat + B_d u + K nu and the Euler step (n^2 + n nu + n m + n);
     covariance: Eq. 6 (J P, then the upper triangle of P C^T R^-1 C P: n^3 + n(n+1)/2 m) or
     that of the gain used ((J - K C) P and K R K^T: n^2 m + n^3 + n(n+1)/2 m^2).
 
     For n = 6, m = 3, nu = 3 the EKF (kalman, riccati) takes 18 + 162 + 78 + 279 = 537.
     """
-    if gain_law not in _GAIN_MACS:
-        raise ValueError(f'gain_law {gain_law!r} is unknown; choose one of {", ".join(_GAIN_MACS)}')
+    law = gains.law(gain_law)  # ValueError naming the laws
     if covariance_law not in COVARIANCE_LAWS:
         raise ValueError(f'covariance_law {covariance_law!r} is unknown; choose one of {", ".join(COVARIANCE_LAWS)}')
-    needs_p = gain_law != 'sif' or covariance_law == 'riccati'
-    gain = 0 if constant_gain else (n * n * m + n * m * m) * needs_p + _GAIN_MACS[gain_law](n, m)
+    needs_p = law.USES_P or covariance_law == 'riccati'
+    gain = 0 if constant_gain else (n * n * m + n * m * m) * needs_p + law.macs(n, m)
     triangle = n * (n + 1) // 2
     covariance = {'riccati': n ** 3 + triangle * m,
                   'gain': n * n * m + n ** 3 + triangle * m * m,

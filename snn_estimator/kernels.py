@@ -1,4 +1,4 @@
-"""Compiled per-step kernel (numba) for the filters and the spiking network.
+"""Compiled per-step kernels (numba) for the filters and the spiking network.
 
 One compiled call advances every run of a batch (leading axis = Monte-Carlo run), so a single
 ROS estimator (batch of 1) and a 100-run experiment execute the same code. The network algebra
@@ -6,139 +6,242 @@ follows the paper without forming an N x N product per step: ``Omega_s r`` is
 ``D^T (A + lambda I) (D r)``, ``Omega_k r + F_k z`` is ``D^T K (z - C D r)``, and a spike of
 neuron i adds the column ``Omega_f[:, i] = -D^T D_i`` of a precomputed Gram matrix.
 
-The step kernel takes ~35 arrays and codes. They are never passed by position from the
-estimator: :class:`StepCall` assembles them by parameter name and checks every shape once,
-when the estimator is built, against :data:`STEP_SHAPES` (a swapped pair of same-shaped arrays
-would otherwise compile and run).
+:func:`step_kernel` composes one kernel per (gain law, covariance law, integration, spike rule,
+drift): the law's piece comes from its module in :mod:`snn_estimator.gains`, the others are
+below; nothing is chosen by a code at run time. Each composition is compiled once and kept in
+numba's on-disk cache (under a name carrying a hash of the sources it is made of, so an edited
+piece is never served stale). Its arguments are packed (:class:`Packed`): the constants, the
+filter state and the network state are tuples built and shape-checked in one place; a step
+passes those three and its own seven inputs.
 """
 
 from __future__ import annotations
 
+import hashlib
 import inspect
+import types
+from pathlib import Path
 
 import numba
 import numpy as np
 
-GAIN_KALMAN = 0      # K = P C^T R^-1                               (Eq. 5, 19-20)
-GAIN_MSIF = 1        # K = C^+ diag(sat(diag(C P C^T + R) / delta))  (Eq. 8-9 corrected, 21-22)
-GAIN_SIF = 2         # K = C^+ diag(sat(|z - C x_hat| / delta))      (Eq. 7, 23-24)
-GAIN_MSIF_HYBRID = 3  # MSIF on the measured directions, Kalman on the others:
-#                       K = C^+ sat(...) + (I - C^+ C) P C^T R^-1    (not in the paper)
-GAIN_FIXED = 4       # a constant K (the steady-state gain of any of the above)
-GAIN_MSIF_WEIGHTED = 5  # MSIF with the covariance-weighted right inverse of C instead of C^+:
-#                         K = P C^T (C P C^T)^-1 diag(sat(diag(C P C^T + R) / delta))  (not in the paper)
+from . import gains
 
-COVARIANCE_NONE = 0     # no P (the SIF gain needs none)
-COVARIANCE_RICCATI = 1  # P' = J P + P J^T + Q - P C^T R^-1 C P            (Eq. 6)
-COVARIANCE_GAIN = 2     # P' = (J - K C) P + P (J - K C)^T + Q + K R K^T    (any gain K)
-
-RULE_GREEDY = 0        # fire the largest overshoot, reset, repeat until none is above threshold
-RULE_ONE_PER_STEP = 1  # at most one spike (the largest overshoot) per step
-RULE_ALL_ABOVE = 2     # every neuron above threshold fires once, simultaneously
+COVARIANCE_LAWS = ('riccati', 'gain', 'none')  # Eq. 6 | the covariance of the gain used | no P
+SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
 
 # Reassociation lets LLVM vectorise the reductions; no-NaN/Inf assumptions stay off so the
 # finiteness checks keep working.
 _FAST = {'reassoc', 'contract', 'nsz', 'arcp'}
+_jit = numba.njit(fastmath=_FAST)
 
 STATUS_OK = 0
 STATUS_BAD_INPUT = 1     # non-finite z or u: nothing was changed
 STATUS_NON_FINITE = 2    # the state became non-finite: reset before stepping again
 
-#: Shape of every array argument of :func:`estimator_step`, in symbols: runs (batch), n
-#: (states), m (measurements), nu (inputs), N (neurons, 0 for a non-spiking filter), d (1, or
-#: runs: a linear model shares one dynamics block) and w (2 n + nu: the packed dynamics).
-STEP_SHAPES = {
-    'c': ('m', 'n'), 'c_pinv': ('n', 'm'), 'q_hat': ('n', 'n'), 'r_density': ('m', 'm'),
-    'r_density_inv': ('m', 'm'), 'r_hat_diag': ('m',), 'delta': ('m',), 'scale': ('n',),
-    'fixed_gain': ('n', 'm'), 'dynamics': ('d', 'n', 'w'), 'drift': ('d', 'n'), 'z': ('runs', 'm'),
-    'u': ('runs', 'nu'), 'noise': ('runs', 'N'), 'x_hat': ('runs', 'n'), 'p': ('runs', 'n', 'n'),
-    'gain': ('runs', 'n', 'm'), 'decoder': ('runs', 'n', 'N'), 'gram': ('runs', 'N', 'N'),
-    'thresholds': ('runs', 'N'), 'alive': ('runs', 'N'), 'r': ('runs', 'N'), 'v': ('runs', 'N'),
-    'spikes': ('runs', 'N'), 'total_spikes': ('runs',),
-}
+#: The packed arguments, in symbols: runs (batch), n (states), m (measurements), nu (inputs), N
+#: (neurons, 0 for a non-spiking filter), d (1, or runs: a linear model shares one dynamics
+#: block), w (2 n + nu: the packed dynamics). Names in the order of each tuple.
+CONSTANTS = (('c', ('m', 'n')), ('c_pinv', ('n', 'm')), ('q_hat', ('n', 'n')), ('r_density', ('m', 'm')),
+             ('r_density_inv', ('m', 'm')), ('r_hat_diag', ('m',)), ('delta', ('m',)), ('scale', ('n',)),
+             ('fixed_gain', ('n', 'm')), ('leak', ()), ('max_spikes', ()))
+STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')))
+NETWORK = (('decoder', ('runs', 'n', 'N')), ('gram', ('runs', 'N', 'N')), ('thresholds', ('runs', 'N')),
+           ('alive', ('runs', 'N')), ('r', ('runs', 'N')), ('v', ('runs', 'N')), ('spikes', ('runs', 'N')),
+           ('total_spikes', ('runs',)))
+INPUTS = (('dynamics', ('d', 'n', 'w')), ('drift', ('d', 'n')), ('z', ('runs', 'm')), ('u', ('runs', 'nu')),
+          ('noise', ('runs', 'N')))
+_SCALARS = {'leak': float, 'max_spikes': int}
+_DTYPES = {'alive': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64}
 
 
-class StepCall:
-    """The argument list of :func:`estimator_step`, assembled by parameter name.
+class Packed:
+    """The argument tuples of a step kernel, built by name and shape-checked once.
 
-    ``StepCall(dims, **arrays_and_codes)`` checks that every parameter is given, none is
-    unknown and each array has its :data:`STEP_SHAPES` shape for ``dims`` (ValueError naming the
-    argument otherwise). ``call(**changes)`` replaces some arguments (by name) and runs the
-    kernel; the arrays the kernel updates in place (x_hat, p, gain, r, v, spikes, ...) are the
-    ones given at construction.
+    ``Packed(dims, **values)`` takes every name of :data:`CONSTANTS`, :data:`STATE` and
+    :data:`NETWORK` (ValueError naming a missing, unknown or misshapen one); ``constants``,
+    ``state``, ``network`` are the tuples the kernel takes. The arrays of ``state`` and
+    ``network`` are updated in place by the kernel; :meth:`update` rebuilds ``constants``.
     """
 
     def __init__(self, dims: dict, **values):
-        names = tuple(inspect.signature(estimator_step.py_func).parameters)
+        names = [name for group in (CONSTANTS, STATE, NETWORK) for name, _ in group]
         missing, unknown = set(names) - set(values), set(values) - set(names)
         if missing or unknown:
-            raise ValueError(f'estimator_step arguments: missing {sorted(missing)}, unknown {sorted(unknown)}')
+            raise ValueError(f'step kernel arguments: missing {sorted(missing)}, unknown {sorted(unknown)}')
         self._dims = dict(dims)
-        for name, value in values.items():
-            self._check(name, value)
-        self._index = {name: i for i, name in enumerate(names)}
-        self._args = [values[name] for name in names]
+        self._values = {}
+        self.update(**values)
+        self.state = tuple(self._values[name] for name, _ in STATE)
+        self.network = tuple(self._values[name] for name, _ in NETWORK)
 
-    def _check(self, name: str, value) -> None:
-        shape = STEP_SHAPES.get(name)
-        if shape is None:
-            return
+    def update(self, **changes) -> None:
+        """Replace constants by name (settings that change between steps), shape-checked."""
+        shapes = dict(CONSTANTS + STATE + NETWORK)
+        for name, value in changes.items():
+            if name in _SCALARS:
+                value = _SCALARS[name](value)
+            else:
+                self.check(name, value, shapes[name])
+            self._values[name] = value
+        self.constants = tuple(self._values[name] for name, _ in CONSTANTS)
+
+    def check(self, name: str, value, shape) -> None:
+        """ValueError unless ``value`` is a C-contiguous array of ``shape`` (symbols of dims)
+        with the kernel's dtype."""
         dims = dict(self._dims, d=value.shape[0] if np.ndim(value) else 0)
         expected = tuple(dims[symbol] for symbol in shape)
         if np.shape(value) != expected:
-            raise ValueError(f'estimator_step argument {name}: shape {np.shape(value)}, expected '
+            raise ValueError(f'step kernel argument {name}: shape {np.shape(value)}, expected '
                              f'{expected} ({", ".join(shape)})')
         if name in ('dynamics', 'drift') and value.shape[0] not in (1, self._dims['runs']):
-            raise ValueError(f'estimator_step argument {name}: leading axis must be 1 or runs')
-
-    def slot(self, name: str) -> int:
-        """Position of argument ``name`` (for :meth:`set_slots` on the hot path)."""
-        return self._index[name]
-
-    def update(self, **changes) -> None:
-        """Replace arguments by name, shape-checked (settings that change between steps)."""
-        for name, value in changes.items():
-            self._check(name, value)
-            self._args[self._index[name]] = value
-
-    def set_slots(self, values) -> None:
-        """Replace arguments by the positions :meth:`slot` gave, without checks: the per-step
-        inputs, whose shapes the estimator has already checked."""
-        args = self._args
-        for index, value in values:
-            args[index] = value
-
-    def __call__(self):
-        return estimator_step(*self._args)
+            raise ValueError(f'step kernel argument {name}: leading axis must be 1 or runs')
+        if value.dtype != _DTYPES.get(name, np.float64) or not value.flags.c_contiguous:
+            raise ValueError(f'step kernel argument {name}: needs a C-contiguous {_DTYPES.get(name, "float64")} array')
 
 
-@numba.njit(cache=True, fastmath=_FAST)
-def _fire(b, spike_rule, max_spikes, gram, thresholds, alive, r, v, spikes):
-    """Emit the spikes of run b by ``spike_rule``; a spike of i adds 1 to r_i and subtracts
-    row i of the Gram matrix D^T D from v (Omega_f, Eq. 18). Returns (spikes, hit the cap)."""
-    neurons = v.shape[1]
+# ---------------------------------------------------------------- pieces shared by the laws
+@_jit
+def _innovation(b, measured, z, c, x_hat, nu):
+    """nu = z - C x_hat (0 without a measurement)."""
+    n = x_hat.shape[1]
+    for j in range(nu.shape[0]):
+        acc = z[b, j] if measured else 0.0
+        if measured:
+            for k in range(n):
+                acc -= c[j, k] * x_hat[b, k]
+        nu[j] = acc
+
+
+@_jit
+def _p_terms(b, p, c, r_density_inv, pct, pctr):
+    """P C^T and P C^T R^-1 (the Kalman gain and Eq. 6's measurement term)."""
+    n, m = pct.shape
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for k in range(n):
+                acc += p[b, i, k] * c[j, k]
+            pct[i, j] = acc
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for k in range(m):
+                acc += pct[i, k] * r_density_inv[k, j]
+            pctr[i, j] = acc
+
+
+@_jit
+def _no_p_terms(b, p, c, r_density_inv, pct, pctr):
+    """A law and covariance that read no P."""
+
+
+@_jit
+def _linear_increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment):
+    """A_d x_hat + B_d u + K nu (the right-hand side of Eq. 3)."""
+    n, n_u, m = x_hat.shape[1], u.shape[1], nu.shape[0]
+    for i in range(n):
+        acc = 0.0
+        for k in range(n):
+            acc += dynamics[bd, i, k] * x_hat[b, k]
+        for k in range(n_u):
+            acc += dynamics[bd, i, n + k] * u[b, k]
+        for j in range(m):
+            acc += gain[b, i, j] * nu[j]
+        increment[i] = acc
+
+
+@_jit
+def _drift_increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment):
+    """The given nonlinear drift + K nu (a direct filter on a nonlinear model)."""
+    n, m = x_hat.shape[1], nu.shape[0]
+    for i in range(n):
+        acc = drift[b, i]
+        for j in range(m):
+            acc += gain[b, i, j] * nu[j]
+        increment[i] = acc
+
+
+@_jit
+def _riccati(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch):
+    """P += dt (J P + P J^T + Q - P C^T R^-1 C P) (Eq. 6, forward Euler)."""
+    q_hat = consts[2]
+    jp = scratch[7]
+    n, m = pct.shape
+    w = dynamics.shape[2] - n
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += dynamics[bd, i, w + k] * p[b, k, j]
+            jp[i, j] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = jp[i, j] + jp[j, i] + q_hat[i, j]
+            if measured:
+                for k in range(m):
+                    acc -= pctr[i, k] * pct[j, k]
+            value = p[b, i, j] + dt * acc
+            p[b, i, j] = value
+            p[b, j, i] = value
+
+
+@_jit
+def _gain_covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch):
+    """P += dt ((J - K C) P + P (J - K C)^T + Q + K R K^T): the covariance of any gain K."""
+    c, q_hat, r_density = consts[0], consts[2], consts[3]
+    jp, closed = scratch[7], scratch[8]
+    n, m = pct.shape
+    w = dynamics.shape[2] - n
+    for i in range(n):
+        for k in range(n):
+            acc = dynamics[bd, i, w + k]
+            for j in range(m):
+                acc -= gain[b, i, j] * c[j, k]
+            closed[i, k] = acc
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += closed[i, k] * p[b, k, j]
+            jp[i, j] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = jp[i, j] + jp[j, i] + q_hat[i, j]
+            for k in range(m):
+                for q in range(m):
+                    acc += gain[b, i, k] * r_density[k, q] * gain[b, j, q]
+            value = p[b, i, j] + dt * acc
+            p[b, i, j] = value
+            p[b, j, i] = value
+
+
+@_jit
+def _no_covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch):
+    """The SIF gain needs no P."""
+
+
+# ---------------------------------------------------------------- spike rules (Eq. 18)
+@_jit
+def _largest_overshoot(b, thresholds, alive, v):
     best = -1
     best_over = 0.0
-    for i in range(neurons):
+    for i in range(v.shape[1]):
         if alive[b, i]:
             over = v[b, i] - thresholds[b, i]
             if over > best_over:
                 best_over = over
                 best = i
+    return best
+
+
+@_jit
+def _fire_in_turn(b, limit, gram, thresholds, alive, r, v, spikes):
+    """Fire the largest overshoot, subtract its Gram row, repeat (at most ``limit`` spikes).
+    Returns (spikes, another neuron is still above threshold)."""
+    neurons = v.shape[1]
+    best = _largest_overshoot(b, thresholds, alive, v)
     count = 0
-    if spike_rule == RULE_ALL_ABOVE:
-        for i in range(neurons):
-            if alive[b, i] and v[b, i] > thresholds[b, i]:
-                spikes[b, i] += 1
-                count += 1
-        if count > 0:
-            for i in range(neurons):
-                if spikes[b, i]:
-                    r[b, i] += 1.0
-                    for j in range(neurons):
-                        v[b, j] -= gram[b, i, j]
-        return count, False
-    limit = 1 if spike_rule == RULE_ONE_PER_STEP else max_spikes
     while best >= 0 and count < limit:
         fired = best
         r[b, fired] += 1.0
@@ -154,12 +257,149 @@ def _fire(b, spike_rule, max_spikes, gram, thresholds, alive, r, v, spikes):
                 if over > best_over:
                     best_over = over
                     best = j
-    return count, spike_rule == RULE_GREEDY and best >= 0
+    return count, best >= 0
 
 
-@numba.njit(cache=True, fastmath=_FAST)
-def fire_only(spike_rule, max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes,
-              total_spikes, x_hat):
+@_jit
+def _fire_greedy(b, max_spikes, gram, thresholds, alive, r, v, spikes):
+    """Largest overshoot first until none is above threshold (cap max_spikes). Returns
+    (spikes, hit the cap)."""
+    return _fire_in_turn(b, max_spikes, gram, thresholds, alive, r, v, spikes)
+
+
+@_jit
+def _fire_one_per_step(b, max_spikes, gram, thresholds, alive, r, v, spikes):
+    """At most one spike (the largest overshoot) per step."""
+    count, _ = _fire_in_turn(b, 1, gram, thresholds, alive, r, v, spikes)
+    return count, False
+
+
+@_jit
+def _fire_all_above(b, max_spikes, gram, thresholds, alive, r, v, spikes):
+    """Every neuron above threshold fires once, simultaneously."""
+    neurons = v.shape[1]
+    count = 0
+    for i in range(neurons):
+        if alive[b, i] and v[b, i] > thresholds[b, i]:
+            spikes[b, i] += 1
+            count += 1
+    if count > 0:
+        for i in range(neurons):
+            if spikes[b, i]:
+                r[b, i] += 1.0
+                for j in range(neurons):
+                    v[b, j] -= gram[b, i, j]
+    return count, False
+
+
+_FIRE = {'greedy': _fire_greedy, 'one_per_step': _fire_one_per_step, 'all_above': _fire_all_above}
+
+
+# ---------------------------------------------------------------- integration
+@_jit
+def _direct(b, dt, increment, noise, consts, state, network, scratch):
+    """x_hat += dt increment. Returns (finite, spikes, capped)."""
+    x_hat = state[0]
+    finite = True
+    for i in range(x_hat.shape[1]):
+        x_hat[b, i] += dt * increment[i]
+        if not np.isfinite(x_hat[b, i]):
+            finite = False
+    return finite, 0, False
+
+
+def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
+    """The network on x~ = S^-1 x (Eq. 10-15, forward Euler):
+    v = (1 - lambda dt) v + dt D^T (S^-1 increment + lambda D r) + noise, r = (1 - lambda dt) r,
+    then spikes by the rule (r_i += 1, v -= D^T D_i), x_hat = S D r (Eq. 12)."""
+    scale, leak, max_spikes = consts[7], consts[9], consts[10]
+    x_hat = state[0]
+    decoder, gram, thresholds, alive, r, v, spikes, total_spikes = network
+    drive, input_current = scratch[9], scratch[10]
+    n, neurons = decoder.shape[1], decoder.shape[2]
+    decay = 1.0 - leak * dt
+    for k in range(n):  # x_hat holds S D r from the end of the previous step
+        drive[k] = dt * (increment[k] + leak * x_hat[b, k]) / scale[k]
+    for i in range(neurons):
+        input_current[i] = noise[b, i]
+    for k in range(n):  # D^T drive, row by row so the inner loop is contiguous
+        weight = drive[k]
+        for i in range(neurons):
+            input_current[i] += decoder[b, k, i] * weight
+    for i in range(neurons):
+        v[b, i] = v[b, i] * decay + input_current[i]
+        r[b, i] *= decay
+        spikes[b, i] = 0
+    count, hit_cap = _fire(b, max_spikes, gram, thresholds, alive, r, v, spikes)
+    total_spikes[b] += count
+    finite = True
+    for k in range(n):
+        acc = 0.0
+        for i in range(neurons):
+            acc += decoder[b, k, i] * r[b, i]
+        value = scale[k] * acc
+        x_hat[b, k] = value
+        if not np.isfinite(value):
+            finite = False
+    return finite, count, hit_cap
+
+
+# ---------------------------------------------------------------- the step
+#: The pieces the templates below call, given by :func:`_specialise` as their globals (the
+#: templates are never compiled as written).
+_terms = _gain = _increment = _covariance = _integrate = _fire = None
+
+
+def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, noise):
+    """Advance every run by dt. Returns (status, runs whose spike loop hit max_spikes).
+
+    Per run b, with the estimate x_hat at t_k, z_k and u_k: nu = z - C x_hat; K by the law's
+    piece; increment = A_d x_hat + B_d u + K nu (or the given nonlinear drift + K nu): Eq. 3;
+    P by the covariance piece (forward Euler); then the direct or the network integration.
+    R in Eq. 5-6 is ``r_density`` (see config.gain_noise_density); P^zz of Eq. 9 uses the
+    per-sample ``r_hat_diag``. ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + nu)); a leading
+    axis of 1 is shared. Without a measurement (``measured`` False: a sensor dropout) K = 0 and
+    z is not read.
+    """
+    c, r_density_inv = consts[0], consts[4]
+    x_hat, p, gain = state
+    runs, n = x_hat.shape
+    m = z.shape[1]
+    for b in range(runs):
+        for j in range(m):
+            if measured and not np.isfinite(z[b, j]):
+                return STATUS_BAD_INPUT, 0
+        for j in range(u.shape[1]):
+            if not np.isfinite(u[b, j]):
+                return STATUS_BAD_INPUT, 0
+    nu = np.empty(m)
+    increment = np.empty(n)
+    pct = np.empty((n, m))
+    pctr = np.empty((n, m))
+    scratch = (nu, increment, pct, pctr, np.empty((m, m)), np.empty((m, m)), np.empty(m), np.empty((n, n)),
+               np.empty((n, n)), np.empty(n), np.empty(network[0].shape[2]))
+    capped = 0
+    status = STATUS_OK
+    for b in range(runs):
+        bd = 0 if dynamics.shape[0] == 1 else b
+        _innovation(b, measured, z, c, x_hat, nu)
+        _terms(b, p, c, r_density_inv, pct, pctr)
+        _gain(b, gain, nu, pct, pctr, consts, scratch)
+        if not measured:
+            for i in range(n):
+                for j in range(m):
+                    gain[b, i, j] = 0.0
+        _increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment)
+        _covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch)
+        finite, _, hit_cap = _integrate(b, dt, increment, noise, consts, state, network, scratch)
+        if hit_cap:
+            capped += 1
+        if not finite:
+            status = STATUS_NON_FINITE
+    return status, capped
+
+
+def _fire_only_template(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes, x_hat):
     """The fast time scale alone: let every run spike until its coding error is below
     threshold (used right after neurons are lost), then decode x_hat = S D r."""
     runs, n, neurons = decoder.shape
@@ -167,7 +407,7 @@ def fire_only(spike_rule, max_spikes, decoder, gram, thresholds, alive, r, v, sc
     for b in range(runs):
         for i in range(neurons):
             spikes[b, i] = 0
-        count, _ = _fire(b, spike_rule, max_spikes, gram, thresholds, alive, r, v, spikes)
+        count, _ = _fire(b, max_spikes, gram, thresholds, alive, r, v, spikes)
         total_spikes[b] += count
         emitted += count
         for k in range(n):
@@ -178,211 +418,80 @@ def fire_only(spike_rule, max_spikes, decoder, gram, thresholds, alive, r, v, sc
     return emitted
 
 
-@numba.njit(cache=True, fastmath=_FAST)
-def estimator_step(gain_law, covariance_law, spiking, spike_rule, use_given_drift, measured, dt, leak,
-                   max_spikes, c, c_pinv, q_hat, r_density, r_density_inv, r_hat_diag, delta, scale,
-                   fixed_gain, dynamics, drift, z, u, noise, x_hat, p, gain, decoder, gram, thresholds,
-                   alive, r, v, spikes, total_spikes):
-    """Advance every run by dt. Returns (status, runs whose spike loop hit max_spikes).
+def _sources_digest() -> str:
+    """A hash of every source a composed kernel is made of: this file and the laws' compiled
+    pieces (numba's cache checks only the file of the function it caches)."""
+    digest = hashlib.sha256(Path(__file__).read_bytes())
+    for law in gains.laws().values():
+        digest.update(inspect.getsource(law.gain).encode())
+    return digest.hexdigest()[:12]
 
-    Per run b, with the estimate x_hat at t_k, z_k and u_k:
-      nu = z - C x_hat; K by ``gain_law`` from P, nu or fixed_gain;
-      increment = A_d x_hat + B_d u + K nu (or the given nonlinear drift + K nu): Eq. 3;
-      P by ``covariance_law`` (forward Euler): Eq. 6, or the covariance of the gain used;
-      direct filters:  x_hat += dt increment;
-      spiking filters (network on x~ = S^-1 x, Eq. 10-15, forward Euler):
-        v = (1 - lambda dt) v + dt D^T (S^-1 increment + lambda D r) + noise,
-        r = (1 - lambda dt) r, then spikes by ``spike_rule`` (r_i += 1, v -= D^T D_i),
-        x_hat = S D r (Eq. 12).
-    R in Eq. 5-6 is ``r_density`` (see config.gain_noise_density); P^zz of Eq. 9 uses the
-    per-sample ``r_hat_diag``. ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + nu)); a leading
-    axis of 1 is shared. Without a measurement (``measured`` False: a sensor dropout) K = 0 and
-    z is not read.
-    """
-    runs, n = x_hat.shape
-    m = z.shape[1]
-    n_u = u.shape[1]
-    for b in range(runs):
-        for j in range(m):
-            if measured and not np.isfinite(z[b, j]):
-                return STATUS_BAD_INPUT, 0
-        for j in range(n_u):
-            if not np.isfinite(u[b, j]):
-                return STATUS_BAD_INPUT, 0
-    uses_p = (gain_law == GAIN_KALMAN or gain_law == GAIN_MSIF or gain_law == GAIN_MSIF_HYBRID
-              or gain_law == GAIN_MSIF_WEIGHTED)
-    nu = np.empty(m)
-    increment = np.empty(n)
-    pct = np.empty((n, m))
-    pctr = np.empty((n, m))
-    cpctr = np.empty((m, m))
-    cpc = np.empty((m, m))
-    sats = np.empty(m)
-    jp = np.empty((n, n))
-    closed = np.empty((n, n))
-    drive = np.empty(n)
-    input_current = np.empty(decoder.shape[2])
-    decay = 1.0 - leak * dt
-    capped = 0
-    status = STATUS_OK
-    for b in range(runs):
-        bd = 0 if dynamics.shape[0] == 1 else b
-        # innovation
-        for j in range(m):
-            acc = z[b, j] if measured else 0.0
-            if measured:
-                for k in range(n):
-                    acc -= c[j, k] * x_hat[b, k]
-            nu[j] = acc
-        # P C^T and P C^T R^-1 (the Kalman gain and Eq. 6's measurement term)
-        if uses_p or covariance_law == COVARIANCE_RICCATI:
-            for i in range(n):
-                for j in range(m):
-                    acc = 0.0
-                    for k in range(n):
-                        acc += p[b, i, k] * c[j, k]
-                    pct[i, j] = acc
-            for i in range(n):
-                for j in range(m):
-                    acc = 0.0
-                    for k in range(m):
-                        acc += pct[i, k] * r_density_inv[k, j]
-                    pctr[i, j] = acc
-        # gain
-        if gain_law == GAIN_KALMAN:
-            for i in range(n):
-                for j in range(m):
-                    gain[b, i, j] = pctr[i, j]
-        elif gain_law == GAIN_FIXED:
-            for i in range(n):
-                for j in range(m):
-                    gain[b, i, j] = fixed_gain[i, j]
-        else:
-            for j in range(m):
-                if gain_law == GAIN_SIF:
-                    ratio = abs(nu[j]) / delta[j]
-                else:
-                    pzz = r_hat_diag[j]
-                    for k in range(n):
-                        pzz += c[j, k] * pct[k, j]
-                    ratio = abs(pzz) / delta[j]
-                sat = ratio if ratio < 1.0 else 1.0
-                sats[j] = sat
-                for i in range(n):
-                    gain[b, i, j] = c_pinv[i, j] * sat
-            if gain_law == GAIN_MSIF_WEIGHTED:  # columns of P C^T (C P C^T)^-1 times sat_j
-                for k in range(m):
-                    for j in range(m):
-                        acc = 0.0
-                        for i in range(n):
-                            acc += c[k, i] * pct[i, j]
-                        cpc[k, j] = acc
-                weighted = pct @ np.linalg.inv(cpc)
-                for j in range(m):
-                    for i in range(n):
-                        gain[b, i, j] = weighted[i, j] * sats[j]
-            if gain_law == GAIN_MSIF_HYBRID:  # + (I - C^+ C) P C^T R^-1 = pctr - C^+ (C pctr)
-                for k in range(m):
-                    for j in range(m):
-                        acc = 0.0
-                        for i in range(n):
-                            acc += c[k, i] * pctr[i, j]
-                        cpctr[k, j] = acc
-                for i in range(n):
-                    for j in range(m):
-                        acc = pctr[i, j]
-                        for k in range(m):
-                            acc -= c_pinv[i, k] * cpctr[k, j]
-                        gain[b, i, j] += acc
-        if not measured:
-            for i in range(n):
-                for j in range(m):
-                    gain[b, i, j] = 0.0
-        # right-hand side of Eq. 3
-        for i in range(n):
-            if use_given_drift:
-                acc = drift[b, i]
-            else:
-                acc = 0.0
-                for k in range(n):
-                    acc += dynamics[bd, i, k] * x_hat[b, k]
-                for k in range(n_u):
-                    acc += dynamics[bd, i, n + k] * u[b, k]
-            for j in range(m):
-                acc += gain[b, i, j] * nu[j]
-            increment[i] = acc
-        # covariance
-        if covariance_law == COVARIANCE_RICCATI:  # Eq. 6
-            for i in range(n):
-                for j in range(n):
-                    acc = 0.0
-                    for k in range(n):
-                        acc += dynamics[bd, i, n + n_u + k] * p[b, k, j]
-                    jp[i, j] = acc
-            for i in range(n):
-                for j in range(i, n):
-                    acc = jp[i, j] + jp[j, i] + q_hat[i, j]
-                    if measured:
-                        for k in range(m):
-                            acc -= pctr[i, k] * pct[j, k]
-                    value = p[b, i, j] + dt * acc
-                    p[b, i, j] = value
-                    p[b, j, i] = value
-        elif covariance_law == COVARIANCE_GAIN:  # (J - K C) P + P (J - K C)^T + Q + K R K^T
-            for i in range(n):
-                for k in range(n):
-                    acc = dynamics[bd, i, n + n_u + k]
-                    for j in range(m):
-                        acc -= gain[b, i, j] * c[j, k]
-                    closed[i, k] = acc
-            for i in range(n):
-                for j in range(n):
-                    acc = 0.0
-                    for k in range(n):
-                        acc += closed[i, k] * p[b, k, j]
-                    jp[i, j] = acc
-            for i in range(n):
-                for j in range(i, n):
-                    acc = jp[i, j] + jp[j, i] + q_hat[i, j]
-                    for k in range(m):
-                        for q in range(m):
-                            acc += gain[b, i, k] * r_density[k, q] * gain[b, j, q]
-                    value = p[b, i, j] + dt * acc
-                    p[b, i, j] = value
-                    p[b, j, i] = value
-        if not spiking:
-            for i in range(n):
-                x_hat[b, i] += dt * increment[i]
-                if not np.isfinite(x_hat[b, i]):
-                    status = STATUS_NON_FINITE
-            continue
-        # spiking network
-        neurons = decoder.shape[2]
-        for k in range(n):  # x_hat holds S D r from the end of the previous step
-            drive[k] = dt * (increment[k] + leak * x_hat[b, k]) / scale[k]
-        for i in range(neurons):
-            input_current[i] = noise[b, i]
-        for k in range(n):  # D^T drive, row by row so the inner loop is contiguous
-            weight = drive[k]
-            for i in range(neurons):
-                input_current[i] += decoder[b, k, i] * weight
-        for i in range(neurons):
-            v[b, i] = v[b, i] * decay + input_current[i]
-            r[b, i] *= decay
-            spikes[b, i] = 0
-        count, hit_cap = _fire(b, spike_rule, max_spikes, gram, thresholds, alive, r, v, spikes)
-        if hit_cap:
-            capped += 1
-        total_spikes[b] += count
-        for k in range(n):
-            acc = 0.0
-            for i in range(neurons):
-                acc += decoder[b, k, i] * r[b, i]
-            value = scale[k] * acc
-            x_hat[b, k] = value
-            if not np.isfinite(value):
-                status = STATUS_NON_FINITE
-    return status, capped
+
+_DIGEST = _sources_digest()
+_KERNELS: dict = {}
+
+
+def _specialise(template, name: str, **pieces):
+    """``template`` compiled with ``pieces`` as its globals, cached on disk as ``name``: a
+    module-level function for numba's cache (a closure would compile in every process)."""
+    key = (template.__name__, name)
+    kernel = _KERNELS.get(key)
+    if kernel is None:
+        function = types.FunctionType(template.__code__, {**globals(), **pieces}, template.__name__)
+        function.__qualname__ = f'{name}_{_DIGEST}'
+        function.__doc__ = template.__doc__
+        kernel = _KERNELS[key] = numba.njit(cache=True, fastmath=_FAST)(function)
+    return kernel
+
+
+def _law_piece(law: str):
+    """The compiled gain piece of ``law`` (after its base law's piece, if it builds on one)."""
+    module = gains.law(law)
+    own = _jit(module.gain)
+    if module.BASE is None:
+        return own
+    base = _law_piece(module.BASE)
+
+    @_jit
+    def chained(b, out, nu, pct, pctr, consts, scratch):
+        base(b, out, nu, pct, pctr, consts, scratch)
+        own(b, out, nu, pct, pctr, consts, scratch)
+    return chained
+
+
+def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'greedy', drift: bool = False):
+    """The step kernel of one combination: gain ``law`` (a module of snn_estimator.gains),
+    ``covariance`` (riccati | gain | none), network or direct integration (``spike_rule`` only
+    matters for a network), and whether the filter integrates a given nonlinear ``drift`` (a
+    direct filter on a nonlinear model, or a network with network_drive: nonlinear).
+    Called as ``kernel(constants, state, network, measured, dt, dynamics, drift, z, u, noise)``."""
+    if covariance not in COVARIANCE_LAWS:
+        raise ValueError(f'unknown covariance law {covariance!r}; choose one of {", ".join(COVARIANCE_LAWS)}')
+    if spike_rule not in _FIRE:
+        raise ValueError(f'unknown spike rule {spike_rule!r}; choose one of {", ".join(_FIRE)}')
+    module = gains.law(law)
+    mode = (f'spiking_{spike_rule}' + ('_drift' if drift else '')) if spiking else ('drift' if drift else 'linear')
+    name = f'step_{law}_{covariance}_{mode}'
+    if (_step_template.__name__, name) in _KERNELS:
+        return _KERNELS[(_step_template.__name__, name)]
+    integrate = _specialise(_spiking_template, f'network_{spike_rule}', _fire=_FIRE[spike_rule]) if spiking else _direct
+    uses_p = module.USES_P or covariance == 'riccati'
+    return _specialise(
+        _step_template, name, _terms=_p_terms if uses_p else _no_p_terms, _gain=_law_piece(law),
+        _increment=_drift_increment if drift else _linear_increment,
+        _covariance={'riccati': _riccati, 'gain': _gain_covariance, 'none': _no_covariance}[covariance],
+        _integrate=integrate)
+
+
+def compile_for(kernel, *args) -> None:
+    """Compile ``kernel`` for the types of ``args`` (or load it from the cache), without a call."""
+    kernel.compile(tuple(numba.typeof(a) for a in args))
+
+
+def fire_kernel(spike_rule: str):
+    """``kernel(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes,
+    x_hat)``: the spikes of ``spike_rule`` alone (see _fire_only_template)."""
+    return _specialise(_fire_only_template, f'fire_only_{spike_rule}', _fire=_FIRE[spike_rule])
 
 
 @numba.njit(cache=True)
@@ -399,24 +508,8 @@ def innovation_nis(z, x_hat, c, p, r, has_covariance):
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) every kernel with the argument types the
-    estimators use, on a throwaway one-state filter: a node calls this at start-up so that its
-    first step is not its slowest, and ``make`` calls it at install to fill the cache."""
-    n = m = nu = neurons = 1
-    zeros = np.zeros
-    step = StepCall(
-        {'runs': 1, 'n': n, 'm': m, 'nu': nu, 'N': neurons, 'w': 2 * n + nu},
-        gain_law=GAIN_KALMAN, covariance_law=COVARIANCE_RICCATI, spiking=True, spike_rule=RULE_GREEDY,
-        use_given_drift=False, measured=True, dt=0.1, leak=0.0, max_spikes=10, c=np.ones((m, n)),
-        c_pinv=np.ones((n, m)), q_hat=zeros((n, n)), r_density=np.ones((m, m)), r_density_inv=np.ones((m, m)),
-        r_hat_diag=np.ones(m), delta=np.ones(m), scale=np.ones(n), fixed_gain=zeros((n, m)),
-        dynamics=zeros((1, n, 2 * n + nu)), drift=zeros((1, n)), z=zeros((1, m)), u=zeros((1, nu)),
-        noise=zeros((1, neurons)), x_hat=zeros((1, n)), p=np.ones((1, n, n)), gain=zeros((1, n, m)),
-        decoder=np.ones((1, n, neurons)), gram=np.ones((1, neurons, neurons)), thresholds=np.ones((1, neurons)),
-        alive=np.ones((1, neurons), dtype=np.bool_), r=zeros((1, neurons)), v=zeros((1, neurons)),
-        spikes=zeros((1, neurons), dtype=np.int64), total_spikes=zeros(1, dtype=np.int64))
-    step()
-    fire_only(RULE_GREEDY, 10, np.ones((1, n, neurons)), np.ones((1, neurons, neurons)), np.ones((1, neurons)),
-              np.ones((1, neurons), dtype=np.bool_), zeros((1, neurons)), zeros((1, neurons)), np.ones(n),
-              zeros((1, neurons), dtype=np.int64), zeros(1, dtype=np.int64), zeros((1, n)))
-    innovation_nis(zeros((1, m)), zeros((1, n)), np.ones((m, n)), np.ones((1, n, n)), np.ones((m, m)), True)
+    """Compile (or load from numba's on-disk cache) every kernel of every filter kind, gain
+    schedule and spike rule (``make`` calls it at install to fill the cache; a node warms only
+    its own filter's, :meth:`Estimator.warm_up <snn_estimator.estimators.Estimator.warm_up>`)."""
+    from .estimators import warm_up_all
+    warm_up_all()

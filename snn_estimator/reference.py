@@ -21,6 +21,7 @@ import numpy as np
 import scipy.integrate
 import scipy.linalg
 
+from . import gains
 from .config import gain_noise_density
 from .estimators import Estimator
 
@@ -122,25 +123,13 @@ def written_out_steady_state_gain(source: Estimator, dt: float) -> np.ndarray:
 
 
 def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, dt: float) -> np.ndarray:
-    """The gain of ``source``'s kind from the formulas (Eq. 5, 7, 8-9 and the hybrid)."""
+    """The gain of ``source``'s kind from the formulas: its law's ``reference`` (Eq. 5, 7, 8-9
+    and the remedies, written from the paper in snn_estimator.gains), or the steady state."""
     s = source.settings
-    c = source.model.measurement_matrix
-    c_pinv = np.linalg.pinv(c)
     if source.constant_gain:
         return written_out_steady_state_gain(source, dt)
-    kalman = p @ c.T @ np.linalg.inv(gain_noise_density(s, dt))                          # Eq. 5
-    if source.gain_law == 'kalman':
-        return kalman
-    if source.gain_law == 'sif':
-        return c_pinv @ np.diag(np.minimum(np.abs(innovation) / s.boundary_layer, 1.0))  # Eq. 7
-    p_zz = c @ p @ c.T + s.r_hat                                                         # Eq. 9 (corrected)
-    msif = c_pinv @ np.diag(np.minimum(np.diag(p_zz) / s.boundary_layer, 1.0))           # Eq. 8
-    if source.gain_law == 'msif':
-        return msif
-    if source.gain_law == 'msif_weighted':
-        saturation = np.diag(np.minimum(np.diag(p_zz) / s.boundary_layer, 1.0))
-        return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation                        # weighted
-    return msif + (np.eye(c.shape[1]) - c_pinv @ c) @ kalman                            # hybrid
+    return gains.law(source.gain_law).reference(p, source.model.measurement_matrix, innovation,
+                                                gain_noise_density(s, dt), s.r_hat, s.boundary_layer)
 
 
 def written_out_covariance_step(source: Estimator, p: np.ndarray, jac: np.ndarray, gain: np.ndarray,

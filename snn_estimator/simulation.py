@@ -264,24 +264,12 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     setpoint = np.zeros(model.n_state) if scenario.setpoint is None else scenario.setpoint
     gain = (lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
             if scenario.lqr_state_weight is not None else None)
-    steps, dt, n = scenario.steps, scenario.dt, model.n_state
-    truth = np.empty((runs, steps + 1, n))
-    estimate = np.empty((runs, steps + 1, n))
-    cov = np.empty((runs, steps + 1, n)) if estimator.has_covariance else None
-    controls = np.empty((runs, steps, model.n_input))
-    spiking = estimator.spiking
-    spikes = np.zeros((runs, steps), dtype=np.int64) if spiking else None
-    raster = np.zeros((steps, estimator.neuron_count), dtype=np.int16) if spiking else None
+    steps, dt = scenario.steps, scenario.dt
     x_hat = estimator.batch_x_hat  # (runs, n) view, updated in place by the estimator
     covariance = estimator.batch_P
     c, r_hat = model.measurement_matrix, estimator.settings.r_hat
-    nees = np.empty((runs, steps + 1)) if covariance is not None else None
-    nis = np.empty((runs, steps)) if covariance is not None else None
-    truth[:, 0] = plant.x
-    estimate[:, 0] = x_hat
-    if covariance is not None:
-        cov[:, 0] = np.diagonal(covariance, axis1=1, axis2=2)
-        nees[:, 0] = normalised_squares(plant.x - x_hat, covariance)
+    record = _Record(estimator, runs, steps)
+    record.sample(0, plant, x_hat, covariance)
     zero_u = np.zeros((runs, model.n_input))
     started = time.perf_counter()
     for k in range(steps):
@@ -290,28 +278,48 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         u = lqr_control(gain, x_hat - setpoint) if gain is not None else zero_u
         z = sensor.measure(plant.x)
         if covariance is not None:
-            nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
+            record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
         estimator.step(z, u, dt)
         plant.step(u, dt)
-        controls[:, k] = plant.applied
-        truth[:, k + 1] = plant.x
-        estimate[:, k + 1] = x_hat
-        if covariance is not None:
-            cov[:, k + 1] = np.diagonal(covariance, axis1=1, axis2=2)
-            nees[:, k + 1] = normalised_squares(plant.x - x_hat, covariance)
-        if spiking:
+        record.controls[:, k] = plant.applied
+        record.sample(k + 1, plant, x_hat, covariance)
+        if estimator.spiking:
             step_spikes = estimator.batch_spikes
-            spikes[:, k] = step_spikes.sum(axis=1)
-            raster[k] = step_spikes[0]
+            record.spikes[:, k] = step_spikes.sum(axis=1)
+            record.raster[k] = step_spikes[0]
         if on_step is not None:
             on_step(k)
     wall = time.perf_counter() - started
     return SimulationResult(
-        kind=kind, scenario=scenario, time=dt * np.arange(steps + 1), truth=truth,
-        estimate=estimate, covariance_diag=cov, control=controls, spikes_per_step=spikes,
-        raster=raster, neuron_count=estimator.neuron_count, wall_time=wall,
-        capped_steps=estimator.capped_steps, nees=nees, nis=nis,
+        kind=kind, scenario=scenario, time=dt * np.arange(steps + 1), truth=record.truth,
+        estimate=record.estimate, covariance_diag=record.cov, control=record.controls,
+        spikes_per_step=record.spikes, raster=record.raster, neuron_count=estimator.neuron_count,
+        wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
         extra={'saturated_steps': plant.saturated_steps.copy()})
+
+
+class _Record:
+    """The trajectories :func:`simulate` fills, one sample per time."""
+
+    def __init__(self, estimator, runs: int, steps: int):
+        model = estimator.model
+        n, covariance, spiking = model.n_state, estimator.has_covariance, estimator.spiking
+        self.truth = np.empty((runs, steps + 1, n))
+        self.estimate = np.empty((runs, steps + 1, n))
+        self.cov = np.empty((runs, steps + 1, n)) if covariance else None
+        self.controls = np.empty((runs, steps, model.n_input))
+        self.spikes = np.zeros((runs, steps), dtype=np.int64) if spiking else None
+        self.raster = np.zeros((steps, estimator.neuron_count), dtype=np.int16) if spiking else None
+        self.nees = np.empty((runs, steps + 1)) if covariance else None
+        self.nis = np.empty((runs, steps)) if covariance else None
+
+    def sample(self, k: int, plant, x_hat: np.ndarray, covariance: np.ndarray | None) -> None:
+        """Truth, estimate, covariance diagonal and NEES at time k."""
+        self.truth[:, k] = plant.x
+        self.estimate[:, k] = x_hat
+        if covariance is not None:
+            self.cov[:, k] = np.diagonal(covariance, axis1=1, axis2=2)
+            self.nees[:, k] = normalised_squares(plant.x - x_hat, covariance)
 
 
 def truth_plant(scenario: Scenario, seeds: Sequence[int]):

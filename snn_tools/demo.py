@@ -20,23 +20,20 @@ from pathlib import Path
 
 import yaml
 
+from scenario_nodes import registry
 from scenario_nodes.parameters import DEFAULT_FILTER
 from snn_estimator.estimators import FILTER_KINDS
 
 from .paths import config_file
 
-NODES = (  # start order: consumers first, the plant (which starts the clock) last
-    ('recorder', 'scenario_nodes.recorder_node'),
-    ('lqr_controller', 'scenario_nodes.controller_node'),
-    ('estimator', 'scenario_nodes.estimator_node'),
-    ('position_sensor', 'scenario_nodes.sensor_node'),
-    ('cw_plant', 'scenario_nodes.plant_node'),
-)
+#: The loop's nodes in start order (consumers first, the plant, which starts the clock, last):
+#: (node name, module), from the registry; the CW plant stands for the plant chosen.
+NODES = tuple((entry.name, entry.module) for entry in registry.LOOP) + (
+    (registry.PLANTS['cw'], registry.node(registry.PLANTS['cw']).module),)
 #: The truth plants the demo can fly: --plant choice -> (node name, module).
-PLANTS = {'cw': ('cw_plant', 'scenario_nodes.plant_node'),
-          'basilisk': ('basilisk_plant', 'scenario_nodes.basilisk_plant_node')}
+PLANTS = {plant: (name, registry.node(name).module) for plant, name in registry.PLANTS.items()}
 #: The optional live view (Foxglove WebSocket and `markers`): started beside the others with --live-view.
-LIVE_VIEW = ('live_view', 'scenario_nodes.live_view_node')
+LIVE_VIEW = ('live_view', registry.node('live_view').module)
 #: The exchange that paces a lockstep run (estimate k -> control k -> estimate k+1).
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).

@@ -40,13 +40,22 @@ def imports(path: Path, package: str, top_level_only: bool) -> set[str]:
 
 
 def modules(package: str) -> dict[str, Path]:
-    return {f'{package}.{path.stem}': path for path in sorted((ROOT / package).glob('*.py'))
-            if path.stem != '__init__'}
+    """Module name -> file, for ``package`` and its sub-packages (snn_estimator.gains)."""
+    found = {}
+    for path in sorted((ROOT / package.replace('.', '/')).rglob('*.py')):
+        parts = path.relative_to(ROOT).with_suffix('').parts
+        found['.'.join(parts[:-1] if parts[-1] == '__init__' else parts)] = path
+    return {name: path for name, path in found.items() if name != package}
+
+
+def package_of(name: str, path: Path) -> str:
+    """The package a module's relative imports resolve in."""
+    return name if path.stem == '__init__' else name.rpartition('.')[0]
 
 
 @pytest.mark.parametrize('package', sorted(FORBIDDEN))
 def test_a_layer_imports_nothing_of_the_layers_above_it(package):
-    offending = {name: sorted(n for n in imports(path, package, top_level_only=False)
+    offending = {name: sorted(n for n in imports(path, package_of(name, path), top_level_only=False)
                               if n.split('.')[0] in FORBIDDEN[package])
                  for name, path in modules(package).items()}
     assert {name: found for name, found in offending.items() if found} == {}
@@ -55,7 +64,7 @@ def test_a_layer_imports_nothing_of_the_layers_above_it(package):
 @pytest.mark.parametrize('package', PACKAGES)
 def test_no_package_has_an_import_cycle(package):
     own = modules(package)
-    graph = {name: {n for n in imports(path, package, top_level_only=True) if n in own}
+    graph = {name: {n for n in imports(path, package_of(name, path), top_level_only=True) if n in own}
              for name, path in own.items()}
     state = {}
 
@@ -72,6 +81,17 @@ def test_no_package_has_an_import_cycle(package):
         visit(name, [])
 
 
+def test_the_gain_laws_import_only_numpy_scipy_and_each_other():
+    """snn_estimator/gains/__init__.py: a law never imports numba (the kernels compile its
+    piece), the filters, the models or anything outside the core."""
+    allowed = {'numpy', 'scipy', 'math', 'importlib', 'pkgutil', 'functools', 'typing', '__future__'}
+    laws = modules('snn_estimator.gains')
+    assert {'snn_estimator.gains.kalman', 'snn_estimator.gains.msif', 'snn_estimator.gains.fixed'} <= set(laws)
+    for name, path in laws.items():
+        for imported in imports(path, package_of(name, path), top_level_only=False):
+            assert imported.split('.')[0] in allowed or imported.startswith('snn_estimator.gains'), (name, imported)
+
+
 def loaded_by(statement: str) -> set[str]:
     """Top-level packages a fresh interpreter has loaded after ``statement``."""
     code = f'import sys; {statement}; print(" ".join(sorted({{m.split(".")[0] for m in sys.modules}})))'
@@ -83,6 +103,7 @@ def loaded_by(statement: str) -> set[str]:
 
 def test_importing_the_core_loads_no_ros_no_plotting_and_no_compiler():
     assert loaded_by('import snn_estimator') & {'rclpy', 'matplotlib', 'numba', 'control', 'scipy'} == set()
+    assert 'numba' not in loaded_by('from snn_estimator import gains, catalog; gains.laws()')
 
 
 @pytest.mark.parametrize('node', ['recorder_node', 'sensor_node', 'controller_node', 'plant_node'])

@@ -1,0 +1,62 @@
+"""Gain laws: one module per law K(P, nu) of Eq. 5-9 / 19-24 (and this package's remedies).
+
+Each module holds everything about its law: its name, formula and paper equation; its
+``reference`` form (numpy, written from the paper, used by snn_estimator.reference and the tests);
+its compiled ``gain`` piece (plain Python loops that snn_estimator.kernels compiles into one
+kernel per law, covariance law and integration); its ``steady_state`` form (the constant gain
+at the fixed point of Eq. 6); its ``macs`` (what snn_estimator.costs counts); and its filter
+kinds (``KINDS``: the direct filter and its spiking twin, which snn_estimator.catalog lists).
+A module may build on another law (``BASE``: its piece runs after the base's, e.g. the hybrid
+adds to MSIF).
+
+Imports: numpy (scipy inside a function) and other law modules only; never numba (the kernels
+compile the pieces), the filters, the models or anything outside the core. A new law is one
+module here (found by :func:`laws`, ordered by ``ORDER``), its kinds included.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from functools import lru_cache
+from typing import NamedTuple
+
+import numpy as np
+
+
+class SteadyState(NamedTuple):
+    """What the steady-state forms need: P_ss (the fixed point of Eq. 6), C, C^+, the R of
+    Eq. 5-6 (a density), R_hat per sample, delta, and the Kalman gain P_ss C^T R^-1."""
+
+    p: np.ndarray
+    c: np.ndarray
+    c_pinv: np.ndarray
+    density: np.ndarray
+    r_hat: np.ndarray
+    delta: np.ndarray
+    kalman: np.ndarray
+
+
+@lru_cache(maxsize=None)
+def laws() -> dict:
+    """Law name -> module, in ``ORDER`` (the order tables list them)."""
+    modules = [importlib.import_module(f'{__name__}.{info.name}') for info in pkgutil.iter_modules(__path__)
+               if not info.name.startswith('_')]
+    return {module.NAME: module for module in sorted(modules, key=lambda module: module.ORDER)}
+
+
+def law(name: str):
+    """The module of gain law ``name``; ValueError naming the choices otherwise."""
+    found = laws().get(name)
+    if found is None:
+        raise ValueError(f'unknown gain law {name!r}; choose one of {", ".join(laws())}')
+    return found
+
+
+def table() -> str:
+    """The laws as a reST table (docs, the estimators module docstring)."""
+    rows = [(f'``{name}``', module.FORMULA, module.EQUATION) for name, module in laws().items()]
+    widths = [max(len(row[i]) for row in rows + [('law', 'gain K', 'equations')]) for i in range(3)]
+    rule = '  '.join('=' * w for w in widths)
+    line = lambda row: '  '.join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip()  # noqa: E731
+    return '\n'.join([rule, line(('law', 'gain K', 'equations')), rule, *map(line, rows), rule])

@@ -1,0 +1,51 @@
+"""MSIF with the covariance-weighted right inverse of C instead of C^+ (not in the paper):
+K = P C^T (C P C^T)^-1 diag(sat(diag(C P C^T + R_hat) / delta))."""
+
+import numpy as np
+
+from . import msif
+
+NAME = 'msif_weighted'
+ORDER = 4
+FORMULA = 'K = P C^T (C P C^T)^-1 sat(...)'
+EQUATION = 'Eq. 8-9 (not in the paper)'
+USES_P = True
+#: The MSIF piece runs first (its saturations); this one replaces C^+ by P C^T (C P C^T)^-1.
+BASE = 'msif'
+#: The covariance its filters propagate: riccati (Eq. 6) | gain (that of the gain used) | none.
+COVARIANCE = 'gain'
+#: Its filter kinds: the direct filter, then its spiking twin: name -> (label, summary).
+KINDS = {'emsif_weighted': ('EMSIF-W', 'EMSIF with the covariance-weighted inverse P C^T (C P C^T)^-1 for C^+'),
+         'snn_emsif_weighted': ('SNN-EMSIF-W', 'spiking twin of emsif_weighted')}
+
+
+def reference(p, c, innovation, density, r_hat, delta):
+    p_zz = c @ p @ c.T + r_hat                                             # Eq. 9
+    saturation = np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))           # Eq. 8
+    return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation
+
+
+def steady_state(ss):
+    saturation = np.diag(np.minimum(np.diag(ss.c @ ss.p @ ss.c.T + ss.r_hat) / ss.delta, 1.0))
+    return ss.p @ ss.c.T @ np.linalg.inv(ss.c @ ss.p @ ss.c.T) @ saturation
+
+
+def macs(n: int, m: int) -> int:
+    return msif.macs(n, m) + 2 * m * m * n + m ** 3 + n * m  # P C^T (C P C^T)^-1
+
+
+def gain(b, out, nu, pct, pctr, consts, scratch):
+    """Columns of P C^T (C P C^T)^-1 times the MSIF saturations."""
+    c = consts[0]
+    sats, cpc = scratch[6], scratch[5]
+    n, m = pct.shape
+    for k in range(m):
+        for j in range(m):
+            acc = 0.0
+            for i in range(n):
+                acc += c[k, i] * pct[i, j]
+            cpc[k, j] = acc
+    weighted = pct @ np.linalg.inv(cpc)
+    for j in range(m):
+        for i in range(n):
+            out[b, i, j] = weighted[i, j] * sats[j]
