@@ -17,7 +17,7 @@ SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
 MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 #: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
 #: state (constant network weights, what a neuromorphic chip holds).
-GAIN_SCHEDULES = ('time_varying', 'steady_state')
+GAIN_SCHEDULES = ('time_varying', 'steady_state', 'switched')
 
 
 @dataclass(frozen=True)
@@ -73,6 +73,17 @@ class EstimatorConfig:
     #: time_varying (the paper: K from P or the innovation every step) | steady_state (K held at
     #: its value at the fixed point of Eq. 6; linear models only).
     gain_schedule: str = 'time_varying'
+    # -- the chip's network (snn_estimator/chip.py; validated there) --
+    #: float64 | loihi: the spiking network in Loihi's integer formats (bit widths below).
+    precision: str = 'float64'
+    #: Signed weight mantissa bits, one shared exponent per weight matrix (Loihi: 8).
+    weight_bits: int = 8
+    #: Bits of the membrane potential and the synaptic currents (Loihi: 24).
+    membrane_bits: int = 24
+    #: Bits of the decay constants (Loihi: 12).
+    decay_bits: int = 12
+    #: Switch times of gain_schedule switched, s: weight set j holds over [t_j, t_j+1).
+    schedule_times: tuple = (1.0, 10.0, 100.0)
 
     def replace(self, **changes) -> 'EstimatorConfig':
         """A copy with some fields changed (unknown names raise TypeError)."""

@@ -38,7 +38,7 @@ import scipy.linalg
 import scipy.special
 from scipy.optimize import nnls
 
-from . import kernels
+from . import chip, kernels
 from .catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind  # noqa: F401 (re-exported)
 from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from .models import StateSpaceModel
@@ -121,6 +121,11 @@ class Estimator:
         self.steps = 0
         self.capped_steps = 0
         self._build_network(neurons=self.settings.neuron_count if self.spiking else 0)
+        # precision loihi / gain_schedule switched: the network runs on snn_estimator.chip
+        self._chip = (chip.ChipNetwork(kind, model, config, self.settings, self._decoder, self._alive,
+                                       self._x_hat, self._spikes, self._total_spikes)
+                      if chip.wanted(config) else None)
+        self.has_covariance = self.has_covariance and self._chip is None  # the chip computes no P
         self._call = self._kernel_call()
         self._call_dt: float | None = None
         self._slots = tuple(self._call.slot(name) for name in
@@ -317,6 +322,9 @@ class Estimator:
         if not np.isfinite(target).all():
             raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: not finite on the network '
                              f'scale S = {self._scale.tolist()}')
+        if self._chip is not None:  # the chip encodes with its own (quantized) decoder
+            self._x_hat[run] = self._chip.encode(run, target)
+            return
         alive = self._alive[run]
         decoder = self._decoder[run]
         rates = np.zeros(decoder.shape[1])
@@ -355,6 +363,8 @@ class Estimator:
         (counted in ``total_spikes`` and ``recovery_spikes``).
         """
         self._require_network()
+        if self._chip is not None:
+            raise ValueError('silence() is not available on the chip network: set silenced_neurons')
         total = self.settings.neuron_count
         wanted = np.zeros(total, dtype=bool)
         indices = [int(i) for i in neurons]
@@ -385,6 +395,8 @@ class Estimator:
         unknown = set(changes) - set(self.RETUNABLE)
         if unknown:
             raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
+        if self._chip is not None and changes:
+            raise ValueError('the chip network holds its weights: rebuild the estimator to change them')
         config = self.config.replace(**changes)
         settings = resolve(config, self.model)
         if self._call_dt is not None:  # the step size in use must still work
@@ -433,6 +445,8 @@ class Estimator:
                 steady_state_gain(self.gain_law, self.model, s, dt))
         self._call.update(**changes)
         self._call_dt = dt
+        if self._chip is not None:
+            self._chip.prepare(dt)
 
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
@@ -499,6 +513,11 @@ class Estimator:
             sigma = self.settings.membrane_noise * math.sqrt(dt)
             noise = np.stack([g.normal(0.0, sigma, self.settings.neuron_count)
                               for g in self._noise_rngs])
+        if self._chip is not None:  # the chip network (snn_estimator.chip) replaces the kernel
+            self._chip.step(z if measured else None, u, dt)
+            self.steps += 1
+            self.capped_steps = self._chip.capped_steps
+            return self.x_hat
         self._call.set_slots(zip(self._slots, (measured, float(dt), dynamics, drift, use_drift,
                                                np.ascontiguousarray(z), np.ascontiguousarray(u), noise)))
         status, capped = self._call()
