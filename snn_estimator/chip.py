@@ -346,6 +346,10 @@ class ChipNetwork:
             raise FloatingPointError('the chip network state became non-finite; call reset()')
 
     # ------------------------------------------------------------------ inspection
+    def initial_rates(self, run: int = 0) -> np.ndarray:
+        """The rates r >= 0 the last encoding chose (the state the readout was loaded from)."""
+        return self._rates0[run].copy()
+
     @property
     def potentials(self) -> np.ndarray:
         """Membrane potentials v = D^T e in scaled units, (runs, N)."""
@@ -476,3 +480,30 @@ def _deliver(b, i, read, gram, e, x_read, v):
         x_read[b, k] += read[b, i, k]
     for j in range(v.shape[1]):
         v[b, j] -= gram[b, i, j]
+
+
+def effective_weights(network: ChipNetwork, weight_set: int = 0) -> dict:
+    """The dense weights (Eq. 16-20, scaled units, as Estimator.weights gives them) that the
+    chip's factored network of set ``weight_set`` computes: products of its quantized factors
+    (D, A, K, B), so exact numbers that a dense reader (NIR, Brian2) can run; the integer network
+    differs from them only by rounding its drive y to the readout LSB each sample."""
+    if network._dt is None:
+        raise ValueError('the chip network has no weights yet: call prepare(dt) or step once')
+    if not 0 <= weight_set < len(network.gains):
+        raise ValueError(f'weight_set must be in [0, {len(network.gains) - 1}], got {weight_set}')
+    dt, lsb = network._dt, network._read_lsb
+    d = network.decoder[0]
+    c_scaled = network._c / lsb  # C S in readout-LSB units -> C S
+    k = network._gain_weights[weight_set] * lsb / dt  # S^-1 K in scaled units
+    return {
+        'F': d.T @ (network._control * lsb / dt),
+        'Omega_s': d.T @ (network._dynamics / dt) @ d,
+        'Omega_f': -d.T @ d,
+        'Omega_k': -d.T @ k @ c_scaled @ d,
+        'F_k': d.T @ k,
+        'thresholds': 0.5 * np.einsum('ki,ki->i', d, d),
+        'decoder': d.copy(),
+        'neurons': d.shape[1],
+        'gain': network.settings.state_scale[:, None] * k,
+        'leak_rate': network.leak_rate,
+    }

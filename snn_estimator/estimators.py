@@ -209,6 +209,12 @@ class Estimator:
         return int(self._total_spikes[0]) if self.runs == 1 else self._total_spikes.copy()
 
     @property
+    def chip(self):
+        """The chip network (snn_estimator.chip.ChipNetwork) when precision or gain_schedule asks
+        for it, else None."""
+        return self._chip
+
+    @property
     def neuron_count(self) -> int:
         return self.settings.neuron_count if self.spiking else 0
 

@@ -138,3 +138,64 @@ def test_four_weight_sets_in_loihi_formats_converge_from_the_dispersion_in_every
     assert result.final_range().max() < 0.1
     held = simulate(scenario, kind, runs=100, config=scenario.estimator.replace(gain_schedule='steady_state'))
     assert np.mean(held.final_range() >= 0.1) > 0.5 or kind != 'snn_ekf'  # one set does not (SNN-EKF)
+
+
+# ---------------------------------------------------------------- NIR and the independent re-run
+def _closed_loop(estimator, steps):
+    from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+    model = SCENARIO.model
+    plant = Plant(model, SCENARIO.x0, SCENARIO.process_noise)
+    sensor = PositionSensor(model, SCENARIO.measurement_noise)
+    gain = lqr_gain(model, SCENARIO.lqr_state_weight, SCENARIO.lqr_input_weight)
+    zs, us, truth, estimates, spikes = [], [], [plant.x[0].copy()], [estimator.x_hat.copy()], []
+    for _ in range(steps):
+        u = lqr_control(gain, estimator.x_hat)
+        z = sensor.measure(plant.x)[0]
+        estimates.append(estimator.step(z, u, SCENARIO.dt).copy())
+        plant.step(u, SCENARIO.dt)
+        zs.append(z)
+        us.append(u)
+        truth.append(plant.x[0].copy())
+        spikes.append(estimator.spike_count)
+    return np.array(zs), np.array(us), np.array(truth), np.array(estimates), np.array(spikes)
+
+
+@pytest.mark.filterwarnings('ignore::DeprecationWarning')
+def test_brian2_from_the_nir_file_matches_the_integer_network(tmp_path):
+    nir = pytest.importorskip('nir')
+    pytest.importorskip('brian2')
+    from snn_tools.brian2_sim import run_file
+    from snn_tools.nir_export import network_graph
+
+    estimator = make_estimator('snn_ekf', STEADY.replace(precision='loihi'), SCENARIO.model)
+    estimator.prepare(SCENARIO.dt)
+    path = tmp_path / 'chip.nir'
+    nir.write(path, network_graph(estimator, SCENARIO.dt))
+    zs, us, truth, ours, spikes = _closed_loop(estimator, 60)
+    theirs = run_file(path, zs, us, substeps=200)
+    # the integer network rounds its drive to the readout LSB (0.17 mm, 1.7e-6 m/s); Brian2 does not
+    np.testing.assert_allclose(theirs.estimate[:, :3], ours[:, :3], atol=5e-3)
+    error = [np.linalg.norm(x[-30:, :3] - truth[-30:, :3]) for x in (theirs.estimate, ours)]
+    ratio = error[0] / error[1]
+    assert 1 / 1.1 <= ratio <= 1.1
+    assert abs(theirs.spikes_per_step.sum() - spikes.sum()) <= 0.01 * spikes.sum()
+
+
+def test_the_schedule_exports_one_nir_graph_per_weight_set(tmp_path):
+    nir = pytest.importorskip('nir')
+    from snn_tools.nir_export import export_schedule, network_arrays
+
+    estimator = make_estimator('snn_ekf', SCENARIO.estimator.replace(precision='loihi', **SCHEDULE), SCENARIO.model)
+    paths = export_schedule(estimator, SCENARIO.dt, tmp_path)
+    assert [p.name for p in paths] == [f'snn_ekf_set{j}.nir' for j in range(4)]
+    graphs = [nir.read(p) for p in paths]
+    assert [float(g.metadata['active_from_s']) for g in graphs] == [0.0, 1.0, 10.0, 100.0]
+    network = estimator.chip
+    for j, graph in enumerate(graphs):
+        arrays = network_arrays(graph)
+        # F_k = D^T S^-1 K with the set's quantized gain (Eq. 20), decoder the quantized one
+        k_scaled = network._gain_weights[j] * network._read_lsb / SCENARIO.dt
+        np.testing.assert_allclose(arrays.measurement, network.decoder[0].T @ k_scaled, rtol=1e-12, atol=1e-15)
+        scale = np.asarray(SCENARIO.estimator.state_scale)
+        np.testing.assert_allclose(arrays.decoder, scale[:, None] * network.decoder[0])
+    assert not np.allclose(network_arrays(graphs[0]).measurement, network_arrays(graphs[3]).measurement)
