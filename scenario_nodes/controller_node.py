@@ -17,7 +17,6 @@ from rclpy.node import Node
 
 from snn_estimator.blocks import lqr_control, lqr_gain
 from snn_estimator.gates import NewestFirst
-from snn_estimator.spiking_lqr import SpikingLQR
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
@@ -120,6 +119,7 @@ class ControllerNode(ProcessHooks, Node):
         """u(x_hat - setpoint): lqr_control, or a SpikingLQR network (controller_type snn_lqr)."""
         if self._p['controller_type'] != 'snn_lqr':
             return partial(lqr_control, self._gain)
+        from snn_estimator.spiking_lqr import SpikingLQR  # numba: loaded only for the spiking law
         network = SpikingLQR(self._gain, self._p['snn_lqr_neurons'], self._p['snn_lqr_leak'])
         return partial(network.control, dt=self._p['time_step'])
 
