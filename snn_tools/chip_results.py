@@ -25,7 +25,7 @@ from .nir_export import network_arrays, network_graph
 
 SCHEDULE = {'gain_schedule': 'switched', 'schedule_times': (1.0, 10.0, 100.0)}
 #: Switch times tried for the number of weight sets (1 = the steady-state gain alone).
-SCHEDULES = ((), (10.0,), (10.0, 100.0), (1.0, 10.0, 100.0), (1.0, 10.0, 60.0, 200.0))
+SCHEDULES = ((), (10.0, 100.0), (1.0, 10.0, 100.0))
 SCHEDULE_FILTERS = ('snn_ekf', 'snn_emsif_weighted')
 POSITION = ('rmse_x', 'rmse_y', 'rmse_z')
 

@@ -453,7 +453,11 @@ def main(argv=None) -> int:
     parser.add_argument('--emulator-seconds', type=float, default=60.0,
                         help='s of the Brian2 re-run of the integer network')
     parser.add_argument('--no-chip', action='store_true', help='skip the chip section (snn_tools.chip_results)')
+    parser.add_argument('--chip-only', action='store_true',
+                        help='compute the chip section alone and add it to the existing <out>/neuromorphic.json')
     args = parser.parse_args(argv)
+    if args.chip_only:
+        return _chip_only(args)
     if args.runs < 1 or args.substeps < 1:
         parser.error('--runs and --substeps must be >= 1')
     scenario = rendezvous_scenario()
@@ -493,6 +497,19 @@ def main(argv=None) -> int:
     (args.out / 'neuromorphic.md').write_text(markdown(data))
     print(f'wrote {args.out / "neuromorphic.json"}, neuromorphic.md, neuromorphic_costs.png '
           f'({data["wall_time_s"]} s)')
+    return 0
+
+
+def _chip_only(args) -> int:
+    """The chip section over the existing results (the rest as the last full run wrote it)."""
+    from .chip_results import run_all
+    path = args.out / 'neuromorphic.json'
+    data = json.loads(path.read_text())
+    first = data['filters'].get('snn_ekf') or next(iter(data['filters'].values()))
+    data['chip'] = run_all(args, first['energy_per_step_pj']['loihi'])
+    path.write_text(json.dumps(data, indent=2) + '\n')
+    (args.out / 'neuromorphic.md').write_text(markdown(data))
+    print(f'wrote the chip section into {path} and neuromorphic.md ({data["chip"]["wall_time_s"]} s)')
     return 0
 
 
