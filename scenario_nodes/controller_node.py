@@ -47,6 +47,7 @@ class ControllerNode(ProcessHooks, Node):
         p = declare(self, CONTROLLER)
         self._p = p
         self._gain = design_gain(p)
+        self._law = self._control_law()
         self._setpoint = as_vector(p['setpoint'], 6, 'setpoint')
         self._published = 0
         self._safe_steps = 0
@@ -137,7 +138,15 @@ class ControllerNode(ProcessHooks, Node):
         if self._safe:
             self._publish_control(np.zeros(3), stamp_ns)  # predicted without a sensor: no thrust
             return
-        self._publish_control(lqr_control(self._gain, x_hat - self._setpoint), stamp_ns)
+        self._publish_control(self._law(x_hat - self._setpoint), stamp_ns)
+
+    def _control_law(self):
+        """u(x_hat - setpoint): lqr_control, or a SpikingLQR network (controller_type snn_lqr)."""
+        if self._p['controller_type'] != 'snn_lqr':
+            return partial(lqr_control, self._gain)
+        from snn_estimator.spiking_lqr import SpikingLQR  # numba: loaded only for the spiking law
+        network = SpikingLQR(self._gain, self._p['snn_lqr_neurons'], self._p['snn_lqr_leak'])
+        return partial(network.control, dt=self._p['time_step'])
 
     def _unsafe(self, now: int) -> str | None:
         """Why the loop is not safe to steer now (None: it is)."""
@@ -202,6 +211,7 @@ class ControllerNode(ProcessHooks, Node):
         self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
         self._time_jumps += 1
         self._gate.reset()
+        self._law = self._control_law()  # a spiking network starts over too
         self._last_estimate_ns = None
         self._answers.clear()
         if self._safe:
@@ -226,6 +236,7 @@ class ControllerNode(ProcessHooks, Node):
         except ValueError as error:
             return SetParametersResult(successful=False, reason=str(error))
         self._p, self._gain = values, gain
+        self._law = self._control_law()
         self._log_gain()
         return SetParametersResult(successful=True)
 

@@ -176,6 +176,12 @@ CONTROLLER = MODEL + (
          'more than this plus two time steps ahead of it, are rejected, s', read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, an estimate this far before the '
          'last one means the time base restarted: start over, s', low=0.0),
+    # the spiking LQR (snn_estimator/spiking_lqr.py)
+    Spec('controller_type', 'lqr', 'lqr: u = -K (x_hat - setpoint) computed directly; snn_lqr: the '
+         'same law read out of a spike-coding network that encodes x_hat - setpoint',
+         choices=('lqr', 'snn_lqr')),
+    Spec('snn_lqr_neurons', 100, 'N, LIF neurons of the snn_lqr network', low=1, high=100000),
+    Spec('snn_lqr_leak', 0.001, 'lambda, leak of the snn_lqr membranes and trains, 1/s', low=0.0),
 )
 
 def _from_schema(field) -> Spec:

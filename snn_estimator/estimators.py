@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 import scipy.linalg
 
-from . import gains, kernels
+from . import chip, gains, kernels
 from .catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
 from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from .models import StateSpaceModel
@@ -178,6 +178,12 @@ class EstimatorViews:
     alive = property(lambda self: self._net('alive').copy())
 
     @property
+    def chip(self):
+        """The chip network (snn_estimator.chip.ChipNetwork) when precision or gain_schedule asks
+        for it, else None."""
+        return self._chip
+
+    @property
     def silenced(self) -> tuple:
         """Indices of the silenced neurons."""
         return tuple(int(i) for i in np.flatnonzero(~self._network.alive[0])) if self.spiking else ()
@@ -219,6 +225,12 @@ class Estimator(EstimatorViews):
         s = self.settings
         self._network = Network(self.seeds, n, s.neuron_count if self.spiking else 0, s.decoder_variance,
                                 s.silenced_neurons)
+        # precision loihi / gain_schedule switched: the network runs on snn_estimator.chip
+        net = self._network
+        self._chip = (chip.ChipNetwork(kind, model, config, self.settings, net.decoder, net.alive,
+                                       self._x_hat, net.spikes, net.total_spikes)
+                      if chip.wanted(config) else None)
+        self.has_covariance = self.has_covariance and self._chip is None  # the chip computes no P
         self._packed = self._pack()
         self._kernel = kernels.step_kernel(self.gain_law if not self.constant_gain else 'fixed', self.covariance_law,
                                            self.spiking, s.spike_rule, drift=not (model.is_linear or linearized))
@@ -309,6 +321,9 @@ class Estimator(EstimatorViews):
         if not np.isfinite(target).all():
             raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: not finite on the network '
                              f'scale S = {self._scale.tolist()}')
+        if self._chip is not None:  # the chip encodes with its own (quantized) decoder
+            self._x_hat[run] = self._chip.encode(run, target)
+            return
         try:
             decoded = self._network.encode(run, target)
         except ValueError:
@@ -339,6 +354,8 @@ class Estimator(EstimatorViews):
         (counted in ``total_spikes`` and ``recovery_spikes``).
         """
         self._net('r')
+        if self._chip is not None:
+            raise ValueError('silence() is not available on the chip network: set silenced_neurons')
         total = self.settings.neuron_count
         wanted = np.zeros(total, dtype=bool)
         indices = [int(i) for i in neurons]
@@ -361,6 +378,8 @@ class Estimator(EstimatorViews):
         unknown = set(changes) - set(self.RETUNABLE)
         if unknown:
             raise ValueError(f'cannot change {sorted(unknown)} at runtime; retunable: {list(self.RETUNABLE)}')
+        if self._chip is not None and changes:
+            raise ValueError('the chip network holds its weights: rebuild the estimator to change them')
         config = self.config.replace(**changes)
         settings = resolve(config, self.model)
         if self._call_dt is not None:  # the step size in use must still work
@@ -414,6 +433,8 @@ class Estimator(EstimatorViews):
             changes['fixed_gain'] = np.ascontiguousarray(steady_state_gain(self.gain_law, self.model, s, dt))
         self._packed.update(**changes)
         self._call_dt = dt
+        if self._chip is not None:
+            self._chip.prepare(dt)
 
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
@@ -452,6 +473,11 @@ class Estimator(EstimatorViews):
         noise = self._network.zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:
             noise = self._network.noise(self.settings.membrane_noise * math.sqrt(dt))
+        if self._chip is not None:  # the chip network (snn_estimator.chip) replaces the kernel
+            self._chip.step(z if measured else None, u, dt)
+            self.steps += 1
+            self.capped_steps = self._chip.capped_steps
+            return self.x_hat
         status, capped = self._kernel(self._packed.constants, self._packed.state, self._packed.network, measured,
                                       float(dt), dynamics, drift, np.ascontiguousarray(z), np.ascontiguousarray(u),
                                       noise)

@@ -26,7 +26,9 @@ SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
 MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 #: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
 #: state (constant network weights, what a neuromorphic chip holds).
-GAIN_SCHEDULES = ('time_varying', 'steady_state')
+GAIN_SCHEDULES = ('time_varying', 'steady_state', 'switched')
+#: The spiking network's arithmetic: float64, or Loihi's integer formats (snn_estimator/chip.py).
+PRECISIONS = ('float64', 'loihi')
 #: What the spiking network integrates as its prediction (docs/decisions.md, 13): linearized,
 #: A(x_hat) x_hat + B u with A the Jacobian (Eq. 14, 17: the paper's network); nonlinear, f(x_hat, u)
 #: (Eq. 3's drift, what the non-spiking twin integrates). The same for a linear model.
@@ -37,8 +39,8 @@ DISCRETIZATIONS = ('exact', 'euler')
 
 #: Value types. ``vector`` has ``size`` entries (n states or m measurements; a scalar is
 #: broadcast), ``matrix`` is size x size (a matrix, a flat row-major list, a diagonal or a scalar),
-#: ``indices`` a set of neuron indices.
-TYPES = ('integer', 'real', 'bool', 'choice', 'vector', 'matrix', 'indices')
+#: ``indices`` a set of neuron indices, ``times`` an increasing list of times (s).
+TYPES = ('integer', 'real', 'bool', 'choice', 'vector', 'matrix', 'indices', 'times')
 
 
 @dataclass(frozen=True)
@@ -88,6 +90,12 @@ class Field:
             return bool(value)
         if kind == 'indices':
             return tuple(sorted({int(i) for i in value or ()}))
+        if kind == 'times':
+            times = tuple(float(t) for t in value or ())
+            if not all(np.isfinite(times)) or any(b <= a for a, b in zip(times, times[1:])):
+                raise ValueError(f'{self.label} must be finite and increasing, got {list(times)}')
+            self._check_range(np.array(times), list(times))
+            return times
         if kind == 'integer':
             if isinstance(value, bool) or int(value) != value:
                 raise ValueError(f'{self.label} must be an integer, got {value!r}')
@@ -119,7 +127,7 @@ class Field:
         """The default as a ROS parameter holds it: arrays as flat float lists, no indices as
         None (an integer array without a default)."""
         value = self.default
-        if self.type in ('vector', 'matrix'):
+        if self.type in ('vector', 'matrix', 'times'):
             return [float(v) for v in np.ravel(value)]
         if self.type == 'indices':
             return list(value) or None
@@ -133,6 +141,8 @@ class Field:
             return list(value)
         if self.type == 'indices':
             return tuple(int(i) for i in value)
+        if self.type == 'times':
+            return tuple(float(t) for t in value)
         return value
 
 
@@ -171,6 +181,18 @@ FIELDS: tuple[Field, ...] = (
     Field('network_drive', 'choice', 'linearized', "the spiking network's prediction: linearized, "
           'A(x_hat) x_hat + B u (Eq. 14, 17); nonlinear, f(x_hat, u) as the twin integrates (Eq. 3); '
           'the same for a linear model (docs/decisions.md, 13)', choices=NETWORK_DRIVES),
+    # the chip's network (snn_estimator/chip.py: formats from Davies et al. 2018 and Lava's
+    # bit-accurate LIF model; docs/decisions.md and results/neuromorphic.md)
+    Field('precision', 'choice', 'float64', "the spiking network's arithmetic: float64, or loihi "
+          "(Loihi's integer formats with the bit widths below; needs gain_schedule steady_state or "
+          'switched)', choices=PRECISIONS),
+    Field('weight_bits', 'integer', 8, 'signed weight mantissa bits, one shared exponent per weight '
+          'matrix (Loihi: 8)', low=2, high=24),
+    Field('membrane_bits', 'integer', 24, 'bits of the membrane potentials and synaptic currents '
+          '(Loihi: 24)', low=8, high=52),
+    Field('decay_bits', 'integer', 12, 'bits of the decay constants (Loihi: 12)', low=4, high=24),
+    Field('schedule_times', 'times', (1.0, 10.0, 100.0), 'switch times of gain_schedule switched: '
+          'weight set j holds over [t_j, t_j+1)', unit='s', low=0.0),
     Field('initial_covariance', 'matrix', D.RENDEZVOUS_INITIAL_COVARIANCE, 'initial error '
           'covariance (not in the paper; docs/decisions.md, 6)', unit='m^2 and (m/s)^2', symbol='P0',
           size='n'),

@@ -248,11 +248,14 @@ def consistency_check(per_step: np.ndarray, runs: int, dof: int) -> dict:
 
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
              config: EstimatorConfig | None = None, on_step: Callable[[int], None] | None = None,
-             events: dict[int, Callable] | None = None) -> SimulationResult:
+             events: dict[int, Callable] | None = None, controller: str = 'lqr',
+             controller_options: dict | None = None) -> SimulationResult:
     """Run the closed loop of ``scenario`` with filter ``kind`` for ``runs`` seeds seed..seed+runs-1.
 
     ``events`` maps a step index to ``fn(estimator)`` called before that step (fault injection,
     e.g. silencing neurons). ``on_step(k)`` is called after each step (progress bars).
+    ``controller``: lqr (u = -K (x_hat - setpoint)) or snn_lqr (the same law computed by a
+    spike-coding network, snn_estimator.spiking_lqr; ``controller_options``: its neurons, leak).
     """
     seeds = [seed + b for b in range(runs)]
     config = scenario.estimator if config is None else config
@@ -264,6 +267,12 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     setpoint = np.zeros(model.n_state) if scenario.setpoint is None else scenario.setpoint
     gain = (lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
             if scenario.lqr_state_weight is not None else None)
+    spiking_lqr = None
+    if controller == 'snn_lqr' and gain is not None:
+        from .spiking_lqr import SpikingLQR
+        spiking_lqr = SpikingLQR(gain, seeds=seeds, **(controller_options or {}))
+    elif controller not in ('lqr', 'snn_lqr'):
+        raise ValueError(f"controller must be one of lqr, snn_lqr; got {controller!r}")
     steps, dt = scenario.steps, scenario.dt
     x_hat = estimator.batch_x_hat  # (runs, n) view, updated in place by the estimator
     covariance = estimator.batch_P
@@ -275,7 +284,10 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     for k in range(steps):
         if events and k in events:
             events[k](estimator)
-        u = lqr_control(gain, x_hat - setpoint) if gain is not None else zero_u
+        if spiking_lqr is not None:
+            u = spiking_lqr.control(x_hat - setpoint, dt)
+        else:
+            u = lqr_control(gain, x_hat - setpoint) if gain is not None else zero_u
         z = sensor.measure(plant.x)
         if covariance is not None:
             record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
@@ -295,7 +307,8 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         estimate=record.estimate, covariance_diag=record.cov, control=record.controls,
         spikes_per_step=record.spikes, raster=record.raster, neuron_count=estimator.neuron_count,
         wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
-        extra={'saturated_steps': plant.saturated_steps.copy()})
+        extra={'saturated_steps': plant.saturated_steps.copy(),
+               'controller_spikes': None if spiking_lqr is None else spiking_lqr.total_spikes.copy()})
 
 
 class _Record:

@@ -378,6 +378,9 @@ def markdown(data: dict) -> str:
     lines += [f'- {spec.label}: {spec.source}; {spec.note}.' for spec in CHIPS.values()]
     lines += [f'- Float32 MAC: {FLOAT32_MAC_SOURCE}; arithmetic only.']
     lines += [f'- {text}' for text in data['assumptions'].values()]
+    if 'chip' in data:  # the chip's arithmetic, schedule, spiking LQR (snn_tools.chip_results)
+        from .chip_results import markdown as chip_markdown
+        lines += chip_markdown(data['chip'])
     return '\n'.join(lines) + '\n'
 
 
@@ -443,7 +446,19 @@ def main(argv=None) -> int:
     parser.add_argument('--neuron-counts', type=int, nargs='+', default=list(NEURON_COUNTS))
     parser.add_argument('--cpu-watts', type=float, default=CPU_WATTS,
                         help='power assumed for the busy CPU core, W (energy = measured time x this)')
+    parser.add_argument('--chip-spec', default='config/campaigns/chip_bits.yaml',
+                        help='campaign spec of the fixed-point bit-width sweep')
+    parser.add_argument('--chip-runs', type=int, default=None, help='runs per bit-width cell (default: the spec)')
+    parser.add_argument('--schedule-runs', type=int, default=100, help='Monte-Carlo runs per weight schedule')
+    parser.add_argument('--controller-runs', type=int, default=20, help='runs per controller comparison')
+    parser.add_argument('--emulator-seconds', type=float, default=60.0,
+                        help='s of the Brian2 re-run of the integer network')
+    parser.add_argument('--no-chip', action='store_true', help='skip the chip section (snn_tools.chip_results)')
+    parser.add_argument('--chip-only', action='store_true',
+                        help='compute the chip section alone and add it to the existing <out>/neuromorphic.json')
     args = parser.parse_args(argv)
+    if args.chip_only:
+        return _chip_only(args)
     if args.runs < 1 or args.substeps < 1:
         parser.error('--runs and --substeps must be >= 1')
     scenario = rendezvous_scenario()
@@ -472,12 +487,30 @@ def main(argv=None) -> int:
                   f'{item["dense_macs_per_step"]:.0f} dense MACs per step', flush=True)
     sweep = neuron_sweep(args.filters[0], scenario, args.neuron_counts, args.cpu_watts)
     data['neuron_sweep'] = sweep
+    if not args.no_chip:
+        from .chip_results import run_all
+        first = data['filters'].get('snn_ekf') or next(iter(data['filters'].values()))
+        data['chip'] = run_all(args, first['energy_per_step_pj']['loihi'])
+        print(f'chip section: {data["chip"]["wall_time_s"]} s', flush=True)
     data['wall_time_s'] = round(time.perf_counter() - started, 1)
     plot_sweep(sweep, args.out / 'neuromorphic_costs.png')
     (args.out / 'neuromorphic.json').write_text(json.dumps(data, indent=2) + '\n')
     (args.out / 'neuromorphic.md').write_text(markdown(data))
     print(f'wrote {args.out / "neuromorphic.json"}, neuromorphic.md, neuromorphic_costs.png '
           f'({data["wall_time_s"]} s)')
+    return 0
+
+
+def _chip_only(args) -> int:
+    """The chip section over the existing results (the rest as the last full run wrote it)."""
+    from .chip_results import run_all
+    path = args.out / 'neuromorphic.json'
+    data = json.loads(path.read_text())
+    first = data['filters'].get('snn_ekf') or next(iter(data['filters'].values()))
+    data['chip'] = run_all(args, first['energy_per_step_pj']['loihi'])
+    path.write_text(json.dumps(data, indent=2) + '\n')
+    (args.out / 'neuromorphic.md').write_text(markdown(data))
+    print(f'wrote the chip section into {path} and neuromorphic.md ({data["chip"]["wall_time_s"]} s)')
     return 0
 
 

@@ -47,6 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
+from snn_estimator import chip
 from snn_estimator.estimators import FILTER_KINDS, Estimator, make_estimator, steady_state_gain
 from snn_estimator.models import StateSpaceModel
 from snn_estimator.simulation import rendezvous_scenario
@@ -82,19 +83,32 @@ def constant_gain_estimator(kind: str, config, model: StateSpaceModel) -> Estima
     return make_estimator(kind, config.replace(gain_schedule='steady_state'), model)
 
 
-def network_graph(estimator: Estimator, dt: float):
+def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
     """The NIR graph of a constant-gain spiking ``estimator`` (weights at sample period ``dt``,
-    s); its current v and r become the initial state in the metadata."""
+    s); its current v and r become the initial state in the metadata. For a chip network
+    (precision loihi or gain_schedule switched: snn_estimator.chip) the weights are those its
+    quantized factors compute, of set ``weight_set`` (NIR has no switch: one graph per set,
+    :func:`export_schedule`)."""
     import nir
 
-    if not (estimator.spiking and estimator.constant_gain and estimator.runs == 1):
+    network = estimator.chip
+    if not (estimator.spiking and (estimator.constant_gain or network is not None) and estimator.runs == 1):
         raise ValueError('network_graph needs a single-run spiking estimator with gain_schedule '
-                         'steady_state (see constant_gain_estimator)')
-    w = estimator.weights(dt=dt)
+                         'steady_state or switched (see constant_gain_estimator)')
     s = estimator.settings
+    if network is None:
+        w = estimator.weights(dt=dt)
+        gain, leak = steady_state_gain(estimator.gain_law, estimator.model, s, dt), s.leak_rate
+        initial_v, initial_r = estimator.potentials.copy(), estimator.rates.copy()
+    else:
+        network.prepare(dt)
+        w = chip.effective_weights(network, weight_set)
+        gain, leak = w['gain'], w['leak_rate']
+        initial_v, initial_r = network.potentials[0].copy(), network.initial_rates(0)
     neurons = w['neurons']
     model = estimator.model
-    tau = np.full(neurons, 1.0 / s.leak_rate)
+    # a leak the chip's 12-bit decay rounds to 0 is written as a time constant of 1e12 s
+    tau = np.full(neurons, 1.0 / max(leak, 1e-12))
     thresholds = w['thresholds']
     fast = w['Omega_f'] - np.diag(np.diag(w['Omega_f']))
     scaled_decoder = s.state_scale[:, None] * w['decoder']
@@ -110,13 +124,13 @@ def network_graph(estimator: Estimator, dt: float):
         LIF: nir.LIF(tau=tau, r=tau.copy(), v_leak=np.zeros(neurons), v_threshold=thresholds,
                      v_reset=-thresholds, metadata={
                          'equation': 'v\' = -lambda v + I (Eq. 10, 15); T_i = ||D_i||^2 / 2',
-                         'reset': RESET_SEMANTICS, 'initial_v': estimator.potentials.copy(),
+                         'reset': RESET_SEMANTICS, 'initial_v': initial_v,
                          'unit': 'v in state-scaled units, tau in s'}),
         'fast': nir.Linear(weight=fast, metadata={
             'equation': 'Omega_f = -D^T D off the diagonal (Eq. 18); the diagonal is the reset',
             'unit': 'jump of v per spike'}),
         TRAINS: nir.LI(tau=tau.copy(), r=tau.copy(), v_leak=np.zeros(neurons), metadata={
-            'equation': "r' = -lambda r + s (Eq. 11)", 'initial_state': estimator.rates.copy(),
+            'equation': "r' = -lambda r + s (Eq. 11)", 'initial_state': initial_r,
             'unit': 'filtered spike count'}),
         'slow_dynamics': nir.Linear(weight=w['Omega_s'], metadata={
             'equation': 'Omega_s = D^T (S^-1 A_d S + lambda I) D (Eq. 17)', 'unit': '1/s'}),
@@ -135,18 +149,46 @@ def network_graph(estimator: Estimator, dt: float):
              (TRAINS, 'decoder'), ('decoder', OUTPUT)]
     metadata = {
         'generator': 'snn_rendezvous snn_export',
-        'filter_kind': estimator.kind, 'gain_law': estimator.gain_law, 'gain_schedule': 'steady_state',
-        'gain': steady_state_gain(estimator.gain_law, model, s, dt),
+        'filter_kind': estimator.kind, 'gain_law': estimator.gain_law, 'gain_schedule': s.gain_schedule,
+        'gain': gain,
         'sample_period': float(dt), 'discretization': s.discretization,
         'sample_semantics': ('inputs held over each sample period; A_d = (Phi - I)/dt and B_d = Gamma/dt '
                              'are the exact zero-order hold at this period (models.linearized_increment)'),
         'spike_rule': s.spike_rule, 'spike_rule_meaning': SPIKE_RULE,
         'state_scale': s.state_scale.copy(), 'state_names': ','.join(model.state_names),
-        'leak_rate': float(s.leak_rate), 'decoder_variance': float(s.decoder_variance),
+        'leak_rate': float(leak), 'decoder_variance': float(s.decoder_variance),
         'seed': int(estimator.seeds[0]), 'neurons': int(neurons),
         'units': 'time s; z m; u m/s^2; x_hat m and m/s; v and weights in state-scaled units (x~ = S^-1 x)',
     }
+    if network is not None:
+        times = [0.0] + list(chip.schedule_times(estimator.config)) + [float('inf')]
+        metadata.update({
+            'precision': estimator.config.precision, 'chip_format': repr(network.describe()),
+            'weight_set': int(weight_set), 'weight_sets': len(network.gains),
+            'active_from_s': times[weight_set], 'active_until_s': times[weight_set + 1],
+            'chip_semantics': ('weights are the products of the quantized factors of snn_estimator.chip '
+                               '(D, A, K, B: signed mantissas, one exponent each); the chip runs them '
+                               'factored, v = D^T e, and rounds its drive to the readout LSB each sample')})
     return nir.NIRGraph(nodes=nodes, edges=edges, metadata=metadata)
+
+
+def export_schedule(estimator: Estimator, dt: float, folder: Path) -> list[Path]:
+    """One NIR file per weight set of a chip network (``<kind>_set<j>.nir``), each with its
+    active interval (active_from_s, active_until_s) in the graph metadata: NIR holds constant
+    weights and no switch."""
+    import nir
+
+    if estimator.chip is None:
+        raise ValueError('export_schedule needs a chip network (gain_schedule switched or precision loihi)')
+    estimator.chip.prepare(dt)
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for j in range(len(estimator.chip.gains)):
+        path = folder / f'{estimator.kind}_set{j}.nir'
+        nir.write(path, network_graph(estimator, dt, weight_set=j))
+        paths.append(path)
+    return paths
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,509 @@
+"""The spiking network as a neuromorphic chip runs it: integer formats and weight sets it can hold.
+
+Two options of :class:`~snn_estimator.config.EstimatorConfig` route a spiking filter's network
+here instead of the float kernel of kernels.py:
+
+* ``precision: loihi``: weights, membrane potentials, synaptic currents (the filtered spike
+  trains as the chip holds them) and decays in Intel Loihi's integer formats (bit widths are
+  parameters): signed ``weight_bits`` mantissas with one shared exponent per weight matrix
+  (Loihi: 8-bit weights, a weight exponent per synapse group), ``membrane_bits`` membrane
+  potential and currents (Loihi: 24-bit; the membrane saturates, currents wrap around), and
+  ``decay_bits`` decay constants (Loihi: 12-bit, x <- x (2^12 - d) / 2^12 rounded toward zero).
+  Sources: Davies et al. 2018, "Loihi: A Neuromorphic Manycore Processor with On-Chip Learning",
+  IEEE Micro 38(1):82-99 (Sec. "Neuron model": CUBA LIF with 24-bit state and 12-bit decays;
+  8-bit synaptic weights with a weight exponent); Lava's bit-accurate Loihi model
+  (lava-nc/lava, ``lava.proc.lif.models.PyLifModelBitAcc``: u and v 24-bit, du and dv 12-bit,
+  u wraps modulo 2^23, v clipped to +-(2^23 - 1), decays rounded toward zero).
+* ``gain_schedule: switched``: a few constant weight sets, the gain of set j held over
+  [t_j, t_j+1) (``schedule_times``), each the mean of the time-varying gain over its interval
+  and the last one the steady-state gain. Weights a chip can hold that still converge from a
+  dispersed start (a single steady-state gain does not: results/neuromorphic.md).
+
+The network is the paper's (Eq. 10-20) in the factored form the float kernel runs: every
+v_i = D_i^T e reads one n-vector, the coding error e = x~ - D r (Eq. 13), so the network's
+state is e and the readout x_read = D r (the filtered trains as the chip holds them: n
+currents that jump by the decoder column D_i at a spike of i and decay with lambda, Eq. 11-12)
+plus the N membranes v = D^T e. Per sample period (one chip tick; spikes resolved in place by
+the filter's spike rule, as the float kernel does)::
+
+    nu = z - C x_hat                                   (innovation against the readout)
+    y  = A x_read + K[set] nu + B u                    (n state compartments, 8-bit weights:
+                                                        A = dt (S^-1 A_d S + lambda I), K = dt S^-1 K,
+                                                        B = dt S^-1 B_d; Eq. 16-17, 19-22)
+    e <- decay(e) + y,  x_read <- decay(x_read),  v = D^T e
+    spikes (greedy): i = argmax(v - T) while v_i > T_i:  e -= D_i, x_read += D_i, v -= D^T D_i
+    x_hat = S x_read
+
+Why factored. The dense form holds Omega_s, Omega_k (N x N) and F_k (N x m) as 8-bit weights;
+rounded, they no longer map into the range of D^T, and the rounding error of Omega r (r are
+spike counts in the thousands) drives v along the N - n directions no spike can cancel: the
+membranes of the literal dense network in Loihi's formats grow until every sample hits the spike
+cap (measured: 5000 of 5000 spikes from the first sample, against 130 in float; this module's
+history). Held as D^T e, v stays in that range by construction, with every weight an 8-bit
+mantissa (D, A, K, B); the fast connections Omega_f = -D^T D act through e (a spike of i
+changes e by -D_i, which every neuron reads), which needs graded messages from the n state
+compartments to the N neurons (Loihi 2's graded spikes; Orchard et al. 2021, "Efficient
+Neuromorphic Signal Processing with Loihi 2", IEEE SiPS). The decoder is quantized first and
+everything else is built from the quantized one, so the readout is exactly what the network
+encodes. With ``precision: float64`` (a switched schedule in float) the same algebra runs in
+float64 and reproduces the float kernel's network spike for spike for one set (test_chip.py).
+
+What the chip cannot do is left to the host, as on Loihi: the graded inputs z and u enter as a
+per-tick bias (rounded to the membrane's LSB), the decoded x_hat is read from the readout
+currents, and the schedule's switch is a time signal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy.optimize import nnls
+
+from .schema import PRECISIONS
+
+#: Loihi's formats (Davies et al. 2018; Lava PyLifModelBitAcc).
+LOIHI_WEIGHT_BITS = 8
+LOIHI_MEMBRANE_BITS = 24
+LOIHI_DECAY_BITS = 12
+#: The readout currents' range is this factor times the largest |x~| the start can have
+#: (|S^-1 x_hat0| + 4 sigma of P0).
+READOUT_HEADROOM = 8.0
+
+#: The spike rules as the chip kernel's codes (its one compiled loop serves all three).
+RULE_GREEDY, RULE_ONE_PER_STEP, RULE_ALL_ABOVE = 0, 1, 2
+_RULES = {'greedy': RULE_GREEDY, 'one_per_step': RULE_ONE_PER_STEP, 'all_above': RULE_ALL_ABOVE}
+
+
+def wanted(config) -> bool:
+    """True when ``config`` asks for this module's network (fixed point or switched sets)."""
+    return config.precision != 'float64' or config.gain_schedule == 'switched'
+
+
+@dataclass(frozen=True)
+class ChipFormat:
+    """Bit widths of the integer network (None: float64)."""
+
+    weight_bits: int = LOIHI_WEIGHT_BITS
+    membrane_bits: int = LOIHI_MEMBRANE_BITS
+    decay_bits: int = LOIHI_DECAY_BITS
+
+    @classmethod
+    def of(cls, config) -> ChipFormat | None:
+        """The format of ``config`` (None for precision float64); ValueError naming the field."""
+        if config.precision not in PRECISIONS:
+            raise ValueError(f'precision must be one of {", ".join(PRECISIONS)}; got {config.precision!r}')
+        for name, low, high in (('weight_bits', 2, 24), ('membrane_bits', 8, 52), ('decay_bits', 4, 24)):
+            value = getattr(config, name)
+            if isinstance(value, bool) or int(value) != value or not low <= value <= high:
+                raise ValueError(f'{name} must be an integer in [{low}, {high}] (Loihi: '
+                                 f'{globals()["LOIHI_" + name.upper()]}), got {value!r}')
+        if config.precision == 'float64':
+            return None
+        if config.membrane_bits + config.decay_bits > 52:
+            raise ValueError('membrane_bits + decay_bits must be <= 52 (the products are exact in float64)')
+        return cls(int(config.weight_bits), int(config.membrane_bits), int(config.decay_bits))
+
+    @property
+    def mantissa_max(self) -> int:
+        return 2 ** (self.weight_bits - 1) - 1
+
+    @property
+    def state_limit(self) -> int:
+        """Largest magnitude of the membrane and the currents, in LSB."""
+        return 2 ** (self.membrane_bits - 1) - 1
+
+
+def quantize(weights: np.ndarray, lsb: float, chip: ChipFormat | None, fractional: bool = False):
+    """``weights`` (real) in units of ``lsb`` as signed mantissas of weight_bits times 2^shift,
+    one shift (exponent) for the whole matrix: the smallest that fits the largest entry. Without
+    ``fractional`` the shift is at least 0 (integer weights on an integer state: a matrix whose
+    entries are all below 2^(bits-1) LSB keeps fewer significant bits); with it, negative
+    (weights on graded inputs, the product rounded to the LSB). Returns (values, shift); float64
+    precision returns weights / lsb."""
+    scaled = np.asarray(weights, dtype=float) / lsb
+    if chip is None:
+        return scaled, 0
+    peak = float(np.abs(scaled).max()) if scaled.size else 0.0
+    if peak == 0.0:
+        return np.zeros_like(scaled), 0
+    shift = math.ceil(math.log2(peak / chip.mantissa_max))
+    if not fractional:
+        shift = max(shift, 0)
+    mantissa = np.clip(np.rint(scaled / 2.0 ** shift), -chip.mantissa_max, chip.mantissa_max)
+    return mantissa * 2.0 ** shift, shift
+
+
+def gain_trajectory(estimator_kind: str, model, config, dt: float, steps: int) -> np.ndarray:
+    """K(t_k) of the time-varying filter, (steps, n, m): for a linear model the gains that
+    depend on P only (kalman, msif, msif_weighted, msif_hybrid) follow from P0 alone, whatever
+    the measurements (run here with zero innovations)."""
+    from .estimators import FILTER_KINDS, make_estimator
+
+    twin = FILTER_KINDS[estimator_kind].twin or estimator_kind
+    if FILTER_KINDS[twin].gain == 'sif':
+        raise ValueError('gain_schedule switched needs a gain law computed from P (kalman, msif, '
+                         'msif_weighted, msif_hybrid); the SIF gain of Eq. 7 follows the innovation')
+    filt = make_estimator(twin, config.replace(gain_schedule='time_varying', precision='float64',
+                                               initial_state_dispersion=False, silenced_neurons=()), model)
+    c = model.measurement_matrix
+    u = np.zeros(model.n_input)
+    gains = np.empty((steps, model.n_state, model.n_meas))
+    for k in range(steps):
+        filt.step(c @ filt.x_hat, u, dt)
+        gains[k] = filt.gain
+    return gains
+
+
+def schedule_gains(estimator_kind: str, model, config, settings, dt: float) -> list[np.ndarray]:
+    """The gain of each weight set of a switched schedule: the mean of the time-varying K(t)
+    over [t_j, t_j+1) for all but the last set, and K(t_last) for the last one, held for ever
+    (at least the time-varying gain from then on: with the rendezvous' tiny Q_hat, K(t) decays
+    like 1/t for minutes and its fixed point, the steady-state gain, is too small to remove
+    what is left of a dispersed start). No switch times: the steady-state gain alone."""
+    from .estimators import FILTER_KINDS, steady_state_gain
+
+    times = schedule_times(config)
+    if not times:
+        return [steady_state_gain(FILTER_KINDS[estimator_kind].gain, model, settings, dt)]
+    trajectory = gain_trajectory(estimator_kind, model, config, dt, int(round(times[-1] / dt)) + 1)
+    bounds = [0] + [int(round(t / dt)) for t in times]
+    gains = [trajectory[start:max(stop, start + 1)].mean(axis=0) for start, stop in zip(bounds, bounds[1:])]
+    return gains + [trajectory[bounds[-1]]]
+
+
+def schedule_times(config) -> tuple[float, ...]:
+    """The switch times of ``config`` (s, increasing, > 0); ValueError naming the field."""
+    times = tuple(float(t) for t in (config.schedule_times or ()))
+    if config.gain_schedule != 'switched':
+        return ()
+    if any(not math.isfinite(t) or t <= 0.0 for t in times) or any(b <= a for a, b in zip(times, times[1:])):
+        raise ValueError(f'schedule_times must be increasing times > 0 s, got {list(times)}')
+    return times
+
+
+class ChipNetwork:
+    """The network of a batched spiking :class:`~snn_estimator.estimators.Estimator` in the
+    chip's arithmetic. Built by the estimator (which hands over its decoder, live neurons and
+    output arrays); :meth:`prepare` builds the weights for a sample period, :meth:`step`
+    advances every run."""
+
+    def __init__(self, kind: str, model, config, settings, decoder: np.ndarray, alive: np.ndarray,
+                 x_hat: np.ndarray, spikes: np.ndarray, total_spikes: np.ndarray):
+        from .estimators import FILTER_KINDS
+
+        spec = FILTER_KINDS[kind]
+        if not spec.spiking:
+            raise ValueError(f'precision {config.precision} and gain_schedule {config.gain_schedule} '
+                             f'apply to the spiking filters; {kind} has no network')
+        if not model.is_linear:
+            raise ValueError(f'{type(model).__name__} is nonlinear: its weights follow the Jacobian at '
+                             'the estimate (Eq. 17) every step; a chip network needs a linear model')
+        if config.precision != 'float64' and config.gain_schedule == 'time_varying':
+            raise ValueError('precision loihi needs weights a chip can hold: gain_schedule steady_state '
+                             'or switched (a time-varying gain rewrites every weight each step)')
+        if settings.membrane_noise > 0.0:
+            raise ValueError('membrane_noise must be 0 on the chip network (its membranes read the '
+                             'coding error, v = D^T e)')
+        self.kind, self.model, self.config, self.settings = kind, model, config, settings
+        self.format = ChipFormat.of(config)
+        schedule_times(config)  # validate early
+        self._alive = alive
+        self._x_hat, self._spikes, self._total_spikes = x_hat, spikes, total_spikes
+        runs, n, neurons = decoder.shape
+        self.runs, self.neurons = runs, neurons
+        self._x_range = self._readout_range(settings)
+        self._read_lsb = self._x_range / (self.format.state_limit + 1) if self.format else 1.0
+        # the decoder first: every other weight is built from the quantized one
+        self.decoder = np.empty_like(decoder)
+        self._read = np.empty((runs, neurons, n))
+        self.shifts: dict[str, int] = {}
+        for b in range(runs):
+            integers, self.shifts['decoder'] = quantize(decoder[b], self._read_lsb, self.format)
+            self.decoder[b] = integers * self._read_lsb
+            self._read[b] = integers.T
+        # exact in the readout's LSB: v = D^T e with integer D and e, T_i = ||D_i||^2 / 2
+        self._gram = np.ascontiguousarray(np.einsum('bik,bjk->bij', self._read, self._read))
+        self._thresholds = 0.5 * np.einsum('bii->bi', self._gram)
+        self._rates0 = np.zeros((runs, neurons))
+        self._target0 = np.zeros((runs, n))
+        self._dt: float | None = None
+        self.steps = 0
+        self.capped_steps = 0
+        self.overflows = 0
+        self.synops = 0
+        self.rule = _RULES[settings.spike_rule]
+
+    # ------------------------------------------------------------------ set-up
+    def _readout_range(self, settings) -> float:
+        """Range of the readout currents, scaled units: READOUT_HEADROOM x the largest |x~|
+        of the start."""
+        spread = np.abs(settings.initial_state) + 4.0 * np.sqrt(np.diag(settings.initial_covariance))
+        return READOUT_HEADROOM * float(np.max(spread / settings.state_scale))
+
+    def encode(self, run: int, target: np.ndarray) -> np.ndarray:
+        """Rates r >= 0 (NNLS over the live neurons) with D r = ``target`` (scaled units);
+        returns the decoded S D r. The chip's state is set from r at :meth:`prepare`."""
+        decoder = self.decoder[run]
+        alive = self._alive[run]
+        rates = np.zeros(self.neurons)
+        if np.any(alive):
+            rates[alive], _ = nnls(decoder[:, alive], target, maxiter=50 * self.neurons)
+        self._rates0[run] = rates
+        self._target0[run] = target
+        self.steps = 0
+        if self._dt is not None:
+            self._load(run)
+        return self.settings.state_scale * (decoder @ rates)
+
+    def prepare(self, dt: float) -> None:
+        """Build the weights of sample period ``dt`` (once: a chip network is built for one
+        period; another dt raises ValueError)."""
+        if self._dt is not None:
+            if dt != self._dt:
+                raise ValueError(f'the chip network was built for dt = {self._dt} s; got {dt} s')
+            return
+        s, model, fmt = self.settings, self.model, self.format
+        n, m = model.n_state, model.n_meas
+        unity = 2.0 ** fmt.decay_bits if fmt else 1.0
+        if fmt:
+            self._decay_int = float(round(s.leak_rate * dt * unity))
+            if self._decay_int >= unity:
+                raise ValueError(f'leak_rate * dt = {s.leak_rate * dt} is not below 1')
+            leak = self._decay_int / (unity * dt)  # the leak the chip realises, designed for
+        else:
+            self._decay_int = 0.0
+            leak = s.leak_rate
+        self.leak_rate = leak
+        self._unity, self._decay = unity, 1.0 - leak * dt
+        scale = s.state_scale
+        a_d, b_d = model.linearized_increment(None, dt, s.discretization)
+        lsb = self._read_lsb
+        self.gains = (schedule_gains(self.kind, model, self.config, s, dt) if self.config.gain_schedule == 'switched'
+                      else [self._steady_state(dt)])
+        self.times = np.array(schedule_times(self.config))
+        # y = A x_read + K nu + B u in readout LSB: x_read is in LSB already, nu in m, u in m/s^2
+        self._dynamics, self.shifts['dynamics'] = quantize(
+            dt * (a_d / scale[:, None] * scale[None, :] + leak * np.eye(n)), 1.0, fmt, fractional=True)
+        self._control, self.shifts['control'] = quantize(dt * b_d / scale[:, None] / lsb, 1.0, fmt, fractional=True)
+        self._gain_weights = np.empty((len(self.gains), n, m))
+        for j, gain in enumerate(self.gains):
+            self._gain_weights[j], self.shifts[f'gain_{j}'] = quantize(
+                dt * gain / scale[:, None] / lsb, 1.0, fmt, fractional=True)
+        self._c = np.ascontiguousarray(model.measurement_matrix * (scale * lsb)[None, :])
+        self._e = np.zeros((self.runs, n))
+        self._x_read = np.zeros((self.runs, n))
+        self._v = np.zeros((self.runs, self.neurons))
+        self._read_scale = np.ascontiguousarray(scale * lsb)
+        self._dt = float(dt)
+        for b in range(self.runs):
+            self._load(b)
+
+    def _steady_state(self, dt: float) -> np.ndarray:
+        from .estimators import FILTER_KINDS, steady_state_gain
+        return steady_state_gain(FILTER_KINDS[self.kind].gain, self.model, self.settings, dt)
+
+    def _load(self, run: int) -> None:
+        """The chip's state of ``run`` from the encoded rates: x_read = D r, e = x~0 - D r."""
+        read = self._read[run].T @ self._rates0[run]
+        error = self._target0[run] / self._read_lsb - read
+        if self.format:
+            read, error = np.rint(read), np.rint(error)
+        self._x_read[run], self._e[run] = read, error
+        self._v[run] = self._read[run] @ error
+        self._x_hat[run] = self._x_read[run] * self._read_scale
+        self.steps = 0
+
+    # ------------------------------------------------------------------ stepping
+    def active_set(self) -> int:
+        """The weight set in use at the current time (steps x dt since the reset)."""
+        if not len(self.times):
+            return 0
+        return int(np.searchsorted(self.times, (self.steps + 0.5) * self._dt))
+
+    def step(self, z, u, dt: float) -> None:
+        """Advance every run by one sample (``z`` None: no measurement, no correction)."""
+        self.prepare(dt)
+        measured = z is not None
+        z = np.zeros((self.runs, self.model.n_meas)) if z is None else np.ascontiguousarray(z, dtype=float)
+        u = np.ascontiguousarray(u, dtype=float)
+        if not (np.isfinite(z).all() and np.isfinite(u).all()):
+            raise ValueError('z and u must be finite')
+        fmt = self.format
+        limit = float(fmt.state_limit) if fmt else math.inf
+        capped, overflows, synops = chip_step(
+            fmt is not None, self.rule, self.settings.max_spikes_per_step, measured, self._unity,
+            self._decay_int, self._decay, limit, self._dynamics, self._gain_weights[self.active_set()],
+            self._control, self._c, z, u, self._read, self._gram, self._thresholds, self._alive,
+            self._e, self._x_read, self._v, self._read_scale, self._spikes, self._total_spikes, self._x_hat)
+        self.steps += 1
+        self.capped_steps += capped
+        self.overflows += overflows
+        self.synops += synops
+        if not np.isfinite(self._x_hat).all():
+            raise FloatingPointError('the chip network state became non-finite; call reset()')
+
+    # ------------------------------------------------------------------ inspection
+    def initial_rates(self, run: int = 0) -> np.ndarray:
+        """The rates r >= 0 the last encoding chose (the state the readout was loaded from)."""
+        return self._rates0[run].copy()
+
+    @property
+    def potentials(self) -> np.ndarray:
+        """Membrane potentials v = D^T e in scaled units, (runs, N)."""
+        return self._v * self._read_lsb ** 2
+
+    def describe(self) -> dict:
+        """The formats and what they hold: LSB, shifts per weight matrix, the realised leak."""
+        fmt = self.format
+        return {'precision': self.config.precision,
+                'weight_bits': fmt.weight_bits if fmt else None,
+                'membrane_bits': fmt.membrane_bits if fmt else None,
+                'decay_bits': fmt.decay_bits if fmt else None,
+                'readout_lsb_scaled': self._read_lsb, 'readout_range_scaled': self._x_range,
+                'weight_shifts': dict(self.shifts), 'leak_rate_realised': getattr(self, 'leak_rate', None),
+                'decay_constant': self._decay_int if fmt else None,
+                'weight_sets': len(getattr(self, 'gains', [])), 'switch_times_s': list(schedule_times(self.config))}
+
+
+@numba.njit(cache=True)
+def _decayed(value, integer, unity, decay_int, decay):
+    """One tick of decay: Loihi's x (2^bits - d) / 2^bits rounded toward zero, or x (1 - lambda dt)."""
+    if integer:
+        product = value * (unity - decay_int)
+        return math.copysign(math.floor(abs(product) / unity), product)
+    return value * decay
+
+
+@numba.njit(cache=True)
+def _bounded(value, limit):
+    """Loihi's currents wrap around modulo 2^(bits-1) (Lava PyLifModelBitAcc); returns
+    (value, wrapped)."""
+    if abs(value) <= limit:
+        return value, False
+    modulus = limit + 1.0
+    magnitude = abs(value)
+    return math.copysign(magnitude - modulus * math.floor(magnitude / modulus), value), True
+
+
+@numba.njit(cache=True)
+def chip_step(integer, spike_rule, max_spikes, measured, unity, decay_int, decay, limit, dynamics, gain,
+              control, c, z, u, read, gram, thresholds, alive, e, x_read, v, read_scale, spikes,
+              total_spikes, x_hat):
+    """One sample of every run (see the module docstring). Integers are held in float64
+    (exact below 2^53). Returns (runs whose spike loop hit max_spikes, wrapped states,
+    synaptic operations)."""
+    runs, neurons = v.shape
+    n = x_read.shape[1]
+    m = z.shape[1]
+    n_u = u.shape[1]
+    capped = 0
+    overflows = 0
+    synops = 0
+    nu = np.empty(m)
+    drive = np.empty(n)
+    limit_spikes = 1 if spike_rule == RULE_ONE_PER_STEP else max_spikes
+    for b in range(runs):
+        for j in range(m):
+            acc = 0.0
+            if measured:
+                acc = z[b, j]
+                for k in range(n):
+                    acc -= c[j, k] * x_read[b, k]
+            nu[j] = acc
+        for k in range(n):
+            acc = 0.0
+            for q in range(n):
+                acc += dynamics[k, q] * x_read[b, q]
+            for j in range(m):
+                acc += gain[k, j] * nu[j]
+            for j in range(n_u):
+                acc += control[k, j] * u[b, j]
+            drive[k] = np.rint(acc) if integer else acc
+        for k in range(n):
+            e[b, k] = _decayed(e[b, k], integer, unity, decay_int, decay) + drive[k]
+            x_read[b, k] = _decayed(x_read[b, k], integer, unity, decay_int, decay)
+        for i in range(neurons):
+            acc = 0.0
+            for k in range(n):
+                acc += read[b, i, k] * e[b, k]
+            v[b, i] = acc
+            spikes[b, i] = 0
+        count = 0
+        if spike_rule == RULE_ALL_ABOVE:
+            for i in range(neurons):
+                if alive[b, i] and v[b, i] > thresholds[b, i]:
+                    spikes[b, i] = 1
+                    count += 1
+            for i in range(neurons):
+                if spikes[b, i]:
+                    _deliver(b, i, read, gram, e, x_read, v)
+        else:
+            while count < limit_spikes:
+                best = -1
+                best_over = 0.0
+                for j in range(neurons):
+                    if alive[b, j]:
+                        over = v[b, j] - thresholds[b, j]
+                        if over > best_over:
+                            best_over = over
+                            best = j
+                if best < 0:
+                    break
+                spikes[b, best] += 1
+                count += 1
+                _deliver(b, best, read, gram, e, x_read, v)
+            if spike_rule == RULE_GREEDY and count >= limit_spikes:
+                capped += 1
+        # graded e to every neuron each tick and after each spike, the spike to e and the readout
+        synops += (1 + count) * neurons * n + 2 * n * count
+        total_spikes[b] += count
+        if integer:
+            for k in range(n):
+                e[b, k], wrapped = _bounded(e[b, k], limit)
+                overflows += wrapped
+                x_read[b, k], wrapped = _bounded(x_read[b, k], limit)
+                overflows += wrapped
+        for k in range(n):
+            x_hat[b, k] = x_read[b, k] * read_scale[k]
+    return capped, overflows, synops
+
+
+@numba.njit(cache=True)
+def _deliver(b, i, read, gram, e, x_read, v):
+    """A spike of neuron i: e -= D_i, x_read += D_i, and every v_j = D_j^T e follows
+    (v -= (D^T D)[:, i], Eq. 18)."""
+    for k in range(e.shape[1]):
+        e[b, k] -= read[b, i, k]
+        x_read[b, k] += read[b, i, k]
+    for j in range(v.shape[1]):
+        v[b, j] -= gram[b, i, j]
+
+
+def effective_weights(network: ChipNetwork, weight_set: int = 0) -> dict:
+    """The dense weights (Eq. 16-20, scaled units, as Estimator.weights gives them) that the
+    chip's factored network of set ``weight_set`` computes: products of its quantized factors
+    (D, A, K, B), so exact numbers that a dense reader (NIR, Brian2) can run; the integer network
+    differs from them only by rounding its drive y to the readout LSB each sample."""
+    if network._dt is None:
+        raise ValueError('the chip network has no weights yet: call prepare(dt) or step once')
+    if not 0 <= weight_set < len(network.gains):
+        raise ValueError(f'weight_set must be in [0, {len(network.gains) - 1}], got {weight_set}')
+    dt, lsb = network._dt, network._read_lsb
+    d = network.decoder[0]
+    c_scaled = network._c / lsb  # C S in readout-LSB units -> C S
+    k = network._gain_weights[weight_set] * lsb / dt  # S^-1 K in scaled units
+    return {
+        'F': d.T @ (network._control * lsb / dt),
+        'Omega_s': d.T @ (network._dynamics / dt) @ d,
+        'Omega_f': -d.T @ d,
+        'Omega_k': -d.T @ k @ c_scaled @ d,
+        'F_k': d.T @ k,
+        'thresholds': 0.5 * np.einsum('ki,ki->i', d, d),
+        'decoder': d.copy(),
+        'neurons': d.shape[1],
+        'gain': network.settings.state_scale[:, None] * k,
+        'leak_rate': network.leak_rate,
+    }
