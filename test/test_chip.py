@@ -87,7 +87,7 @@ def test_a_time_varying_gain_cannot_run_on_the_chip():
 
 
 @pytest.mark.parametrize('field, value, message', [
-    ('weight_bits', 1, 'weight_bits must be an integer in'), ('membrane_bits', 60, 'membrane_bits must be'),
+    ('weight_bits', 1, 'weight_bits must be >= 2'), ('membrane_bits', 60, 'membrane_bits must be'),
     ('precision', 'float16', 'precision must be one of float64, loihi')])
 def test_bad_formats_are_refused_with_the_field_named(field, value, message):
     with pytest.raises(ValueError, match=message):
@@ -100,7 +100,7 @@ def test_a_non_spiking_filter_has_no_chip_network():
 
 
 def test_bad_switch_times_are_refused():
-    with pytest.raises(ValueError, match='schedule_times must be increasing'):
+    with pytest.raises(ValueError, match=r'schedule_times \(s\) must be finite and increasing'):
         make_estimator('snn_ekf', SCENARIO.estimator.replace(gain_schedule='switched', schedule_times=(10.0, 1.0)),
                        SCENARIO.model)
 
