@@ -438,12 +438,17 @@ class Estimator(EstimatorViews):
 
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
-        estimate, per run (R per sample; P = 0 for the covariance-free filters)."""
+        estimate, per run (R per sample; P = 0 for the covariance-free filters). Infinite where
+        C P C^T + R cannot be inverted (a P that is no covariance any more): the estimate is then
+        inconsistent with any measurement, which the runner's NIS check treats as such."""
         z = np.ascontiguousarray(z, dtype=float).reshape(self.runs, -1)
         r = np.ascontiguousarray(measurement_covariance, dtype=float)
         if r.shape != (z.shape[1], z.shape[1]):
             raise ValueError(f'measurement_covariance must be {z.shape[1]}x{z.shape[1]}, got {r.shape}')
-        return kernels.innovation_nis(z, self._x_hat, self._c, self._p, r, self.has_covariance)
+        try:
+            return kernels.innovation_nis(z, self._x_hat, self._c, self._p, r, self.has_covariance)
+        except np.linalg.LinAlgError:
+            return np.full(self.runs, np.inf)
 
     # ------------------------------------------------------------------ stepping
     def predict(self, u, dt: float) -> np.ndarray:

@@ -643,3 +643,12 @@ def test_a_dispersed_start_is_drawn_from_p0_per_seed_and_the_same_alone_or_in_a_
     alone.step(np.array([70.0, 30.0, -5.0]), np.zeros(3), 0.1)
     alone.reset()
     np.testing.assert_array_equal(alone.x_hat, batch.batch_x_hat[3])  # the same draw again
+
+
+def test_innovation_nis_is_infinite_not_a_crash_when_the_innovation_covariance_is_singular():
+    # a P that is no covariance any more (here C P C^T = -R): the ROS estimator's per-step NIS
+    # check raised LinAlgError out of its subscription callback and the node died
+    estimator = make_estimator('ekf')
+    r = 1e-2 * np.eye(3)
+    estimator.set_state(np.zeros(6), np.diag([-1e-2, -1e-2, -1e-2, 1.0, 1.0, 1.0]))
+    assert np.isinf(estimator.innovation_nis(np.ones(3), r)[0])

@@ -4,7 +4,6 @@ subprotocol foxglove.sdk.v1) connected during a short demo decodes scene, plot a
 messages whose values are the run's recorded estimates, truths and spikes."""
 
 import asyncio
-import base64
 import json
 import socket
 import struct
@@ -25,6 +24,7 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.codec import encode_accel, encode_odometry  # noqa: E402
 from scenario_nodes.live_view_node import LiveViewNode  # noqa: E402
+from snn_tools.live_client import protobuf_class  # noqa: E402
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
 
@@ -138,16 +138,6 @@ class FoxgloveClient(threading.Thread):
                 assert opcode == 1  # message data
                 topic = self.channels[subscription]['topic']
                 self.messages.setdefault(topic, []).append((log_time, message[13:]))
-
-
-def protobuf_class(channel: dict):
-    """The message class of a protobuf channel, from the FileDescriptorSet it advertises."""
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-    files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel['schema']))
-    pool = descriptor_pool.DescriptorPool()
-    for file in files.file:
-        pool.Add(file)
-    return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel['schemaName']))
 
 
 @pytest.mark.slow
