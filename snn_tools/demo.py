@@ -329,7 +329,8 @@ def main(argv=None) -> int:
                         help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
     parser.add_argument('--single-process', action='store_true',
                         help='every node in one process and one executor (default: one process '
-                             'per node); same results, see docs/performance.md')
+                             'per node); same results, see docs/performance.md; experimental: crashed once '
+                             'at shutdown in the recorder drain')
     args = parser.parse_args(argv)
     name = args.name or f"{args.estimator}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     run_dir = (args.runs_dir / name).resolve()

