@@ -86,6 +86,28 @@ def summary(latencies_ms) -> dict:
             'steady_max_ms': float(values[START_SAMPLES:].max()) if values.size > START_SAMPLES else None}
 
 
+def path_figures(latencies_ms: np.ndarray, expected: int) -> dict:
+    """The summary of one path's latencies, with how many of the ``expected`` measurements had
+    no answer; a path without any answer is reported (samples 0), not raised."""
+    if len(latencies_ms) == 0:
+        return {'samples': 0, 'unanswered': int(expected)}
+    return {**summary(latencies_ms), 'unanswered': max(int(expected) - len(latencies_ms), 0)}
+
+
+def format_line(case: str, path: str, figures: dict) -> str:
+    """One printed line per case and path; a path with no answers (every control refused as
+    stale under load, say) or too few for a steady part says so instead of a number."""
+    head = f'{case:<14} {path:<24}'
+    if figures['samples'] == 0:
+        return f"{head} no answers to {figures['unanswered']} measurements"
+    steady = figures['steady_max_ms']
+    after = f'{steady:.2f}' if steady is not None else 'n/a'
+    missing = f", {figures['unanswered']} unanswered" if figures['unanswered'] else ''
+    return (f"{head} p50 {figures['p50_ms']:6.2f} ms  p99 {figures['p99_ms']:6.2f}  "
+            f"max {figures['max_ms']:7.2f}  (start {figures['start_max_ms']:.2f}, after {after})  "
+            f"n {figures['samples']}{missing}")
+
+
 def match_latencies(source: dict[int, int], target: dict[int, int], offset_ns: int) -> np.ndarray:
     """Milliseconds from each source message (stamp -> receive ns) to the target message
     stamped ``offset_ns`` later, in stamp order; source messages without one are skipped."""
@@ -185,8 +207,8 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
     figures = {'real_time_factor': factor, 'environment': env,
                'measurements': len(received['measurement'])}
     for path, topic in PATHS.items():
-        latencies = match_latencies(received['measurement'], received[topic], offset)
-        figures[path] = summary(latencies[:samples])
+        latencies = match_latencies(received['measurement'], received[topic], offset)[:samples]
+        figures[path] = path_figures(latencies, min(samples, len(received['measurement'])))
     return figures
 
 
@@ -220,10 +242,7 @@ def main(argv=None) -> int:
                 return 1
             results[case] = figures
             for path in PATHS:
-                f = figures[path]
-                print(f"{case:<14} {path:<24} p50 {f['p50_ms']:6.2f} ms  p99 {f['p99_ms']:6.2f}  "
-                      f"max {f['max_ms']:7.2f}  (start {f['start_max_ms']:.2f}, after "
-                      f"{f['steady_max_ms']:.2f})  n {f['samples']}", flush=True)
+                print(format_line(case, path, figures[path]), flush=True)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps({'estimator': args.estimator, 'samples': args.samples,
