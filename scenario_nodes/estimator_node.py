@@ -69,7 +69,8 @@ def runner_settings(p: dict) -> RunnerSettings:
                           nis_threshold=p['nis_threshold'], nis_window=p['nis_window'],
                           initial_fit_window=p['initial_fit_window'],
                           time_jump_threshold=p['time_jump_threshold'],
-                          control_validity=p['control_validity'])
+                          control_validity=p['control_validity'],
+                          measurement_timing=p['measurement_timing'])
 
 
 class Inputs:

@@ -19,7 +19,7 @@ import numpy as np
 
 from snn_estimator import defaults as D
 from snn_estimator import schema
-from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, START_MODES  # noqa: F401 (DEFAULT_FILTER re-exported)
+from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMINGS, START_MODES  # noqa: F401 (DEFAULT_FILTER re-exported)
 from snn_estimator.config import EstimatorConfig, silenced_neurons
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
@@ -218,6 +218,11 @@ ESTIMATOR = MODEL + (
          'hot swap), history (a least-squares fit of the measurement history: restart after a crash); '
          'auto: the first of last_estimate, history, parameters that the topics\' history allows',
          choices=START_MODES),
+    Spec('measurement_timing', 'grid', 'How measurement stamps relate to the steps: grid (on the '
+         'estimate time plus steps of time_step, as the loop\'s sensor stamps them; others are '
+         'rejected as misaligned), any (a sensor on its own clock: each measurement is the input '
+         'until the next one\'s stamp and the estimate is published at each measurement\'s stamp; '
+         'docs/decisions.md, 31)', choices=MEASUREMENT_TIMINGS),
     Spec('history_wait', 1.0, 'Wall-clock s at most to read the history that publishers keep on '
          '`estimate`, `measurement` and `control` when configured (no wait when none keeps any)', low=0.0),
     Spec('initial_fit_window', D.INITIAL_FIT_WINDOW, 'Seconds of measurement history a least-squares '

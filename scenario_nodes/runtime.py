@@ -9,6 +9,7 @@ A configuration error exits with code 2 and a message that says what to fix.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import sys
 import time
@@ -52,9 +53,13 @@ class ProcessHooks:
         """Called before the node is destroyed."""
 
 
+_NUMBERS = re.compile(r'[-+]?\d[\d.e+-]*')
+
+
 class ThrottledLog:
-    """``log(level, message)`` for the core's callbacks: warnings of the same kind (their first
-    two words) at most once per ``period`` wall seconds; info and errors always."""
+    """``log(level, message)`` for the core's callbacks: warnings of the same kind (the same
+    text but for its numbers: a stale and a misaligned measurement are two kinds) at most once
+    per ``period`` wall seconds; info and errors always."""
 
     def __init__(self, logger, period: float = 5.0):
         self._logger = logger
@@ -63,7 +68,7 @@ class ThrottledLog:
 
     def __call__(self, level: str, message: str) -> None:
         if level == 'warning':
-            key = ' '.join(message.split()[:2])
+            key = _NUMBERS.sub('#', message)
             now = time.monotonic()
             if now - self._last.get(key, -self._period) < self._period:
                 return

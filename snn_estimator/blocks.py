@@ -14,7 +14,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from .measurements import DROPOUT, NON_FINITE, REASONS, VALID, MeasurementModel
-from .models import StateSpaceModel
+from .models import DT_CACHE_SIZE, StateSpaceModel
 from .validation import as_matrix, as_vector, check_covariance
 
 PLANT_STREAM = 1
@@ -91,6 +91,8 @@ class Plant:
         root = self._sqrt_cache.get(dt)
         if root is None:
             root = matrix_sqrt(self.step_noise_covariance(dt))
+            if len(self._sqrt_cache) >= DT_CACHE_SIZE:
+                self._sqrt_cache.clear()
             self._sqrt_cache[dt] = root
         self.x = (self.model.transition(self.x, u, dt, 'exact', substeps=self.substeps)
                   + self._noise.draw() @ root.T)

@@ -63,3 +63,6 @@ def kinds_table() -> str:
 
 #: Start-up strategies of :meth:`snn_estimator.runner.FilterRunner.start` (``initialization``).
 START_MODES = ('auto', 'parameters', 'last_estimate', 'history')
+#: How measurement stamps relate to the filter's steps (``measurement_timing``; the rule in
+#: :mod:`snn_estimator.runner`, docs/decisions.md, 31).
+MEASUREMENT_TIMINGS = ('grid', 'any')

@@ -34,7 +34,7 @@ import scipy.linalg
 from . import chip, gains, kernels
 from .catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
 from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
-from .models import StateSpaceModel
+from .models import DT_CACHE_SIZE, StateSpaceModel
 from .network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
 from .schema import RUNTIME
 
@@ -76,7 +76,7 @@ class StepDynamics:
                 a_d, b_d = model.linearized_increment(None, dt, method)
                 jac = model.jacobian(np.zeros(model.n_state), np.zeros(model.n_input))
                 cached = np.ascontiguousarray(np.concatenate([a_d, b_d, jac], axis=1)[None])
-                if len(self._linear_cache) > 64:
+                if len(self._linear_cache) >= DT_CACHE_SIZE:
                     self._linear_cache.clear()
                 self._linear_cache[dt] = cached
             return cached, self.no_drift

@@ -18,6 +18,9 @@ from .defaults import EARTH_MU  # noqa: F401 (re-exported)
 from .defaults import ORBIT_RADIUS as DEFAULT_ORBIT_RADIUS
 from .validation import check_choice, check_positive
 
+#: Per-dt matrices kept (steps on a grid reuse a few; steps of any length must not grow them).
+DT_CACHE_SIZE = 64
+
 DISCRETIZATIONS = ('exact', 'euler')
 
 
@@ -111,6 +114,8 @@ class StateSpaceModel(ABC):
             raise TypeError(f'{type(self).__name__} is nonlinear: it has no constant Phi')
         cache = self.__dict__.setdefault('_zoh_cache', {})
         if dt not in cache:
+            if len(cache) >= DT_CACHE_SIZE:  # steps of any length (a sensor on its own clock)
+                cache.clear()
             a = self.jacobian(np.zeros(self.n_state), np.zeros(self.n_input))
             cache[dt] = zoh_matrices(a, self.input_matrix, dt)
         return cache[dt]

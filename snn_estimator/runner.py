@@ -35,7 +35,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .catalog import START_MODES  # noqa: F401 (re-exported)
+from .catalog import MEASUREMENT_TIMINGS, START_MODES  # noqa: F401 (START_MODES re-exported)
 from .estimators import Estimator
 from .gates import NS, seconds_to_ns
 from .plant_runner import control_in_force
@@ -44,6 +44,15 @@ from .runner_parts import Gating, History, Reporting, StartUp  # noqa: F401 (His
 
 #: Controls kept for pairing and replay.
 CONTROL_MEMORY = 2000
+#: How measurement stamps relate to the filter's steps (docs/decisions.md, 31):
+#: grid: z_k at t_k steps the filter to t_k + time_step, published at once (a one-step
+#: prediction; stamps off the grid are rejected as misaligned);
+#: any: z_j is the filter's input from t_j until the next measurement's stamp t_{j+1} (a zero-order
+#: hold, as a continuous-time filter or a spiking network sees a sampled sensor), so its arrival
+#: steps the filter over [t_j, t_{j+1}) with dt = t_{j+1} - t_j and publishes x_hat(t_{j+1}).
+#: On grid stamps both publish the same estimates at the same stamps. An interval of
+#: HOLD_LIMIT steps or more is a dropout: the measurement is held one step, the rest predicted.
+HOLD_LIMIT = 2
 
 
 @dataclass(frozen=True)
@@ -69,6 +78,15 @@ class RunnerSettings:
     #: Simulated s a control stays in force after its stamp (then zero thrust), as the plant
     #: applies it (snn_estimator.plant_runner.control_in_force).
     control_validity: float = 0.5
+    #: 'grid': measurement stamps fall on the estimate time plus steps of time_step (the loop's
+    #: sensor); 'any': stamped at any time (a sensor on its own clock), each measurement held
+    #: until the next one's stamp (see :data:`MEASUREMENT_TIMINGS`).
+    measurement_timing: str = 'grid'
+
+    def __post_init__(self):
+        if self.measurement_timing not in MEASUREMENT_TIMINGS:
+            raise ValueError(f'measurement_timing must be one of {", ".join(MEASUREMENT_TIMINGS)}; '
+                             f'got {self.measurement_timing!r}')
 
 
 class FilterRunner(Gating, StartUp, Reporting):
@@ -112,6 +130,8 @@ class FilterRunner(Gating, StartUp, Reporting):
         self.recovery = Recovery(estimator, self.measurement_covariance, settings.initial_fit_window,
                                  settings.time_step, log=self._log)
         self._reset_requested: tuple[str, str] | None = None
+        #: measurement_timing any: the measurement the filter holds from the estimate time on
+        self._held_z: np.ndarray | None = None
 
     # ---------------------------------------------------------------- state
     @property
@@ -135,10 +155,17 @@ class FilterRunner(Gating, StartUp, Reporting):
         self.measurements_received += 1
         self.measurements_repeated += 1
 
+    @property
+    def on_grid(self) -> bool:
+        return self.settings.measurement_timing == 'grid'
+
     def replace_settings(self, settings: RunnerSettings) -> None:
-        """New gating/recovery settings between two steps (the time step must stay)."""
+        """New gating/recovery settings between two steps (the time step and the measurement
+        timing must stay)."""
         if seconds_to_ns(settings.time_step) != self._dt_ns:
             raise ValueError('time_step cannot change while running')
+        if settings.measurement_timing != self.settings.measurement_timing:
+            raise ValueError('measurement_timing cannot change while running')
         self.settings = settings
 
     # ---------------------------------------------------------------- inputs
@@ -189,6 +216,9 @@ class FilterRunner(Gating, StartUp, Reporting):
         if self._wall() - self._last_arrival < self.settings.dropout_wait:
             return
         if now_ns >= self.time_ns + 2 * self._dt_ns:
+            if not self.on_grid:  # the held measurement's step first, then predictions
+                self._advance_to(self.time_ns + (now_ns - self.time_ns) // self._dt_ns * self._dt_ns)
+                return
             while self.time_ns + self._dt_ns <= now_ns:
                 self._step(None, self.time_ns)
 
@@ -220,6 +250,7 @@ class FilterRunner(Gating, StartUp, Reporting):
         self.recovery.clear()
         self._reset_requested = None
         self.time_ns = self.start_ns = self._last_measurement_ns = self._newest_ns = None
+        self._held_z = None
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()
         self._high_nis = 0
@@ -257,12 +288,55 @@ class FilterRunner(Gating, StartUp, Reporting):
         measurement between two that came is predicted over."""
         while self._pending and self.started:
             first = min(self._pending)
-            if first < self.time_ns or (first - self.time_ns) % self._dt_ns:
+            if first < self.time_ns or (self.on_grid and (first - self.time_ns) % self._dt_ns):
                 self._drop({first}, 'it does not fall on a step of the estimate')
+                continue
+            if not self.on_grid and first == self.time_ns:
+                self._held_z = self._pending.pop(first)  # the input from now to the next stamp
                 continue
             if self._control_for(self.time_ns) is None and len(self._pending) <= 2:
                 return  # wait: the next measurement may overtake this step's control
-            self._step(self._pending.pop(first) if first == self.time_ns else None, self.time_ns)
+            if self.on_grid:
+                self._step(self._pending.pop(first) if first == self.time_ns else None, self.time_ns)
+            else:
+                self._advance_to(first)
+
+    def _advance_to(self, stamp_ns: int) -> None:
+        """(measurement_timing any) Step from the estimate time to ``stamp_ns`` with the held
+        measurement as input, in equal steps of at most time_step (each a valid step: the one
+        checked at configure, or shorter). An interval of HOLD_LIMIT time steps or more is a
+        dropout: the measurement is held for one time step and the rest predicted."""
+        dt_ns = self._dt_ns
+        interval = stamp_ns - self.time_ns
+        held, self._held_z = self._held_z, None
+        span = interval if interval < HOLD_LIMIT * dt_ns else dt_ns
+        self._steps_over(held, span)
+        if self.started and self.time_ns < stamp_ns:
+            self._steps_over(None, stamp_ns - self.time_ns)
+
+    def _steps_over(self, z: np.ndarray | None, span_ns: int) -> None:
+        """Steps with input ``z`` covering ``span_ns`` from the estimate time: one step when the
+        filter can take it (Estimator.check_time_step), else equal steps of at most time_step
+        (the last one takes the nanoseconds left). Fewer is better for a held z: each step
+        compares it with the estimate at the step's start, so parts of a hold lag the moving
+        truth (x RMSE x2 at +-5 ms jitter when split). Predictions (``z`` None) always step by
+        at most time_step, published each, as the grid runner's."""
+        count = -(-span_ns // self._dt_ns)
+        if z is not None and count > 1:
+            try:
+                self.estimator.check_time_step(span_ns / NS)
+                count = 1
+            except ValueError:
+                pass
+        end = self.time_ns + span_ns
+        for k in range(count):
+            if not self.started:
+                return
+            last = k == count - 1
+            # a held measurement is answered once, at the end of its interval; predictions
+            # are published every step (as the grid runner's)
+            self._step(z, self.time_ns, end - self.time_ns if last else span_ns // count,
+                       continued=k > 0 and z is not None, publish=last or z is None)
 
     def _in_force(self, stamp_ns: int) -> np.ndarray:
         """The control the plant applied from ``stamp_ns`` when none stamped for it came: the
@@ -277,7 +351,14 @@ class FilterRunner(Gating, StartUp, Reporting):
             self._expired = True
         return u
 
-    def _step(self, z: np.ndarray | None, stamp_ns: int) -> None:
+    def _step(self, z: np.ndarray | None, stamp_ns: int, dt_ns: int | None = None,
+              continued: bool = False, publish: bool = True) -> None:
+        """One filter step from ``stamp_ns`` with input ``z`` (None: a prediction) over
+        ``dt_ns`` (default: time_step), published at its end unless ``publish`` is False.
+        ``continued``: a later part of one measurement's hold (counted, checked and recorded
+        once, on its first part)."""
+        if continued:
+            return self._continue_hold(z, stamp_ns, dt_ns, publish)
         u = self._control_for(stamp_ns)
         if u is None:
             u = self._in_force(stamp_ns)
@@ -296,17 +377,33 @@ class FilterRunner(Gating, StartUp, Reporting):
             elif self._high_nis == 0:
                 self.recovery.trusted(stamp_ns)
         started = time.perf_counter()
+        dt = self.settings.time_step if dt_ns is None or dt_ns == self._dt_ns else dt_ns / NS
         try:
-            self.estimator.step(z, u, self.settings.time_step)
+            self.estimator.step(z, u, dt)
         except FloatingPointError as error:
             self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
         self.recovery.record(stamp_ns, z, u)
         self.step_seconds.append(time.perf_counter() - started)
         if len(self.step_seconds) > 2000:
             del self.step_seconds[:1000]
-        self.time_ns = stamp_ns + self._dt_ns
+        self.time_ns = stamp_ns + (self._dt_ns if dt_ns is None else dt_ns)
         self._controls = {t: v for t, v in self._controls.items() if t > stamp_ns}
-        self._publish(self.time_ns)
+        if publish:
+            self._publish(self.time_ns)
+
+    def _continue_hold(self, z: np.ndarray, stamp_ns: int, dt_ns: int, publish: bool) -> None:
+        """A later part of a held measurement's interval (measurement_timing any): the same z,
+        the control in force, no new measurement counted."""
+        u = self._control_for(stamp_ns)
+        if u is None:
+            u = self._in_force(stamp_ns)
+        try:
+            self.estimator.step(z, u, dt_ns / NS)
+        except FloatingPointError as error:
+            self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
+        self.time_ns = stamp_ns + dt_ns
+        if publish:
+            self._publish(self.time_ns)
 
     def _inconsistency(self, z: np.ndarray) -> tuple[str, str] | None:
         """NIS over nis_threshold for nis_window steps in a row means the filter lost the

@@ -46,9 +46,10 @@ class Gating:
                              f'newest measurement ({self._newest_ns / NS:.3f} s)')
         if self.started and stamp_ns < self.time_ns:
             return self._say('stale', f'{where} is older than the estimate at {self.time_ns / NS:.3f} s')
-        if self.started and (stamp_ns - self.time_ns) % self._dt_ns:
+        if self.started and s.measurement_timing == 'grid' and (stamp_ns - self.time_ns) % self._dt_ns:
             return self._say('misaligned', f'{where} does not fall on the estimate time '
-                             f'{self.time_ns / NS:.3f} s plus steps of {s.time_step} s (time_step?)')
+                             f'{self.time_ns / NS:.3f} s plus steps of {s.time_step} s (time_step? a '
+                             'sensor on its own clock needs measurement_timing: any)')
         ahead = self.seconds_ahead(stamp_ns, now_ns)
         if ahead:  # queued, it would make every real measurement 'too_old'
             return self._say('future', f'{where} is {ahead:.3f} s ahead of the clock')

@@ -130,3 +130,4 @@ def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_
     finally:
         gc.unfreeze()
         gc.enable()
+

@@ -302,3 +302,26 @@ def test_a_late_volatile_subscriber_gets_the_present_and_a_late_history_reader_t
 def nav_msgs_point():
     from geometry_msgs.msg import PointStamped
     return PointStamped
+
+
+def test_the_throttled_log_keeps_one_message_per_kind_not_per_first_words():
+    """Each kind of warning (its text but for the numbers) at most once per period: a stale
+    and a misaligned measurement are two kinds, so the second is not hidden by the first."""
+    from scenario_nodes.runtime import ThrottledLog
+
+    class Logger:
+        def __init__(self):
+            self.lines = []
+
+        def warning(self, message):
+            self.lines.append(message)
+
+        info = error = warning
+
+    logger = Logger()
+    log = ThrottledLog(logger, period=60.0)
+    log('warning', 'rejected measurement at 1.093 s is older than the estimate at 1.207 s')
+    log('warning', 'rejected measurement at 1.305 s is older than the estimate at 1.400 s')
+    log('warning', 'rejected measurement at 1.5 s does not fall on the estimate time 1.0 s plus steps of 0.1 s')
+    log('info', 'started')
+    assert len(logger.lines) == 3 and 'does not fall' in logger.lines[1]

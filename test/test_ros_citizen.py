@@ -166,6 +166,40 @@ def test_publishers_with_the_common_profiles_drive_a_standalone_estimator(user, 
     assert all(np.all(np.isfinite(odometry_to_state(m)[0])) for m in user.received[qos.ESTIMATE])
 
 
+@pytest.mark.parametrize('timing', ['any', 'grid'])
+def test_a_sensor_stamping_with_the_wall_clock_at_a_jittered_10_hz(user, start, timing, tmp_path):
+    """As `ros2 topic pub -r 10 /measurement ... stamp: now` or a driver on its own clock:
+    with measurement_timing any every measurement is answered at its own stamp (and none
+    rejected); the grid estimator rejects them as misaligned and says which parameter to set."""
+    start('estimator', *STILL, '-p', f'measurement_timing:={timing}', '-p', 'diagnostics_period:=0.0')
+    measurements = user.node.create_publisher(PointStamped, qos.MEASUREMENT, DEFAULT)
+    controls = user.node.create_publisher(AccelStamped, qos.CONTROL, DEFAULT)
+    assert user.matched(measurements, controls, reading=(qos.ESTIMATE, qos.DIAGNOSTICS))
+    rng = np.random.default_rng(2)
+    stamps = []
+    for _ in range(30):
+        stamps.append(user.node.get_clock().now().nanoseconds)
+        measurements.publish(measurement_to_point(np.array([70.0, 30.0, -5.0]), (0, 1, 2), stamps[-1], 'lvlh'))
+        controls.publish(control_to_accel(np.zeros(3), stamps[-1], 'lvlh'))
+        user.spin_until(lambda: False, timeout=0.1 + rng.uniform(-0.03, 0.03))
+    assert len(set(np.diff(stamps))) == len(stamps) - 1  # off any grid
+    if timing == 'grid':
+        # off the grid (the estimate meanwhile predicted over the wall clock: one or two are
+        # older than it, 'stale', instead)
+        assert user.spin_until(lambda: int(user.diagnostics('estimator').get(
+            'measurements_rejected.misaligned', 0)) >= len(stamps) - 4), user.diagnostics('estimator')
+        log = next(tmp_path.glob('estimator_*.log')).read_text()
+        assert 'measurement_timing: any' in log
+        return
+    assert user.spin_until(lambda: len(user.received[qos.ESTIMATE]) >= len(stamps))
+    answered = sorted(stamp_to_ns(m.header.stamp) for m in user.received[qos.ESTIMATE])
+    assert answered == stamps
+    assert user.spin_until(lambda: user.diagnostics('estimator').get('measurements_rejected') == '0')
+    for message in user.received[qos.ESTIMATE]:
+        position = odometry_to_state(message)[0][:3]
+        assert np.all(np.abs(position - [70.0, 30.0, -5.0]) < 0.05)  # the still target
+
+
 def test_a_third_party_estimator_with_the_default_profile_drives_the_controller(user, start):
     start('lqr_controller')
     estimates = user.node.create_publisher(Odometry, qos.ESTIMATE, DEFAULT)
