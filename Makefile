@@ -38,8 +38,8 @@ $(STAMP): setup.py pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic,live]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
 	# compile the spiking and Basilisk-step kernels once, into numba's cache: no node compiles at start-up
-	$(BIN)/python -c "from snn_estimator.kernels import warm_up; warm_up()"
-	$(BIN)/python -c "from snn_estimator.basilisk_truth import warm_up; warm_up()"
+	$(BIN)/python -c "from snn_estimator.filters.kernels import warm_up; warm_up()"
+	$(BIN)/python -c "from snn_estimator.offline.basilisk_truth import warm_up; warm_up()"
 	touch $(STAMP)
 
 lint: $(STAMP)

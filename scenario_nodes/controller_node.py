@@ -17,9 +17,9 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from snn_estimator.blocks import lqr_control, lqr_gain
-from snn_estimator.gates import NewestFirst
-from snn_estimator.peers import OK, PeerWatch
+from snn_estimator.loop.gates import NewestFirst
+from snn_estimator.loop.peers import OK, PeerWatch
+from snn_estimator.offline.blocks import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
@@ -40,7 +40,7 @@ def design_gain(values: dict) -> np.ndarray:
 
 
 class ControllerNode(ProcessHooks, Node):
-    """Wraps :func:`snn_estimator.blocks.lqr_control`."""
+    """Wraps :func:`snn_estimator.offline.blocks.lqr_control`."""
 
     def __init__(self, **kwargs):
         super().__init__('lqr_controller', **kwargs)
@@ -144,7 +144,7 @@ class ControllerNode(ProcessHooks, Node):
         """u(x_hat - setpoint): lqr_control, or a SpikingLQR network (controller_type snn_lqr)."""
         if self._p['controller_type'] != 'snn_lqr':
             return partial(lqr_control, self._gain)
-        from snn_estimator.spiking_lqr import SpikingLQR  # numba: loaded only for the spiking law
+        from snn_estimator.spiking.lqr import SpikingLQR  # numba: loaded only for the spiking law
         network = SpikingLQR(self._gain, self._p['snn_lqr_neurons'], self._p['snn_lqr_leak'])
         return partial(network.control, dt=self._p['time_step'])
 

@@ -2,16 +2,16 @@
 
 configure: validate the parameters, build the filter (network and compiled kernels), read what
 the topics' publishers keep (an earlier estimator's newest estimate, the sensor's measurements,
-the controller's controls) and start from it (snn_estimator.runner: hot swap, least-squares
+the controller's controls) and start from it (snn_estimator.loop.runner: hot swap, least-squares
 restart, or the parameters at the first measurement); from then on the filter runs on every
 input. activate: publish the estimates. deactivate: stop publishing, keep running (warm).
 cleanup/shutdown: release everything. With ``autostart`` (default) the node configures and
 activates itself; with ``standby`` it stays inactive until every other estimator on `estimate`
 is gone (liveliness), then activates itself (hot standby). Exactly one is active: the
 `estimate` publisher exists only while active (the plant starts only once there is one), and
-an active estimator that sees another one alive yields by name (snn_estimator.runner.Standby).
+an active estimator that sees another one alive yields by name (snn_estimator.loop.runner.Standby).
 
-Timing (snn_estimator.runner): the estimate x_hat_k stamped t_k is published; the controller
+Timing (snn_estimator.loop.runner): the estimate x_hat_k stamped t_k is published; the controller
 answers with u_k; when z_k and u_k are both here the filter steps and x_hat_{k+1} is published
 stamped t_k + time_step.
 """
@@ -30,10 +30,10 @@ from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from snn_estimator import make_estimator
-from snn_estimator.costs import CostModel, energy_pj
-from snn_estimator.peers import PeerWatch
-from snn_estimator.runner import FilterRunner, RunnerSettings, Standby
+from snn_estimator.loop.peers import PeerWatch
+from snn_estimator.loop.runner import FilterRunner, RunnerSettings, Standby
 from snn_estimator.schema import config_values
+from snn_estimator.spiking.costs import CostModel, energy_pj
 
 from . import qos
 from .codec import (
@@ -186,7 +186,7 @@ class Outputs:
     def values(self, estimator) -> dict:
         values = {'estimates_published': self.published, 'estimates_resent': self.answers.resent,
                   'spikes_published': self.spikes_published}
-        if self._costs is not None and estimator.steps:  # the last step's cost (snn_estimator.costs)
+        if self._costs is not None and estimator.steps:  # the last step's cost (snn_estimator.spiking.costs)
             costs = self._costs.step(estimator.spike_count)
             values.update(synops_per_step=int(costs.synops), neuron_updates_per_step=int(costs.neuron_updates),
                           dense_macs_per_step=int(costs.dense_macs),
@@ -302,7 +302,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self._owned_subscriptions = Inputs(self, self._runner, self._out, p, self._publish_diagnostics).subscriptions
         self._watchdog = self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         # who else publishes estimates, by their liveliness (a standby waits for them to go, an
-        # active estimator yields to another by the rule of snn_estimator.runner.Standby)
+        # active estimator yields to another by the rule of snn_estimator.loop.runner.Standby)
         self._standby, self._standing_by = Standby(), bool(p['standby'])
         self._owned_subscriptions.append(qos.liveliness_monitor(
             self, Odometry, qos.ESTIMATE, p['standby_timeout'], self._on_liveliness))

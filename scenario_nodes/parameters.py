@@ -176,7 +176,7 @@ CONTROLLER = MODEL + (
          'more than this plus two time steps ahead of it, are rejected, s', read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, an estimate this far before the '
          'last one means the time base restarted: start over, s', low=0.0),
-    # the spiking LQR (snn_estimator/spiking_lqr.py)
+    # the spiking LQR (snn_estimator/spiking/lqr.py)
     Spec('controller_type', 'lqr', 'lqr: u = -K (x_hat - setpoint) computed directly; snn_lqr: the '
          'same law read out of a spike-coding network that encodes x_hat - setpoint',
          choices=('lqr', 'snn_lqr')),
@@ -392,7 +392,7 @@ def orbit_settings(values: dict):
     """The Basilisk target orbit the basilisk_plant parameters describe (angles in deg)."""
     import math
 
-    from snn_estimator.basilisk_truth import OrbitSettings
+    from snn_estimator.offline.basilisk_truth import OrbitSettings
     return OrbitSettings(
         semi_major_axis=values['orbit_radius'], eccentricity=values['eccentricity'],
         inclination=math.radians(values['inclination']), raan=math.radians(values['raan']),

@@ -11,10 +11,10 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from snn_estimator.blocks import MeasurementSensor, SamplePeriod
-from snn_estimator.gates import NewestFirst
+from snn_estimator.loop.gates import NewestFirst
+from snn_estimator.loop.peers import PeerWatch
 from snn_estimator.measurements import REASONS, VALID, make_model
-from snn_estimator.peers import PeerWatch
+from snn_estimator.offline.blocks import MeasurementSensor, SamplePeriod
 
 from . import qos
 from .codec import MessageError, encode_measurement, read_input
@@ -28,7 +28,7 @@ ANGLE_VARIANCE_WARNING = 1e-2
 
 
 class SensorNode(ProcessHooks, Node):
-    """Wraps :class:`snn_estimator.blocks.MeasurementSensor`: one measurement per truth sample,
+    """Wraps :class:`snn_estimator.offline.blocks.MeasurementSensor`: one measurement per truth sample,
     stamped with the truth's time, in the message of the model (position: PointStamped with NaN
     on the axes it does not measure, PositionSensor's numbers). A sample outside the field of
     view or the range limits, or dropped, is not published and is counted

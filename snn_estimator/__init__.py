@@ -5,6 +5,15 @@ implementations (SNN-EKF, SNN-EMSIF, SNN-EMSIF*, and the hybrids for partial mea
 LQR design, the offline closed loop and the runner that feeds a filter from a message stream.
 Nothing here imports rclpy or matplotlib.
 
+Layout (each folder's ``__init__`` says what lives there and what it may import):
+
+* the foundation, importing only each other: ``models`` (dynamics), ``schema`` / ``config`` /
+  ``defaults`` / ``validation`` (one parameter schema), ``catalog`` (filter kinds);
+* ``gains/`` (one module per gain law), ``measurements/`` (one module per sensor model);
+* ``filters/`` (the Estimator, its kernels, the reference forms), ``spiking/`` (networks, the
+  chip, the spiking LQR, costs);
+* ``loop/`` (the runners the ROS nodes wrap), ``offline/`` (truth, sensors and simulate()).
+
 The names below load on first use (PEP 562), so ``import snn_estimator`` costs nothing and a
 process that needs only the models (a plant node) never compiles the spiking kernels or loads
 python-control.
@@ -14,12 +23,12 @@ import importlib
 
 _EXPORTS = {
     'EstimatorConfig': 'config', 'SPIKE_RULES': 'config',
-    'FILTER_KINDS': 'catalog', 'TWIN_OF': 'catalog', 'Estimator': 'estimators',
-    'make_estimator': 'estimators',
+    'FILTER_KINDS': 'catalog', 'TWIN_OF': 'catalog', 'Estimator': 'filters.estimators',
+    'make_estimator': 'filters.estimators',
     'ClohessyWiltshire': 'models', 'StateSpaceModel': 'models', 'VanDerPol': 'models',
-    'Plant': 'blocks', 'PositionSensor': 'blocks', 'Scenario': 'simulation',
-    'lqr_control': 'blocks', 'lqr_gain': 'blocks', 'rendezvous_scenario': 'simulation',
-    'simulate': 'simulation', 'van_der_pol_scenario': 'simulation',
+    'Plant': 'offline.blocks', 'PositionSensor': 'offline.blocks', 'Scenario': 'offline.simulation',
+    'lqr_control': 'offline.blocks', 'lqr_gain': 'offline.blocks', 'rendezvous_scenario': 'offline.simulation',
+    'simulate': 'offline.simulation', 'van_der_pol_scenario': 'offline.simulation',
 }
 
 __all__ = sorted(_EXPORTS)

@@ -3,7 +3,7 @@ whether it may change at runtime, default, meaning.
 
 Everything else is derived from :data:`FIELDS`: :class:`~snn_estimator.config.EstimatorConfig`
 (its fields and defaults), the validation of :func:`~snn_estimator.config.resolve`, the set
-:attr:`Estimator.RETUNABLE <snn_estimator.estimators.Estimator.RETUNABLE>`, the estimator's ROS
+:attr:`Estimator.RETUNABLE <snn_estimator.filters.estimators.Estimator.RETUNABLE>`, the estimator's ROS
 parameter table in ``scenario_nodes/parameters.py`` (descriptors, ``read_only``), and from that
 ``config/*.yaml`` and ``docs/parameters.md``. Adding a parameter is one entry here (and the code
 that uses it).
@@ -27,7 +27,7 @@ MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 #: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
 #: state (constant network weights, what a neuromorphic chip holds).
 GAIN_SCHEDULES = ('time_varying', 'steady_state', 'switched')
-#: The spiking network's arithmetic: float64, or Loihi's integer formats (snn_estimator/chip.py).
+#: The spiking network's arithmetic: float64, or Loihi's integer formats (snn_estimator/spiking/chip.py).
 PRECISIONS = ('float64', 'loihi')
 #: What the spiking network integrates as its prediction (docs/decisions.md, 13): linearized,
 #: A(x_hat) x_hat + B u with A the Jacobian (Eq. 14, 17: the paper's network); nonlinear, f(x_hat, u)
@@ -181,7 +181,7 @@ FIELDS: tuple[Field, ...] = (
     Field('network_drive', 'choice', 'linearized', "the spiking network's prediction: linearized, "
           'A(x_hat) x_hat + B u (Eq. 14, 17); nonlinear, f(x_hat, u) as the twin integrates (Eq. 3); '
           'the same for a linear model (docs/decisions.md, 13)', choices=NETWORK_DRIVES),
-    # the chip's network (snn_estimator/chip.py: formats from Davies et al. 2018 and Lava's
+    # the chip's network (snn_estimator/spiking/chip.py: formats from Davies et al. 2018 and Lava's
     # bit-accurate LIF model; docs/decisions.md and results/neuromorphic.md)
     Field('precision', 'choice', 'float64', "the spiking network's arithmetic: float64, or loihi "
           "(Loihi's integer formats with the bit widths below; needs gain_schedule steady_state or "

@@ -2,7 +2,7 @@
 
 For every filter and N in (50, 100, 200, 300) it replays the measurements and controls of one
 closed-loop rendezvous through a fresh single-run estimator and reports the median wall time
-of ``step`` (best of three passes), next to :mod:`snn_estimator.reference` (plain numpy that
+of ``step`` (best of three passes), next to :mod:`snn_estimator.filters.reference` (plain numpy that
 forms the paper's N x N weight products every step) timed in the same run. It also times a
 100-run Monte Carlo of each filter. Results go to stdout and ``--out`` (JSON).
 
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from snn_estimator.estimators import FILTER_KINDS, make_estimator
-from snn_estimator.reference import DenseFilter, DenseSpikingFilter
-from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
+from snn_estimator.filters.estimators import FILTER_KINDS, make_estimator
+from snn_estimator.filters.reference import DenseFilter, DenseSpikingFilter
+from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
 
 from .experiments import time_steps
 from .progress import track

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import yaml
 
-from snn_estimator.estimators import FILTER_KINDS
+from snn_estimator.filters.estimators import FILTER_KINDS
 
 from .campaign_cells import (
     RUNS_PER_TASK,

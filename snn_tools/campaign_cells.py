@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from snn_estimator.config import EstimatorConfig, silenced_neurons
-from snn_estimator.simulation import (
+from snn_estimator.offline.simulation import (
     Scenario,
     consistency_check,
     far_range_scenario,

@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from snn_estimator.estimators import FILTER_KINDS
+from snn_estimator.filters.estimators import FILTER_KINDS
 
 from .figures import UNITS, colour_of, label_of
 

@@ -22,7 +22,7 @@ import yaml
 
 from scenario_nodes import registry
 from scenario_nodes.parameters import DEFAULT_FILTER
-from snn_estimator.estimators import FILTER_KINDS
+from snn_estimator.filters.estimators import FILTER_KINDS
 
 from .paths import config_file
 

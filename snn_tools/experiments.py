@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from snn_estimator.config import silenced_neurons
-from snn_estimator.estimators import TWIN_OF, make_estimator
-from snn_estimator.simulation import far_range_scenario, rendezvous_scenario, simulate, van_der_pol_scenario
+from snn_estimator.filters.estimators import TWIN_OF, make_estimator
+from snn_estimator.offline.simulation import far_range_scenario, rendezvous_scenario, simulate, van_der_pol_scenario
 
 from .campaign import CampaignProgress, dask_client, load_spec, run_campaign, validate
 from .campaign_cells import run_cell

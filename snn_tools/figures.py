@@ -16,7 +16,7 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from snn_estimator.estimators import FILTER_KINDS  # noqa: E402
+from snn_estimator.filters.estimators import FILTER_KINDS  # noqa: E402
 
 UNITS = {'x': 'm', 'y': 'm', 'z': 'm', 'vx': 'm/s', 'vy': 'm/s', 'vz': 'm/s', 'x1': '-', 'x2': '-'}
 COLOURS = {'ekf': 'tab:blue', 'emsif': 'tab:green', 'esif': 'tab:olive', 'snn_ekf': 'tab:orange',

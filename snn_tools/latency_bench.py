@@ -8,7 +8,7 @@ publishes one measurement per step: 10 Hz at ``1x`` and 100 Hz at ``10x`` (the p
 entry of its callback on CLOCK_MONOTONIC (``time.monotonic_ns``). Every clock read is in the probe,
 one process on one host, so no clocks are compared across processes and no offset is needed;
 the header stamps (simulated time) only pair the messages: the estimate that used z_k is
-stamped t_k + time_step (x_hat_{k+1}, snn_estimator.runner), and the control answering it
+stamped t_k + time_step (x_hat_{k+1}, snn_estimator.loop.runner), and the control answering it
 carries the same stamp. Latency = receive(estimate or control) - receive(measurement), so the
 probe's own delivery cost, the same on both ends, cancels to first order.
 
@@ -41,7 +41,7 @@ from tempfile import TemporaryDirectory
 import numpy as np
 
 from scenario_nodes.parameters import DEFAULT_FILTER
-from snn_estimator.estimators import FILTER_KINDS
+from snn_estimator.filters.estimators import FILTER_KINDS
 
 #: case -> (plant real_time_factor, extra environment of every node)
 CASES = {

@@ -42,7 +42,7 @@ from tempfile import TemporaryDirectory
 
 from scenario_nodes.parameters import DEFAULT_FILTER
 from scenario_nodes.topics import CLOCK, DIAGNOSTICS, PIPELINE_TOPICS
-from snn_estimator.estimators import FILTER_KINDS
+from snn_estimator.filters.estimators import FILTER_KINDS
 
 from .demo import SCHEDULING, Pipeline, run_pipeline
 from .progress import track

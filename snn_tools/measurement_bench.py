@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from snn_estimator import ClohessyWiltshire
-from snn_estimator.blocks import MeasurementSensor, PositionSensor
 from snn_estimator.measurements import MODELS, make_model
+from snn_estimator.offline.blocks import MeasurementSensor, PositionSensor
 
 NOISE = {'position': 1e-2, 'range_azimuth_elevation': [1e-4, 1e-6, 1e-6], 'line_of_sight': [1e-6, 1e-6],
          'range': 1e-4, 'range_rate': 1e-6}

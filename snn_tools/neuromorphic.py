@@ -3,7 +3,7 @@
 For each filter it exports the constant-gain network to NIR, runs one closed-loop rendezvous
 with our kernel (that network drives the LQR), replays its measurements and controls through
 Brian2 built from the NIR file (snn_tools.brian2_sim) and compares the two estimates; counts
-the operations of every estimate from the run's spikes (snn_estimator.costs) and prices them
+the operations of every estimate from the run's spikes (snn_estimator.spiking.costs) and prices them
 on published chips beside the CPU time measured here; compares the constant gain with the
 time-varying one over a Monte Carlo. Writes ``<out>/neuromorphic.json``,
 ``<out>/neuromorphic.md`` and ``<out>/neuromorphic_costs.png`` (cost per estimate against N).
@@ -24,9 +24,9 @@ from pathlib import Path
 import nir
 import numpy as np
 
-from snn_estimator.costs import CHIPS, FLOAT32_MAC_PJ, FLOAT32_MAC_SOURCE, CostModel, energy_pj
-from snn_estimator.estimators import FILTER_KINDS, TWIN_OF, Estimator, make_estimator
-from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
+from snn_estimator.filters.estimators import FILTER_KINDS, TWIN_OF, Estimator, make_estimator
+from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario, simulate
+from snn_estimator.spiking.costs import CHIPS, FLOAT32_MAC_PJ, FLOAT32_MAC_SOURCE, CostModel, energy_pj
 
 from .brian2_sim import run_network
 from .experiments import time_steps
@@ -404,11 +404,14 @@ SOURCES = {
     'independent_*': 'Brian2 network built from the .nir file (snn_tools.brian2_sim) over the z_k, u_k of one '
                      'closed-loop rendezvous driven by our constant-gain network (seed 0); RMSE against the '
                      'truth over the last 60 s, ratios Brian2 / ours',
-    'synops_per_step': 'counted from that run\'s spikes: spikes x (2N - 1 + n) + N (m + nu) (snn_estimator.costs)',
+    'synops_per_step': 'counted from that run\'s spikes: spikes x (2N - 1 + n) + N (m + nu) '
+                       '(snn_estimator.spiking.costs)',
     'neuron_updates_per_step': '2N + n state updates per estimate (membranes, slow currents, readout)',
-    'dense_macs_per_step': "the paper's N x N algebra per step with held weights (snn_estimator.costs)",
-    'nonspiking_macs_per_step': 'the loops of kernels.estimator_step for n = 6, m = 3, nu = 3 (snn_estimator.costs)',
-    'energy_per_step_pj': 'operations x published per-operation energy (snn_estimator.costs.CHIPS); no static power',
+    'dense_macs_per_step': "the paper's N x N algebra per step with held weights (snn_estimator.spiking.costs)",
+    'nonspiking_macs_per_step': 'the loops of kernels.estimator_step for n = 6, m = 3, nu = 3 '
+                                '(snn_estimator.spiking.costs)',
+    'energy_per_step_pj': 'operations x published per-operation energy (snn_estimator.spiking.costs.CHIPS); '
+                          'no static power',
     'cpu': 'median time.perf_counter per step over the replay, best of 3; energy = time x assumed_watts',
     'constant_vs_time_varying': 'simulate(rendezvous_scenario(initial_state_dispersion=...), kind, runs) with '
                                 'gain_schedule steady_state over time_varying; rmse() over the last 60 s',

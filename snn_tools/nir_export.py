@@ -47,10 +47,10 @@ from pathlib import Path
 
 import numpy as np
 
-from snn_estimator import chip
-from snn_estimator.estimators import FILTER_KINDS, Estimator, make_estimator, steady_state_gain
+from snn_estimator.filters.estimators import FILTER_KINDS, Estimator, make_estimator, steady_state_gain
 from snn_estimator.models import StateSpaceModel
-from snn_estimator.simulation import rendezvous_scenario
+from snn_estimator.offline.simulation import rendezvous_scenario
+from snn_estimator.spiking import chip
 
 #: The kinds with a spiking network, in FILTER_KINDS order.
 SPIKING_KINDS = tuple(kind for kind, spec in FILTER_KINDS.items() if spec.spiking)
@@ -86,7 +86,7 @@ def constant_gain_estimator(kind: str, config, model: StateSpaceModel) -> Estima
 def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
     """The NIR graph of a constant-gain spiking ``estimator`` (weights at sample period ``dt``,
     s); its current v and r become the initial state in the metadata. For a chip network
-    (precision loihi or gain_schedule switched: snn_estimator.chip) the weights are those its
+    (precision loihi or gain_schedule switched: snn_estimator.spiking.chip) the weights are those its
     quantized factors compute, of set ``weight_set`` (NIR has no switch: one graph per set,
     :func:`export_schedule`)."""
     import nir
@@ -166,7 +166,7 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
             'precision': estimator.config.precision, 'chip_format': repr(network.describe()),
             'weight_set': int(weight_set), 'weight_sets': len(network.gains),
             'active_from_s': times[weight_set], 'active_until_s': times[weight_set + 1],
-            'chip_semantics': ('weights are the products of the quantized factors of snn_estimator.chip '
+            'chip_semantics': ('weights are the products of the quantized factors of snn_estimator.spiking.chip '
                                '(D, A, K, B: signed mantissas, one exponent each); the chip runs them '
                                'factored, v = D^T e, and rounds its drive to the readout LSB each sample')})
     return nir.NIRGraph(nodes=nodes, edges=edges, metadata=metadata)

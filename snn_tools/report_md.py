@@ -6,7 +6,7 @@ import json
 import math
 from pathlib import Path
 
-from snn_estimator.estimators import TWIN_OF
+from snn_estimator.filters.estimators import TWIN_OF
 
 from .figures import label_of
 from .paper_metrics import noise_floor

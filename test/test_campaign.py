@@ -16,7 +16,7 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from snn_estimator.simulation import simulate
+from snn_estimator.offline.simulation import simulate
 from snn_tools import campaign, campaign_cells
 from snn_tools.campaign import (
     CampaignProgress,

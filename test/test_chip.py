@@ -1,4 +1,4 @@
-"""The chip's network (snn_estimator.chip): Loihi's integer formats and switched weight sets."""
+"""The chip's network (snn_estimator.spiking.chip): Loihi's integer formats and switched weight sets."""
 
 import dataclasses
 import math
@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from snn_estimator import chip
-from snn_estimator.estimators import make_estimator
-from snn_estimator.simulation import rendezvous_scenario, simulate
+from snn_estimator.filters.estimators import make_estimator
+from snn_estimator.offline.simulation import rendezvous_scenario, simulate
+from snn_estimator.spiking import chip
 
 SCENARIO = rendezvous_scenario()
 SHORT = dataclasses.replace(SCENARIO, duration=60.0, metric_window=30.0)
@@ -142,7 +142,7 @@ def test_four_weight_sets_in_loihi_formats_converge_from_the_dispersion_in_every
 
 # ---------------------------------------------------------------- NIR and the independent re-run
 def _closed_loop(estimator, steps):
-    from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+    from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
     model = SCENARIO.model
     plant = Plant(model, SCENARIO.x0, SCENARIO.process_noise)
     sensor = PositionSensor(model, SCENARIO.measurement_noise)

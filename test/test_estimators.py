@@ -14,9 +14,9 @@ from snn_estimator import (
     simulate,
     van_der_pol_scenario,
 )
+from snn_estimator.filters.reference import DenseSpikingFilter
 from snn_estimator.models import VanDerPol
-from snn_estimator.reference import DenseSpikingFilter
-from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
 
 SPIKING = [kind for kind, spec in FILTER_KINDS.items() if spec.spiking]
 
@@ -464,7 +464,7 @@ def test_van_der_pol_network_integrates_the_drive_it_is_set_to(drive):
 @pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_hybrid', 'emsif_weighted'])
 @pytest.mark.parametrize('schedule', ['time_varying', 'steady_state'])
 def test_compiled_direct_filters_equal_the_written_out_equations(kind, units, schedule):
-    from snn_estimator.reference import DenseFilter
+    from snn_estimator.filters.reference import DenseFilter
     scenario, zs, us = rendezvous_inputs(steps=200)
     fast = make_estimator(kind, scenario.estimator.replace(measurement_noise_units=units,
                                                            gain_schedule=schedule))
@@ -520,7 +520,7 @@ def test_normalised_innovation_squared():
 def test_compiled_innovation_nis_matches_the_textbook_formula_per_run():
     """The compiled kernel against nu^T inv(C P C^T + R) nu written out with numpy, for a batch
     of runs with different (full, correlated) covariances, with and without P."""
-    from snn_estimator import kernels
+    from snn_estimator.filters import kernels
     rng = np.random.default_rng(7)
     runs, n, m = 4, 6, 3
     c = rng.normal(size=(m, n))
@@ -572,7 +572,7 @@ def test_the_hybrid_gain_is_msif_on_the_measured_rows_and_kalman_on_the_others()
 
 def test_the_gain_covariance_is_that_of_the_gain_used_and_equals_eq_6_for_the_kalman_gain():
     """P' = (J - K C) P + P (J - K C)^T + Q + K R K^T; with K = P C^T R^-1 it is Eq. 6."""
-    from snn_estimator.reference import written_out_covariance_step
+    from snn_estimator.filters.reference import written_out_covariance_step
     scenario = rendezvous_scenario()
     ekf = make_estimator('ekf', scenario.estimator)
     weighted = make_estimator('emsif_weighted', scenario.estimator)
@@ -592,8 +592,8 @@ def test_the_steady_state_gain_equals_the_written_out_fixed_point_of_eq_6(kind, 
     for every gain law, with the paper's Q_hat and a larger one; the fixed point is checked by
     its residual too."""
     from snn_estimator.config import gain_noise_density
-    from snn_estimator.estimators import steady_state_gain
-    from snn_estimator.reference import riccati_fixed_point, written_out_steady_state_gain
+    from snn_estimator.filters.estimators import steady_state_gain
+    from snn_estimator.filters.reference import riccati_fixed_point, written_out_steady_state_gain
     scenario = rendezvous_scenario(process_noise_scale=process_noise_scale)
     estimator = make_estimator(kind, scenario.estimator)
     s, model = estimator.settings, scenario.model
@@ -609,7 +609,7 @@ def test_the_steady_state_gain_equals_the_written_out_fixed_point_of_eq_6(kind, 
 
 
 def test_a_constant_gain_network_has_constant_weights_equal_to_the_steady_state_gain():
-    from snn_estimator.estimators import steady_state_gain
+    from snn_estimator.filters.estimators import steady_state_gain
     scenario, zs, us = rendezvous_inputs(steps=20)
     config = scenario.estimator.replace(gain_schedule='steady_state')
     estimator = make_estimator('snn_emsif_weighted', config)

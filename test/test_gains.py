@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from snn_estimator import EstimatorConfig, gains, make_estimator
-from snn_estimator import estimators as E
 from snn_estimator.catalog import FILTER_KINDS
-from snn_estimator.costs import CostModel, filter_macs
+from snn_estimator.filters import estimators as E
+from snn_estimator.spiking.costs import CostModel, filter_macs
 
 LAWS = gains.laws()
 INTERFACE = ('NAME', 'ORDER', 'FORMULA', 'EQUATION', 'USES_P', 'BASE', 'reference', 'steady_state', 'macs', 'gain')

@@ -5,7 +5,7 @@ import numpy as np
 import scipy.linalg
 from filterpy.kalman import ExtendedKalmanFilter
 
-from snn_estimator.simulation import PositionSensor, simulate, van_der_pol_scenario
+from snn_estimator.offline.simulation import PositionSensor, simulate, van_der_pol_scenario
 
 RUNS = 12
 

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip('rclpy')
 
 from snn_estimator import FILTER_KINDS, rendezvous_scenario, simulate  # noqa: E402
-from snn_estimator.estimators import CONVERGES_FROM_DISPERSION  # noqa: E402
+from snn_estimator.filters.estimators import CONVERGES_FROM_DISPERSION  # noqa: E402
 from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from snn_tools.demo import run_pipeline  # noqa: E402
 

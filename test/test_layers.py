@@ -81,6 +81,40 @@ def test_no_package_has_an_import_cycle(package):
         visit(name, [])
 
 
+#: What each folder of the core may import at module level (its ``__init__`` says the same):
+#: the foundation (models, schema, config, defaults, validation, catalog) sits at the bottom;
+#: the runners the nodes wrap (loop) never load the offline simulator.
+FOLDER_IMPORTS = {
+    'foundation': {'foundation', 'gains'},
+    'gains': {'gains'},
+    'measurements': {'foundation', 'measurements'},
+    'spiking': {'foundation', 'gains', 'spiking'},
+    'filters': {'foundation', 'gains', 'measurements', 'spiking', 'filters'},
+    'loop': {'foundation', 'gains', 'measurements', 'spiking', 'filters', 'loop'},
+    'offline': {'foundation', 'gains', 'measurements', 'spiking', 'filters', 'offline'},
+}
+
+
+def folder_of(module: str) -> str:
+    parts = module.split('.')
+    return parts[1] if len(parts) > 2 or parts[1] in FOLDER_IMPORTS else 'foundation'
+
+
+def test_each_folder_of_the_core_imports_only_the_folders_below_it():
+    core = modules('snn_estimator')
+    assert {folder_of(name) for name in core} == set(FOLDER_IMPORTS)
+    offending = {}
+    for name, path in core.items():
+        allowed = FOLDER_IMPORTS[folder_of(name)]
+        found = {n for n in imports(path, package_of(name, path), top_level_only=True)
+                 if n.startswith('snn_estimator.') and n in core and folder_of(n) not in allowed}
+        if found:
+            offending[name] = sorted(found)
+    assert offending == {}
+    for package in FOLDER_IMPORTS.keys() - {'foundation'}:
+        assert (ROOT / 'snn_estimator' / package / '__init__.py').read_text().startswith('"""'), package
+
+
 def test_the_gain_laws_import_only_numpy_scipy_and_each_other():
     """snn_estimator/gains/__init__.py: a law never imports numba (the kernels compile its
     piece), the filters, the models or anything outside the core."""

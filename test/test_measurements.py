@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from snn_estimator import ClohessyWiltshire
-from snn_estimator.blocks import MeasurementSensor, PositionSensor, SamplePeriod
 from snn_estimator.measurements import (
     MODELS,
     OUT_OF_VIEW,
@@ -22,6 +21,7 @@ from snn_estimator.measurements import (
     make_model,
     rotation_from_quaternion,
 )
+from snn_estimator.offline.blocks import MeasurementSensor, PositionSensor, SamplePeriod
 
 GEOMETRIC = [name for name in MODELS if name != 'position']
 ANGLE_MODELS = ('range_azimuth_elevation', 'line_of_sight')

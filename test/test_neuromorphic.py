@@ -6,10 +6,10 @@ import sys
 import numpy as np
 import pytest
 
-from snn_estimator.costs import CHIPS, Chip, CostModel, StepCosts, energy_pj, filter_macs
-from snn_estimator.estimators import make_estimator
+from snn_estimator.filters.estimators import make_estimator
 from snn_estimator.models import VanDerPol
-from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario
+from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario
+from snn_estimator.spiking.costs import CHIPS, Chip, CostModel, StepCosts, energy_pj, filter_macs
 
 nir = pytest.importorskip('nir')
 # brian2 2.9.0 parses with pyparsing names that pyparsing 3.3 deprecates
@@ -76,7 +76,7 @@ def test_nir_file_reads_back_the_same_graph(emsif_file):
 def papers_weights(estimator, dt):
     """Eq. 16-20 in the network's scaled units, written from the decoder, the model and the
     steady-state gain of reference.py (not from Estimator.weights or steady_state_gain)."""
-    from snn_estimator.reference import drift_matrices, written_out_steady_state_gain
+    from snn_estimator.filters.reference import drift_matrices, written_out_steady_state_gain
     d, scale = estimator.decoder, estimator.settings.state_scale
     model = estimator.model
     a_d, b_d = drift_matrices(model, None, dt, estimator.settings.discretization)

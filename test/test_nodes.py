@@ -25,7 +25,7 @@ from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
-from snn_estimator.simulation import lqr_control, lqr_gain  # noqa: E402
+from snn_estimator.offline.simulation import lqr_control, lqr_gain  # noqa: E402
 
 
 def run_lockstep(kind, steps, plant_class=PlantNode):
@@ -121,8 +121,8 @@ def test_estimator_steps_when_measurement_and_control_meet_and_rejects_bad_input
         assert values['measurements_rejected.stale'] == '1'
         assert values['estimates_resent'] == '1'
         assert estimator.estimator.steps == 2
-        # the cost of the last estimate, as the core counts it (snn_estimator.costs)
-        from snn_estimator.costs import CostModel
+        # the cost of the last estimate, as the core counts it (snn_estimator.spiking.costs)
+        from snn_estimator.spiking.costs import CostModel
         costs = CostModel.of(estimator.estimator).step(estimator.estimator.spike_count)
         assert int(values['synops_per_step']) == costs.synops and int(values['dense_macs_per_step']) == costs.dense_macs
         assert all(np.all(np.isfinite(odometry_to_state(m)[0])) for m in probe.received[qos.ESTIMATE])

@@ -21,7 +21,7 @@ from scenario_nodes.parameters import (  # noqa: E402
     estimator_config,
 )
 from snn_estimator import EstimatorConfig, make_estimator, rendezvous_scenario, schema  # noqa: E402
-from snn_estimator.estimators import Estimator  # noqa: E402
+from snn_estimator.filters.estimators import Estimator  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR,

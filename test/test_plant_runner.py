@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from snn_estimator import rendezvous_scenario
-from snn_estimator.blocks import Plant
-from snn_estimator.plant_runner import STARTUP_STEPS, PlantRunner, PlantSettings, StartGate, control_in_force
+from snn_estimator.loop.plant_runner import STARTUP_STEPS, PlantRunner, PlantSettings, StartGate, control_in_force
+from snn_estimator.offline.blocks import Plant
 
 DT = 100_000_000
 
@@ -158,7 +158,7 @@ def test_a_dead_controllers_last_command_expires_to_zero_thrust_in_plant_and_est
     estimator apply the control of 1.4 s until it is control_validity (0.5 s) old, then zero
     thrust; counted and logged once each."""
     from snn_estimator import make_estimator
-    from snn_estimator.runner import FilterRunner, RunnerSettings
+    from snn_estimator.loop.runner import FilterRunner, RunnerSettings
     runner, sent, logs, wall, _ = make_runner(mode=mode, control_timeout=0.2, control_validity=0.5)
     scenario = rendezvous_scenario()
     estimator = make_estimator('ekf', scenario.estimator, scenario.model)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from snn_estimator import make_estimator, rendezvous_scenario, simulate
-from snn_estimator.runner import NS, FilterRunner, History, RunnerSettings
-from snn_estimator.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+from snn_estimator.loop.runner import NS, FilterRunner, History, RunnerSettings
+from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
 
 DT = 100_000_000
 R = 1e-2 * np.eye(3)

@@ -5,7 +5,7 @@ import pytest
 import scipy.linalg
 
 from snn_estimator import TWIN_OF, ClohessyWiltshire, rendezvous_scenario, simulate, van_der_pol_scenario
-from snn_estimator.simulation import GaussianStream, Plant, PositionSensor, lqr_control, lqr_gain, matrix_sqrt
+from snn_estimator.offline.simulation import GaussianStream, Plant, PositionSensor, lqr_control, lqr_gain, matrix_sqrt
 
 
 def test_scalar_lqr_matches_the_closed_form(double_integrator):
@@ -145,7 +145,7 @@ def test_van_der_pol_filters_converge_from_the_wrong_initial_state():
 
 
 def test_batch_initial_state_recovers_the_state_from_positions_and_controls():
-    from snn_estimator.initialization import least_squares_start as batch_initial_state
+    from snn_estimator.loop.initialization import least_squares_start as batch_initial_state
     model = ClohessyWiltshire()
     plant = Plant(model, [10.0, -4.0, 2.0, -0.3, 0.1, 0.05], np.zeros((6, 6)))
     stamps, zs, us = [], [], []
@@ -171,14 +171,14 @@ def test_batch_initial_state_recovers_the_state_from_positions_and_controls():
 @pytest.fixture(scope='module')
 def dispersed():
     """20 runs of every filter from x_hat0 ~ N(x0, P0) (1 sigma: 0.1 m, 0.01 m/s per axis)."""
-    from snn_estimator.estimators import FILTER_KINDS
+    from snn_estimator.filters.estimators import FILTER_KINDS
     scenario = rendezvous_scenario(initial_state_dispersion=True)
     return {kind: simulate(scenario, kind, runs=20) for kind in FILTER_KINDS}
 
 
 @pytest.mark.slow
 def test_filters_that_correct_the_velocity_converge_from_a_dispersed_start(dispersed):
-    from snn_estimator.estimators import CONVERGES_FROM_DISPERSION
+    from snn_estimator.filters.estimators import CONVERGES_FROM_DISPERSION
     initial = np.abs(dispersed['ekf'].error[:, 0, 3:]).mean()
     for kind in CONVERGES_FROM_DISPERSION:
         result = dispersed[kind]
@@ -200,7 +200,7 @@ def test_the_literal_sliding_innovation_filters_never_correct_a_velocity_error(d
 def test_the_consistency_check_calls_an_exact_kalman_filter_consistent(double_integrator):
     """A linear KF whose Q and R are the truth's: average NEES and NIS inside their bounds."""
     from snn_estimator import EstimatorConfig
-    from snn_estimator.simulation import Scenario
+    from snn_estimator.offline.simulation import Scenario
     config = EstimatorConfig(
         neuron_count=1, boundary_layer=1.0, process_noise=0.05, measurement_noise=0.04,
         process_noise_scale=1.0, measurement_noise_scale=1.0, measurement_noise_units='per_sample',
@@ -221,7 +221,7 @@ def test_the_least_squares_start_covariance_is_honest_over_monte_carlo_runs():
     within the 95 % chi-square bounds."""
     import scipy.stats
 
-    from snn_estimator.initialization import least_squares_start
+    from snn_estimator.loop.initialization import least_squares_start
     model = ClohessyWiltshire()
     rng = np.random.default_rng(11)
     r = 1e-2 * np.eye(3)
@@ -245,7 +245,7 @@ def test_the_least_squares_start_covariance_is_honest_over_monte_carlo_runs():
 
 
 def test_a_longer_fit_window_leaves_a_smaller_velocity_error():
-    from snn_estimator.initialization import window_standard_deviations
+    from snn_estimator.loop.initialization import window_standard_deviations
     model = ClohessyWiltshire()
     sigmas = [window_standard_deviations(model, seconds, 0.1, 1e-2 * np.eye(3))[3] for seconds in (2, 5, 10, 30)]
     assert all(a > b for a, b in zip(sigmas, sigmas[1:]))

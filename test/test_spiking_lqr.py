@@ -1,10 +1,10 @@
-"""The spiking LQR (snn_estimator.spiking_lqr): its decode against u = -K x, offline and over ROS."""
+"""The spiking LQR (snn_estimator.spiking.lqr): its decode against u = -K x, offline and over ROS."""
 
 import numpy as np
 import pytest
 
-from snn_estimator.simulation import lqr_control, lqr_gain, rendezvous_scenario, simulate
-from snn_estimator.spiking_lqr import SpikingLQR
+from snn_estimator.offline.simulation import lqr_control, lqr_gain, rendezvous_scenario, simulate
+from snn_estimator.spiking.lqr import SpikingLQR
 
 SCENARIO = rendezvous_scenario(initial_state_dispersion=True)
 GAIN = lqr_gain(SCENARIO.model, SCENARIO.lqr_state_weight, SCENARIO.lqr_input_weight)

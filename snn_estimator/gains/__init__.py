@@ -1,10 +1,10 @@
 """Gain laws: one module per law K(P, nu) of Eq. 5-9 / 19-24 (and this package's remedies).
 
 Each module holds everything about its law: its name, formula and paper equation; its
-``reference`` form (numpy, written from the paper, used by snn_estimator.reference and the tests);
-its compiled ``gain`` piece (plain Python loops that snn_estimator.kernels compiles into one
+``reference`` form (numpy, written from the paper, used by snn_estimator.filters.reference and the tests);
+its compiled ``gain`` piece (plain Python loops that snn_estimator.filters.kernels compiles into one
 kernel per law, covariance law and integration); its ``steady_state`` form (the constant gain
-at the fixed point of Eq. 6); its ``macs`` (what snn_estimator.costs counts); and its filter
+at the fixed point of Eq. 6); its ``macs`` (what snn_estimator.spiking.costs counts); and its filter
 kinds (``KINDS``: the direct filter and its spiking twin, which snn_estimator.catalog lists).
 A module may build on another law (``BASE``: its piece runs after the base's, e.g. the hybrid
 adds to MSIF).

@@ -42,7 +42,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..validation import as_matrix, as_vector, check_choice, check_covariance, check_positive
+from snn_estimator.validation import as_matrix, as_vector, check_choice, check_covariance, check_positive
 
 #: Why a sample gives no measurement; index = the code in the arrays ``validity`` returns.
 REASONS = ('valid', 'non_finite', 'too_close', 'too_far', 'out_of_view', 'singular', 'dropout')

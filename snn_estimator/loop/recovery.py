@@ -4,7 +4,7 @@ A filter that lost the truth (a persistently inconsistent innovation, a non-fini
 is reset on request, restarts from what the loop measured, in this order:
 
 1. a least-squares fit of the recent measurements (``initial_fit_window`` seconds, the controls
-   used between them; :func:`snn_estimator.initialization.least_squares_start`): the prior at
+   used between them; :func:`snn_estimator.loop.initialization.least_squares_start`): the prior at
    the current step, with its covariance;
 2. else (too few measurements) the measured states from the current measurement and the
    others from the last estimate that was consistent with its measurement, propagated with

@@ -25,7 +25,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from . import gains
+from snn_estimator import gains
 
 COVARIANCE_LAWS = ('riccati', 'gain', 'none')  # Eq. 6 | the covariance of the gain used | no P
 SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
@@ -510,6 +510,6 @@ def innovation_nis(z, x_hat, c, p, r, has_covariance):
 def warm_up() -> None:
     """Compile (or load from numba's on-disk cache) every kernel of every filter kind, gain
     schedule and spike rule (``make`` calls it at install to fill the cache; a node warms only
-    its own filter's, :meth:`Estimator.warm_up <snn_estimator.estimators.Estimator.warm_up>`)."""
+    its own filter's, :meth:`Estimator.warm_up <snn_estimator.filters.estimators.Estimator.warm_up>`)."""
     from .estimators import warm_up_all
     warm_up_all()

@@ -1,6 +1,6 @@
 """The spiking network of a batch of runs (Eq. 10-18): decoder, Gram matrix, thresholds, live
 neurons, filtered spike trains r, potentials v and spike counts, plus encoding a state into it
-and the weights of Eq. 16-22. The step itself is compiled (snn_estimator.kernels)."""
+and the weights of Eq. 16-22. The step itself is compiled (snn_estimator.filters.kernels)."""
 
 from __future__ import annotations
 

@@ -13,9 +13,9 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from .measurements import DROPOUT, NON_FINITE, REASONS, VALID, MeasurementModel
-from .models import DT_CACHE_SIZE, StateSpaceModel
-from .validation import as_matrix, as_vector, check_covariance
+from snn_estimator.measurements import DROPOUT, NON_FINITE, REASONS, VALID, MeasurementModel
+from snn_estimator.models import DT_CACHE_SIZE, StateSpaceModel
+from snn_estimator.validation import as_matrix, as_vector, check_covariance
 
 PLANT_STREAM = 1
 SENSOR_STREAM = 2
@@ -109,7 +109,7 @@ class Plant:
             return self.model.process_noise_discrete(self.q, dt)
         n = self.model.n_state
         if self.model.is_linear:
-            from .models import zoh_matrices
+            from snn_estimator.models import zoh_matrices
             _, g = zoh_matrices(self.model.jacobian(np.zeros(n), np.zeros(self.model.n_input)), np.eye(n), dt)
         else:
             g = dt * np.eye(n)

@@ -4,7 +4,7 @@ The network (Boerlin et al. 2013, the autoencoder form of Eq. 13 with A = 0) rep
 input c = S^-1 (x_hat - setpoint) with N LIF neurons, c ~ D r, and the controller reads the
 command from the filtered trains through the weights -K S D (3 x N): u = -K S D r. Per
 control period (the same factored form and greedy rule as the estimator's network,
-snn_estimator.chip)::
+snn_estimator.spiking.chip)::
 
     x_read <- (1 - lambda dt) x_read,   e <- (1 - lambda dt) e + c_k - (1 - lambda dt) c_k-1
     spikes (greedy): while some D_i^T e > T_i = ||D_i||^2 / 2, the largest fires:
@@ -24,7 +24,7 @@ import numba
 import numpy as np
 from scipy.optimize import nnls
 
-from . import defaults as D
+from snn_estimator import defaults as D
 
 CONTROLLER_TYPES = ('lqr', 'snn_lqr')
 CONTROLLER_STREAM = 6  # rng stream of the controller network's decoder

@@ -99,7 +99,7 @@ class StartGate:
 
 
 class PlantRunner:
-    """Steps ``plant`` (a :class:`snn_estimator.blocks.Plant` or a Basilisk plant with its
+    """Steps ``plant`` (a :class:`snn_estimator.offline.blocks.Plant` or a Basilisk plant with its
     interface) from stamped controls (see the module docstring)."""
 
     def __init__(self, plant, settings: PlantSettings, publish: Callable[[int, bool], None],

@@ -31,12 +31,15 @@ from typing import Sequence
 import numpy as np
 import scipy.linalg
 
-from . import chip, gains, kernels
-from .catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
-from .config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
-from .models import DT_CACHE_SIZE, StateSpaceModel
-from .network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
-from .schema import RUNTIME
+from snn_estimator import gains
+from snn_estimator.catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
+from snn_estimator.config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
+from snn_estimator.models import DT_CACHE_SIZE, StateSpaceModel
+from snn_estimator.schema import RUNTIME
+from snn_estimator.spiking import chip
+from snn_estimator.spiking.network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
+
+from . import kernels
 
 __doc__ = __doc__.format(kinds=kinds_table(), laws=gains.table())
 
@@ -179,7 +182,7 @@ class EstimatorViews:
 
     @property
     def chip(self):
-        """The chip network (snn_estimator.chip.ChipNetwork) when precision or gain_schedule asks
+        """The chip network (snn_estimator.spiking.chip.ChipNetwork) when precision or gain_schedule asks
         for it, else None."""
         return self._chip
 
@@ -225,7 +228,7 @@ class Estimator(EstimatorViews):
         s = self.settings
         self._network = Network(self.seeds, n, s.neuron_count if self.spiking else 0, s.decoder_variance,
                                 s.silenced_neurons)
-        # precision loihi / gain_schedule switched: the network runs on snn_estimator.chip
+        # precision loihi / gain_schedule switched: the network runs on snn_estimator.spiking.chip
         net = self._network
         self._chip = (chip.ChipNetwork(kind, model, config, self.settings, net.decoder, net.alive,
                                        self._x_hat, net.spikes, net.total_spikes)
@@ -478,7 +481,7 @@ class Estimator(EstimatorViews):
         noise = self._network.zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:
             noise = self._network.noise(self.settings.membrane_noise * math.sqrt(dt))
-        if self._chip is not None:  # the chip network (snn_estimator.chip) replaces the kernel
+        if self._chip is not None:  # the chip network (snn_estimator.spiking.chip) replaces the kernel
             self._chip.step(z if measured else None, u, dt)
             self.steps += 1
             self.capped_steps = self._chip.capped_steps
@@ -515,7 +518,7 @@ def make_estimator(kind: str, config: EstimatorConfig | None = None,
     """Build the filter ``kind`` (see :data:`FILTER_KINDS`) for ``model`` (default: the
     standard CW rendezvous model) with ``config`` (default: :class:`EstimatorConfig`)."""
     if model is None:
-        from .models import ClohessyWiltshire
+        from snn_estimator.models import ClohessyWiltshire
         model = ClohessyWiltshire()
     return Estimator(kind, model, config or EstimatorConfig(), runs=runs, seeds=seeds)
 
@@ -547,8 +550,8 @@ def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedC
 def warm_up_all() -> None:
     """Compile (or load) the kernels of every filter kind, gain schedule and spike rule on small
     filters of the CW model (linear) and Van der Pol (nonlinear: the direct filters' drift)."""
-    from .models import ClohessyWiltshire
-    from .simulation import van_der_pol_scenario
+    from snn_estimator.models import ClohessyWiltshire
+    from snn_estimator.offline.simulation import van_der_pol_scenario
     linear, nonlinear = ClohessyWiltshire(), van_der_pol_scenario()
     for kind, spec in FILTER_KINDS.items():
         for rule in (kernels.SPIKE_RULES if spec.spiking else ('greedy',)):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .models import StateSpaceModel
+from snn_estimator.models import StateSpaceModel
 
 
 def least_squares_start(model: StateSpaceModel, stamps, measurements, controls,

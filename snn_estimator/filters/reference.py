@@ -21,8 +21,9 @@ import numpy as np
 import scipy.integrate
 import scipy.linalg
 
-from . import gains
-from .config import gain_noise_density
+from snn_estimator import gains
+from snn_estimator.config import gain_noise_density
+
 from .estimators import Estimator
 
 

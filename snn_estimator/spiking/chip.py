@@ -62,7 +62,7 @@ import numba
 import numpy as np
 from scipy.optimize import nnls
 
-from .schema import PRECISIONS
+from snn_estimator.schema import PRECISIONS
 
 #: Loihi's formats (Davies et al. 2018; Lava PyLifModelBitAcc).
 LOIHI_WEIGHT_BITS = 8
@@ -140,7 +140,7 @@ def gain_trajectory(estimator_kind: str, model, config, dt: float, steps: int) -
     """K(t_k) of the time-varying filter, (steps, n, m): for a linear model the gains that
     depend on P only (kalman, msif, msif_weighted, msif_hybrid) follow from P0 alone, whatever
     the measurements (run here with zero innovations)."""
-    from .estimators import FILTER_KINDS, make_estimator
+    from snn_estimator.filters.estimators import FILTER_KINDS, make_estimator
 
     twin = FILTER_KINDS[estimator_kind].twin or estimator_kind
     if FILTER_KINDS[twin].gain == 'sif':
@@ -163,7 +163,7 @@ def schedule_gains(estimator_kind: str, model, config, settings, dt: float) -> l
     (at least the time-varying gain from then on: with the rendezvous' tiny Q_hat, K(t) decays
     like 1/t for minutes and its fixed point, the steady-state gain, is too small to remove
     what is left of a dispersed start). No switch times: the steady-state gain alone."""
-    from .estimators import FILTER_KINDS, steady_state_gain
+    from snn_estimator.filters.estimators import FILTER_KINDS, steady_state_gain
 
     times = schedule_times(config)
     if not times:
@@ -185,14 +185,14 @@ def schedule_times(config) -> tuple[float, ...]:
 
 
 class ChipNetwork:
-    """The network of a batched spiking :class:`~snn_estimator.estimators.Estimator` in the
+    """The network of a batched spiking :class:`~snn_estimator.filters.estimators.Estimator` in the
     chip's arithmetic. Built by the estimator (which hands over its decoder, live neurons and
     output arrays); :meth:`prepare` builds the weights for a sample period, :meth:`step`
     advances every run."""
 
     def __init__(self, kind: str, model, config, settings, decoder: np.ndarray, alive: np.ndarray,
                  x_hat: np.ndarray, spikes: np.ndarray, total_spikes: np.ndarray):
-        from .estimators import FILTER_KINDS
+        from snn_estimator.filters.estimators import FILTER_KINDS
 
         spec = FILTER_KINDS[kind]
         if not spec.spiking:
@@ -302,7 +302,7 @@ class ChipNetwork:
             self._load(b)
 
     def _steady_state(self, dt: float) -> np.ndarray:
-        from .estimators import FILTER_KINDS, steady_state_gain
+        from snn_estimator.filters.estimators import FILTER_KINDS, steady_state_gain
         return steady_state_gain(FILTER_KINDS[self.kind].gain, self.model, self.settings, dt)
 
     def _load(self, run: int) -> None:

@@ -19,10 +19,10 @@ Counting model (the constant-weight network that ``snn_export`` writes, run even
   Omega_k = -F_k C S D every step (N n m + N^2 m MACs) after computing K and P as the
   non-spiking filter does.
 
-The dense count is the paper's algebra evaluated per step as :mod:`snn_estimator.reference`
+The dense count is the paper's algebra evaluated per step as :mod:`snn_estimator.filters.reference`
 does: (Omega_s + Omega_k) r as an N x N product, F u, F_k z, the leak of v and r, one Omega_f
 column per spike and the decoding S D r. The non-spiking count follows the loops of the
-step kernels (snn_estimator.kernels; the laws' ``macs`` in snn_estimator.gains) for n states,
+step kernels (snn_estimator.filters.kernels; the laws' ``macs`` in snn_estimator.gains) for n states,
 m measurements and nu inputs.
 
 numpy only: the ROS estimator calls :meth:`CostModel.step` every diagnostics period.
@@ -36,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import gains
+from snn_estimator import gains
 
 #: Covariance laws of the filters (estimators.FILTER_KINDS): Eq. 6, the covariance of the gain
 #: used, or none.

@@ -15,11 +15,11 @@ else:
   an earlier estimator's newest estimate (hot swap: the measurements since then are
   replayed), or from a least-squares fit of a measurement history (a restart after a crash);
 * recovery: a persistently inconsistent innovation (NIS), a non-finite state or a reset on
-  request re-initialises the filter from the data (:mod:`snn_estimator.recovery`: a
+  request re-initialises the filter from the data (:mod:`snn_estimator.loop.recovery`: a
   least-squares fit of the recent measurements, never the parameters' initial state
   mid-flight; reset storms are reported); a new time base (the clock or the stamps went
   back) starts again from the parameters at the next measurement;
-* a missing control: the one in force by the plant's rule (:mod:`snn_estimator.plant_runner`).
+* a missing control: the one in force by the plant's rule (:mod:`snn_estimator.loop.plant_runner`).
 
 Stamps are integer nanoseconds. The caller supplies the clock reading ``now_ns`` (0 when there
 is no clock yet), a wall clock (for the dropout wait) and a ``publish(stamp_ns)`` callback
@@ -35,8 +35,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .catalog import MEASUREMENT_TIMINGS, START_MODES  # noqa: F401 (START_MODES re-exported)
-from .estimators import Estimator
+from snn_estimator.catalog import MEASUREMENT_TIMINGS, START_MODES  # noqa: F401 (START_MODES re-exported)
+from snn_estimator.filters.estimators import Estimator
+
 from .gates import NS, seconds_to_ns
 from .plant_runner import control_in_force
 from .recovery import Recovery
@@ -76,7 +77,7 @@ class RunnerSettings:
     #: base restarted.
     time_jump_threshold: float = 1.0
     #: Simulated s a control stays in force after its stamp (then zero thrust), as the plant
-    #: applies it (snn_estimator.plant_runner.control_in_force).
+    #: applies it (snn_estimator.loop.plant_runner.control_in_force).
     control_validity: float = 0.5
     #: 'grid': measurement stamps fall on the estimate time plus steps of time_step (the loop's
     #: sensor); 'any': stamped at any time (a sensor on its own clock), each measurement held
@@ -232,7 +233,7 @@ class FilterRunner(Gating, StartUp, Reporting):
 
     def reset(self, why: str) -> str:
         """A reset on request: mid-flight, the next measurement's step re-initialises the
-        filter from the data (:class:`snn_estimator.recovery.Recovery`), returns 'data'; before
+        filter from the data (:class:`snn_estimator.loop.recovery.Recovery`), returns 'data'; before
         the filter ran, it starts from the parameters at the next measurement ('parameters')."""
         if self.started and self.measurements_used:
             self.events['resets'] += 1

@@ -18,7 +18,11 @@ from typing import Callable, Sequence
 import numpy as np
 import scipy.stats
 
-from . import defaults as D
+from snn_estimator import defaults as D
+from snn_estimator.config import EstimatorConfig
+from snn_estimator.filters.estimators import TWIN_OF, make_estimator
+from snn_estimator.models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
+
 from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the loop)
     PLANT_STREAM,
     SENSOR_STREAM,
@@ -29,9 +33,6 @@ from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the l
     lqr_gain,
     matrix_sqrt,
 )
-from .config import EstimatorConfig
-from .estimators import TWIN_OF, make_estimator
-from .models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
 
 
 @dataclass(frozen=True)
@@ -255,7 +256,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     ``events`` maps a step index to ``fn(estimator)`` called before that step (fault injection,
     e.g. silencing neurons). ``on_step(k)`` is called after each step (progress bars).
     ``controller``: lqr (u = -K (x_hat - setpoint)) or snn_lqr (the same law computed by a
-    spike-coding network, snn_estimator.spiking_lqr; ``controller_options``: its neurons, leak).
+    spike-coding network, snn_estimator.spiking.lqr; ``controller_options``: its neurons, leak).
     """
     seeds = [seed + b for b in range(runs)]
     config = scenario.estimator if config is None else config
@@ -269,7 +270,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
             if scenario.lqr_state_weight is not None else None)
     spiking_lqr = None
     if controller == 'snn_lqr' and gain is not None:
-        from .spiking_lqr import SpikingLQR
+        from snn_estimator.spiking.lqr import SpikingLQR
         spiking_lqr = SpikingLQR(gain, seeds=seeds, **(controller_options or {}))
     elif controller not in ('lqr', 'snn_lqr'):
         raise ValueError(f"controller must be one of lqr, snn_lqr; got {controller!r}")

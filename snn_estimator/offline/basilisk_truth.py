@@ -1,6 +1,6 @@
 """Basilisk truth plant: the chaser's motion relative to the target integrated by Basilisk.
 
-A drop-in for :class:`snn_estimator.blocks.Plant` (same ``runs``, ``x``, ``time`` and
+A drop-in for :class:`snn_estimator.offline.blocks.Plant` (same ``runs``, ``x``, ``time`` and
 ``step(u, dt)``) whose truth is not the CW model but two-body gravity, optionally with Earth's
 J2, integrated by Basilisk (``bsk==2.12.1``, the ``basilisk`` extra). One Basilisk simulation
 holds the uncontrolled target and one chaser per run; every spacecraft has its own integrator
@@ -63,9 +63,10 @@ from typing import Sequence
 import numba
 import numpy as np
 
+from snn_estimator.models import DEFAULT_ORBIT_RADIUS, EARTH_MU, ClohessyWiltshire
+from snn_estimator.validation import as_matrix, check_covariance, check_positive
+
 from .blocks import PLANT_STREAM, GaussianStream, matrix_sqrt
-from .models import DEFAULT_ORBIT_RADIUS, EARTH_MU, ClohessyWiltshire
-from .validation import as_matrix, check_covariance, check_positive
 
 #: Earth's unnormalised J2 and the equatorial radius it refers to, m.
 EARTH_J2 = 1.08262668e-3

@@ -1,4 +1,4 @@
-"""The gating, start-up and reporting parts of :class:`snn_estimator.runner.FilterRunner`.
+"""The gating, start-up and reporting parts of :class:`snn_estimator.loop.runner.FilterRunner`.
 
 Mixins of that one class, split from it for size: they share its state (the queue, the
 counters, the estimator) and are not used on their own.
@@ -11,7 +11,8 @@ from typing import Mapping
 
 import numpy as np
 
-from .catalog import START_MODES
+from snn_estimator.catalog import START_MODES
+
 from .gates import NS, seconds_ahead, seconds_to_ns
 from .initialization import least_squares_start
 from .plant_runner import control_in_force
@@ -56,7 +57,7 @@ class Gating:
         return None
 
     def seconds_ahead(self, stamp_ns: int, now_ns: int) -> float:
-        """See :func:`snn_estimator.gates.seconds_ahead`."""
+        """See :func:`snn_estimator.loop.gates.seconds_ahead`."""
         return seconds_ahead(stamp_ns, now_ns, self.settings.max_input_age, self.settings.time_step)
 
     def _check_time_base(self, stamp_ns: int, now_ns: int) -> None:
