@@ -333,11 +333,12 @@ class ChipNetwork:
             raise ValueError('z and u must be finite')
         fmt = self.format
         limit = float(fmt.state_limit) if fmt else math.inf
-        capped, overflows, synops = chip_step(
-            fmt is not None, self.rule, self.settings.max_spikes_per_step, measured, self._unity,
-            self._decay_int, self._decay, limit, self._dynamics, self._gain_weights[self.active_set()],
-            self._control, self._c, z, u, self._read, self._gram, self._thresholds, self._alive,
-            self._e, self._x_read, self._v, self._read_scale, self._spikes, self._total_spikes, self._x_hat)
+        options = (fmt is not None, self.rule, self.settings.max_spikes_per_step, measured, self._unity,
+                   self._decay_int, self._decay, limit)
+        weights = (self._dynamics, self._gain_weights[self.active_set()], self._control, self._c, self._read,
+                   self._gram, self._thresholds, self._alive, self._read_scale)
+        network = (self._e, self._x_read, self._v, self._spikes, self._total_spikes, self._x_hat)
+        capped, overflows, synops = chip_step(options, weights, network, z, u)
         self.steps += 1
         self.capped_steps += capped
         self.overflows += overflows
@@ -389,74 +390,31 @@ def _bounded(value, limit):
 
 
 @numba.njit(cache=True)
-def chip_step(integer, spike_rule, max_spikes, measured, unity, decay_int, decay, limit, dynamics, gain,
-              control, c, z, u, read, gram, thresholds, alive, e, x_read, v, read_scale, spikes,
-              total_spikes, x_hat):
-    """One sample of every run (see the module docstring). Integers are held in float64
-    (exact below 2^53). Returns (runs whose spike loop hit max_spikes, wrapped states,
-    synaptic operations)."""
+def chip_step(options, weights, network, z, u):
+    """One sample of every run (see the module docstring). ``options`` = (integer, spike_rule,
+    max_spikes, measured, unity, decay_int, decay, limit); ``weights`` = (dynamics, gain,
+    control, c, read, gram, thresholds, alive, read_scale); ``network`` = (e, x_read, v,
+    spikes, total_spikes, x_hat), updated in place. Integers are held in float64 (exact below
+    2^53). Returns (runs whose spike loop hit max_spikes, wrapped states, synaptic operations)."""
+    integer, spike_rule, max_spikes, measured, unity, decay_int, decay, limit = options
+    read_scale = weights[8]
+    e, x_read, v, spikes, total_spikes, x_hat = network
     runs, neurons = v.shape
     n = x_read.shape[1]
-    m = z.shape[1]
-    n_u = u.shape[1]
     capped = 0
     overflows = 0
     synops = 0
-    nu = np.empty(m)
+    nu = np.empty(z.shape[1])
     drive = np.empty(n)
     limit_spikes = 1 if spike_rule == RULE_ONE_PER_STEP else max_spikes
     for b in range(runs):
-        for j in range(m):
-            acc = 0.0
-            if measured:
-                acc = z[b, j]
-                for k in range(n):
-                    acc -= c[j, k] * x_read[b, k]
-            nu[j] = acc
-        for k in range(n):
-            acc = 0.0
-            for q in range(n):
-                acc += dynamics[k, q] * x_read[b, q]
-            for j in range(m):
-                acc += gain[k, j] * nu[j]
-            for j in range(n_u):
-                acc += control[k, j] * u[b, j]
-            drive[k] = np.rint(acc) if integer else acc
+        _chip_drive(b, integer, measured, weights, x_read, z, u, nu, drive)
         for k in range(n):
             e[b, k] = _decayed(e[b, k], integer, unity, decay_int, decay) + drive[k]
             x_read[b, k] = _decayed(x_read[b, k], integer, unity, decay_int, decay)
-        for i in range(neurons):
-            acc = 0.0
-            for k in range(n):
-                acc += read[b, i, k] * e[b, k]
-            v[b, i] = acc
-            spikes[b, i] = 0
-        count = 0
-        if spike_rule == RULE_ALL_ABOVE:
-            for i in range(neurons):
-                if alive[b, i] and v[b, i] > thresholds[b, i]:
-                    spikes[b, i] = 1
-                    count += 1
-            for i in range(neurons):
-                if spikes[b, i]:
-                    _deliver(b, i, read, gram, e, x_read, v)
-        else:
-            while count < limit_spikes:
-                best = -1
-                best_over = 0.0
-                for j in range(neurons):
-                    if alive[b, j]:
-                        over = v[b, j] - thresholds[b, j]
-                        if over > best_over:
-                            best_over = over
-                            best = j
-                if best < 0:
-                    break
-                spikes[b, best] += 1
-                count += 1
-                _deliver(b, best, read, gram, e, x_read, v)
-            if spike_rule == RULE_GREEDY and count >= limit_spikes:
-                capped += 1
+        count = _chip_fire(b, spike_rule, limit_spikes, weights, network)
+        if spike_rule == RULE_GREEDY and count >= limit_spikes:
+            capped += 1
         # graded e to every neuron each tick and after each spike, the spike to e and the readout
         synops += (1 + count) * neurons * n + 2 * n * count
         total_spikes[b] += count
@@ -469,6 +427,70 @@ def chip_step(integer, spike_rule, max_spikes, measured, unity, decay_int, decay
         for k in range(n):
             x_hat[b, k] = x_read[b, k] * read_scale[k]
     return capped, overflows, synops
+
+
+@numba.njit(cache=True)
+def _chip_drive(b, integer, measured, weights, x_read, z, u, nu, drive):
+    """Run b's input this sample: nu = z - C x_read (zero without a measurement), then
+    drive = A x_read + K nu + B u, rounded to the LSB on the integer chip."""
+    dynamics, gain, control, c = weights[0], weights[1], weights[2], weights[3]
+    n, m, n_u = x_read.shape[1], z.shape[1], u.shape[1]
+    for j in range(m):
+        acc = 0.0
+        if measured:
+            acc = z[b, j]
+            for k in range(n):
+                acc -= c[j, k] * x_read[b, k]
+        nu[j] = acc
+    for k in range(n):
+        acc = 0.0
+        for q in range(n):
+            acc += dynamics[k, q] * x_read[b, q]
+        for j in range(m):
+            acc += gain[k, j] * nu[j]
+        for j in range(n_u):
+            acc += control[k, j] * u[b, j]
+        drive[k] = np.rint(acc) if integer else acc
+
+
+@numba.njit(cache=True)
+def _chip_fire(b, spike_rule, limit_spikes, weights, network):
+    """Run b's potentials v = D^T e and its spikes by the rule (all above threshold at once, or
+    the neuron furthest above, one at a time, up to ``limit_spikes``); returns the count."""
+    read, gram, thresholds, alive = weights[4], weights[5], weights[6], weights[7]
+    e, x_read, v, spikes = network[0], network[1], network[2], network[3]
+    neurons, n = v.shape[1], e.shape[1]
+    for i in range(neurons):
+        acc = 0.0
+        for k in range(n):
+            acc += read[b, i, k] * e[b, k]
+        v[b, i] = acc
+        spikes[b, i] = 0
+    count = 0
+    if spike_rule == RULE_ALL_ABOVE:
+        for i in range(neurons):
+            if alive[b, i] and v[b, i] > thresholds[b, i]:
+                spikes[b, i] = 1
+                count += 1
+        for i in range(neurons):
+            if spikes[b, i]:
+                _deliver(b, i, read, gram, e, x_read, v)
+        return count
+    while count < limit_spikes:
+        best = -1
+        best_over = 0.0
+        for j in range(neurons):
+            if alive[b, j]:
+                over = v[b, j] - thresholds[b, j]
+                if over > best_over:
+                    best_over = over
+                    best = j
+        if best < 0:
+            break
+        spikes[b, best] += 1
+        count += 1
+        _deliver(b, best, read, gram, e, x_read, v)
+    return count
 
 
 @numba.njit(cache=True)
