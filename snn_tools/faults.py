@@ -122,15 +122,15 @@ def run_cell(node: str, fault: str, out: Path, domain_id: int, duration: float, 
 
 def outage(run, node: str, at: float) -> tuple[float | None, float | None]:
     """(first stamp back, simulated s without the node's output) of the longest gap in its
-    topic after ``at`` - 5 s; (None, None) when it has no topic of its own."""
+    topic that ends after ``at`` - 5 s; (None, None) when it has no topic of its own or no gap
+    (a stopped node that published every stamp once it went on)."""
     topic = OUTPUTS[node]
     if topic is None:
         return None, None
     t = np.unique(getattr(run, f'{topic}_t'))
-    t = t[t > at - 5.0]
-    if len(t) < 2:
+    gaps = np.where(t[1:] > at - 5.0, np.diff(t), 0.0)
+    if not len(gaps) or gaps.max() < 0.25:  # no gap: it caught up on every stamp (or has none)
         return None, None
-    gaps = np.diff(t)
     i = int(np.argmax(gaps))
     return float(t[i + 1]), float(gaps[i])
 
