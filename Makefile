@@ -104,7 +104,7 @@ report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)
 	$(BIN)/report $(RUN)
 
-# ten realtime x10 runs of 360 s (~10 min on an idle 2-core machine)
+# ten realtime x10 runs of 480 s (~12 min on an idle 2-core machine)
 faults: $(STAMP)
 	$(BIN)/python -m snn_tools.faults --out results/faults.json $(if $(CELLS),--cells $(CELLS))
 

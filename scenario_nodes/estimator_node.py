@@ -86,6 +86,7 @@ class Inputs:
         self.subscriptions = [
             qos.subscription(node, events, PointStamped, qos.MEASUREMENT, self.on_measurement, qos.INPUT_QOS),
             qos.subscription(node, events, AccelStamped, qos.CONTROL, self.on_control, qos.INPUT_QOS),
+            qos.subscription(node, events, AccelStamped, qos.APPLIED_CONTROL, self.on_applied, qos.INPUT_QOS),
             qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
 
     def on_measurement(self, data: bytes) -> None:
@@ -103,11 +104,18 @@ class Inputs:
 
     def on_control(self, data: bytes) -> None:
         self._node.peers.saw(qos.CONTROL)
+        self._offer_control(data, 'control', self._runner.control)
+
+    def on_applied(self, data: bytes) -> None:
+        """The plant's report of the control it stepped with (``applied_control``)."""
+        self._offer_control(data, 'applied control', self._runner.applied)
+
+    def _offer_control(self, data: bytes, what: str, take) -> None:
         try:
             record, u = read_input('control', data, self._frame)
         except MessageError as error:
-            return self._refuse(self._runner.control_rejected, 'control', error)
-        if self._runner.control(record.stamp_ns, u) is not None:
+            return self._refuse(self._runner.control_rejected, what, error)
+        if take(record.stamp_ns, u) is not None:
             self._report()
 
     def on_set_state(self, data: bytes) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import textwrap
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -283,6 +284,9 @@ def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
     from rclpy.parameter import Parameter
 
     kinds = {DOUBLE_ARRAY: Parameter.Type.DOUBLE_ARRAY, INTEGER_ARRAY: Parameter.Type.INTEGER_ARRAY}
+    if node not in _TAKING_INTEGERS:  # runtime sets too (`ros2 param set ... 10`), once per node
+        node.add_pre_set_parameters_callback(lambda parameters: integers_as_doubles(node, parameters))
+        _TAKING_INTEGERS.add(node)
     values = {}
     for spec in specs:
         if node.has_parameter(spec.name):  # a lifecycle node configured again
@@ -298,6 +302,31 @@ def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
     if check:
         check_choices(values, specs)
     return values
+
+
+#: Nodes whose parameter services already take an integer for a double (see declare).
+_TAKING_INTEGERS: weakref.WeakSet = weakref.WeakSet()
+
+
+def integers_as_doubles(node, parameters: list) -> list:
+    """A pre-set-parameters callback: an integer (or a list of integers) set for a declared
+    double parameter becomes that double. ``ros2 param set /cw_plant real_time_factor 10``
+    sends an INTEGER ParameterValue, which rclpy would refuse as the wrong type; every other
+    parameter passes unchanged (rclpy and the node's own callback then check it as usual)."""
+    from rclpy.parameter import Parameter
+    kind = Parameter.Type
+    widened = {kind.INTEGER: kind.DOUBLE, kind.INTEGER_ARRAY: kind.DOUBLE_ARRAY}
+    out = []
+    for parameter in parameters:
+        target = widened.get(parameter.type_)
+        if target is not None and node.has_parameter(parameter.name):
+            descriptor = node.describe_parameter(parameter.name)
+            if not descriptor.dynamic_typing and descriptor.type == target.value:
+                value = (float(parameter.value) if target == kind.DOUBLE
+                         else [float(v) for v in parameter.value])
+                parameter = Parameter(parameter.name, target, value)
+        out.append(parameter)
+    return out
 
 
 def _is_double(default) -> bool:

@@ -22,7 +22,7 @@ from snn_estimator.loop.plant_runner import PlantRunner, PlantSettings, StartGat
 from snn_estimator.offline.blocks import Plant
 
 from . import qos
-from .codec import MessageError, check_frame, control_of, decode_accel, encode_clock, encode_odometry
+from .codec import MessageError, check_frame, control_of, decode_accel, encode_accel, encode_clock, encode_odometry
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import PLANT, cw_model, declare
 from .runtime import ProcessHooks, ThrottledLog, run_node
@@ -70,10 +70,11 @@ class PlantNode(ProcessHooks, Node):
         self._p = p
         self._log = ThrottledLog(self.get_logger())
         self._runner = PlantRunner(self.make_plant(p), plant_settings(p), self._publish_sample,
-                                   self._finish, self._log)
+                                   self._finish, self._log, applied=self._publish_applied)
         self._rejected = Rejections()
         self._events = qos.QosEvents(self)
         self._truth_pub = qos.publisher(self, self._events, Odometry, qos.TRUTH)
+        self._applied_pub = qos.publisher(self, self._events, AccelStamped, qos.APPLIED_CONTROL)
         self._clock_pub = (self.create_publisher(ClockMessage, qos.CLOCK, qos.CLOCK_QOS)
                            if p['publish_clock'] else None)
         self._peers = PeerWatch([qos.CONTROL], p['peer_timeout'], log=self._log)
@@ -135,6 +136,9 @@ class PlantNode(ProcessHooks, Node):
         return SetParametersResult(successful=True)
 
     # ---------------------------------------------------------------- outputs
+    def _publish_applied(self, stamp_ns: int, u) -> None:
+        self._applied_pub.publish(encode_accel(u, stamp_ns, self._p['frame_id']))
+
     def _publish_sample(self, stamp_ns: int, resend: bool) -> None:
         if self._clock_pub is not None:
             self._clock_pub.publish(encode_clock(stamp_ns))

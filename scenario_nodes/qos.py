@@ -33,6 +33,7 @@ from rclpy.qos_overriding_options import QoSOverridingOptions, QoSPolicyKind
 
 # The topic names live in .topics (no rclpy there); re-exported here beside their QoS.
 from .topics import (  # noqa: F401
+    APPLIED_CONTROL,
     CLOCK,
     CONTROL,
     DIAGNOSTICS,

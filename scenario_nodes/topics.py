@@ -7,6 +7,9 @@ Relative names, so namespaces and remapping work.
 TRUTH = 'truth'
 MEASUREMENT = 'measurement'
 CONTROL = 'control'
+#: plant output: the control it stepped with over [t_k, t_k+1] (geometry_msgs/AccelStamped, stamp
+#: t_k): the controller's u_k, or the one in force when u_k came late or never (zero once expired)
+APPLIED_CONTROL = 'applied_control'
 ESTIMATE = 'estimate'
 SPIKE_COUNT = 'spike_count'
 SPIKES = 'spikes'

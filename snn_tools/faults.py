@@ -38,7 +38,14 @@ WATCHERS = {'plant': [('position_sensor', 'peer.truth')],
             'controller': [('cw_plant', 'peer.control'), ('estimator', 'peer.control')],
             'estimator': [('lqr_controller', 'peer.estimate')],
             'recorder': []}
+#: What each node publishes: where the bag shows when it was back (None: nothing of its own).
+OUTPUTS = {'plant': 'truth', 'sensor': 'measurement', 'controller': 'control', 'estimator': 'estimate',
+           'recorder': None}
 FINAL_RANGE_LIMIT = 0.1  # m
+#: Simulated s per run: a 10 s wall outage at x10 is 100 s simulated, a restart under load
+#: 5-15 s of wall time more (50-150 s simulated), the drift meanwhile ~10 m, and the LQR
+#: (slowest closed-loop pole 0.04 1/s, with overshoot) needs ~2 minutes to close in from there.
+DURATION = 480.0
 ROBUSTNESS_DOC = Path(__file__).resolve().parents[1] / 'docs' / 'robustness.md'
 BEGIN, END = '<!-- fault matrix: begin (python -m snn_tools.faults) -->', '<!-- fault matrix: end -->'
 
@@ -110,7 +117,22 @@ def run_cell(node: str, fault: str, out: Path, domain_id: int, duration: float, 
     finally:
         codes = pipeline.stop_all()
     crashed = sorted(set(crashed) | {n for n, code in codes.items() if code not in (0, None)})
-    return evaluate(node, fault, run_dir, crashed, time.monotonic() - started)
+    return evaluate(node, fault, run_dir, crashed, time.monotonic() - started, at)
+
+
+def outage(run, node: str, at: float) -> tuple[float | None, float | None]:
+    """(first stamp back, simulated s without the node's output) of the longest gap in its
+    topic that ends after ``at`` - 5 s; (None, None) when it has no topic of its own or no gap
+    (a stopped node that published every stamp once it went on)."""
+    topic = OUTPUTS[node]
+    if topic is None:
+        return None, None
+    t = np.unique(getattr(run, f'{topic}_t'))
+    gaps = np.where(t[1:] > at - 5.0, np.diff(t), 0.0)
+    if not len(gaps) or gaps.max() < 0.25:  # no gap: it caught up on every stamp (or has none)
+        return None, None
+    i = int(np.argmax(gaps))
+    return float(t[i + 1]), float(gaps[i])
 
 
 def peers_reported(run, watchers) -> dict:
@@ -119,7 +141,7 @@ def peers_reported(run, watchers) -> dict:
             for name, key in watchers}
 
 
-def evaluate(node: str, fault: str, run_dir: Path, crashed: list, wall: float) -> dict:
+def evaluate(node: str, fault: str, run_dir: Path, crashed: list, wall: float, at: float = 100.0) -> dict:
     """The cell's result from its bag (the restarted recorder's bag when the recorder was killed)."""
     bag = run_dir / ('bag_restarted' if node == 'recorder' and fault == 'kill' else 'bag')
     comes_back = fault == 'stop' or COMES_BACK[node]  # a stopped plant resumes its flight
@@ -135,7 +157,9 @@ def evaluate(node: str, fault: str, run_dir: Path, crashed: list, wall: float) -
     controller = run.last_diagnostics('lqr_controller')
     estimator = run.last_diagnostics('estimator')
     plant = run.last_diagnostics('cw_plant')
+    back, gap = outage(run, node, at)
     result.update(
+        back_at_s=back, outage_s=gap,
         final_range_m=summary['final_range_m'], steps=summary['steps'], nan_free=bool(finite),
         peers=peers_reported(run, WATCHERS[node]),
         safe_mode_steps=int(float(controller.get('safe_mode_steps', 0))),
@@ -162,18 +186,19 @@ def markdown(results: list[dict], meta: dict) -> str:
              f"{meta['at']:g} s, {meta['outage']:g} s wall outage (kill: then restarted; stop: then SIGCONT); "
              f"load average {meta['load_average']} on {meta['cpus']} CPUs (a shared machine: timings vary), "
              f"commit {meta.get('commit', 'unknown')}.", '',
-             '| node | fault | final range [m] | crashed | NaN-free | peers reported | safe-mode steps | '
-             'zero-thrust steps (expired) | re-inits | report | passed |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             '| node | fault | final range [m] | back at [s] (outage) | crashed | NaN-free | peers reported | '
+             'safe-mode steps | zero-thrust steps (expired) | re-inits | report | passed |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for r in results:
         if 'error' in r:
-            lines.append(f"| {r['node']} | {r['fault']} | - | {', '.join(r['crashed']) or 'none'} | - | - | - | - | "
-                         f"- | {r['error']} | no |")
+            crashed = ', '.join(r['crashed']) or 'none'
+            lines.append(f"| {r['node']} | {r['fault']} | - | - | {crashed} | - | - | - | - | - | {r['error']} | no |")
             continue
         peers = ', '.join(k.split(':')[0] for k, v in r['peers'].items() if v) or ('-' if not r['peers'] else 'none')
         final = f"{r['final_range_m']:.4f}" + ('' if r['comes_back'] else ' (scenario restarted)')
+        back = ('-' if r.get('back_at_s') is None else f"{r['back_at_s']:.1f} ({r['outage_s']:.1f} s)")
         lines.append(
-            f"| {r['node']} | {r['fault']} | {final} | {', '.join(r['crashed']) or 'none'} | "
+            f"| {r['node']} | {r['fault']} | {final} | {back} | {', '.join(r['crashed']) or 'none'} | "
             f"{'yes' if r['nan_free'] else 'NO'} | {peers} | {r['safe_mode_steps']} | {r['expired_control_steps']} | "
             f"{r['reinitialisations']} | {'read' if 'report' in r else r.get('report_error', '-')} | "
             f"{'yes' if r['passed'] else 'no'} |")
@@ -206,7 +231,7 @@ def main(argv=None) -> int:
     parser.add_argument('--cells', help="e.g. 'controller:kill,sensor:stop' (default: all ten)")
     parser.add_argument('--out', type=Path, default=Path('results/faults.json'))
     parser.add_argument('--runs', type=Path, default=Path('runs/faults'), help='run folders (bags, logs, reports)')
-    parser.add_argument('--duration', type=float, default=360.0, help='simulated s per run')
+    parser.add_argument('--duration', type=float, default=DURATION, help='simulated s per run')
     parser.add_argument('--at', type=float, default=100.0, help='simulated s at which the fault hits')
     parser.add_argument('--outage', type=float, default=10.0, help='wall s the node stays dead or stopped')
     parser.add_argument('--real-time-factor', type=float, default=10.0)

@@ -155,3 +155,54 @@ def test_configure_alone_does_not_start_the_plant_activate_does():
         assert plant.values()['truth_published'] == 0  # configured, inactive: not an estimator yet
         estimator.trigger_activate()
         assert spin_until(executor, lambda: plant.values()['done'], timeout=30.0)
+
+
+@pytest.mark.slow
+def test_a_standby_and_an_active_estimator_started_as_processes_at_once_never_publish_together(rig, tmp_path):
+    """As users start them (`ros2 run` twice, each its own process and DDS participant, where
+    the middleware asserts liveliness): 20 times an active and a standby estimator launched at
+    the same instant (in either order); every estimate stamp comes once, and only the active
+    one publishes (the only diagnostics are the active one's)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+    probe, processes = rig
+    spin = processes.spin
+    script = str(Path(sys.executable).parent / 'estimator')
+    settings = [a for name, value in QUIET.items() for a in ('-p', f'{name}:={value}')] + [
+        '-p', 'diagnostics_period:=0.0', '-p', 'initial_state:=[70.0, 30.0, -5.0, 0.0, 0.0, 0.0]']
+    for trial in range(20):
+        base = trial * 1000 * DT
+        order = [('estimator', 'false'), ('estimator_standby', 'true')][::1 if trial % 2 else -1]
+        logs = [open(tmp_path / f'{name}_{trial}.log', 'w') for name, _ in order]
+        started = [subprocess.Popen([script, '--ros-args', '-r', f'__node:={name}', '-p', f'standby:={standby}',
+                                     *settings], stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ))
+                   for (name, standby), log in zip(order, logs)]
+        try:
+            assert spin(probe.matched, timeout=60.0), trial
+            spin(lambda: False, 1.0)  # DDS matches one end of a pair before the other
+            for k in range(8):  # each input once: an estimate stamp that comes twice had two publishers
+                probe.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), base + k * DT, 'lvlh'))
+                probe.publish(qos.CONTROL, control_to_accel(np.zeros(3), base + k * DT, 'lvlh'))
+                spin(lambda: False, 0.1)
+            spin(lambda: False, 0.5)  # a standby that took over by the age of estimates would publish now
+            stamps = [s for s in probe.estimate_stamps() if base <= s < base + 1000 * DT]
+            assert len(stamps) == len(set(stamps)) and len(stamps) >= 4, (trial, sorted(stamps))
+            # diagnostics come from the active estimator only (an inactive one publishes nothing)
+            assert spin(lambda: probe.diagnostics('estimator').get('active') == 'True'), trial
+            standby_says = {kv.value for m in probe.received[qos.DIAGNOSTICS] for status in m.status
+                            if status.name == 'estimator' for kv in status.values if kv.key == 'standby'}
+            assert standby_says == {'False'}, (trial, standby_says)
+        finally:
+            for process in started:
+                process.send_signal(signal.SIGINT)
+            for process, log in zip(started, logs):
+                try:
+                    process.wait(15)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                log.close()
+        assert spin(lambda: not probe.matched(1), timeout=30.0)  # both gone before the next pair
+        probe.received[qos.DIAGNOSTICS].clear()

@@ -196,3 +196,55 @@ def test_a_dead_controllers_last_command_expires_to_zero_thrust_in_plant_and_est
         np.testing.assert_array_equal(spy.controls[k], applied[k], err_msg=f'estimator, step {k}')
     assert filter_runner.values()['controls_expired'] == 6
     assert sum('expired' in m for m in filter_logs) == 1
+
+
+def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_predicts_with_it():
+    """A control that comes after the realtime plant's tick is not applied (the one in force
+    is); the plant reports what it stepped with, and an estimator fed the reports predicts with
+    exactly that, where the controller's late u_k alone would have made it predict with u_k."""
+    from snn_estimator import make_estimator
+    from snn_estimator.loop.runner import FilterRunner, RunnerSettings
+    scenario = rendezvous_scenario()
+    plant = Plant(scenario.model, scenario.x0, np.zeros((6, 6)))
+    reports = []
+    runner = PlantRunner(plant, PlantSettings(time_step=0.1, mode='realtime', control_validity=10.0),
+                         publish=lambda stamp, resend: None,
+                         applied=lambda stamp, u: reports.append((stamp, np.array(u, dtype=float))))
+
+    def controls(k):
+        return np.array([1e-3, -2e-3, 5e-4]) * (k + 1)
+    spies = {}
+    for told in (True, False):
+        estimator = make_estimator('ekf', scenario.estimator, scenario.model)
+        spies[told] = Spy(estimator)
+        filter_runner = FilterRunner(estimator, RunnerSettings(time_step=0.1), 1e-2 * np.eye(3),
+                                     publish=lambda stamp: None)
+        filter_runner.start('parameters')
+        spies[told].runner = filter_runner
+    runner.begin()
+    late = {3, 4, 7}
+    for k in range(10):
+        for filter_runner in (spy.runner for spy in spies.values()):
+            filter_runner.measurement(k * DT, plant.x[0, :3])
+        if k not in late:
+            runner.control(k * DT, controls(k))
+        runner.tick()
+        if k in late:  # after the tick: the plant stepped with the one in force
+            runner.control(k * DT, controls(k))
+        for told, spy in spies.items():
+            spy.runner.control(k * DT, controls(k))
+            if told:
+                spy.runner.applied(*reports[-1])
+    assert [stamp for stamp, _ in reports] == [k * DT for k in range(10)]
+    for k in range(10):
+        expected = controls(k - 1) if k in late else controls(k)  # the newest one there at the tick
+        np.testing.assert_array_equal(reports[k][1], expected, err_msg=f'plant, step {k}')
+    for spy in spies.values():
+        spy.runner.measurement(10 * DT, plant.x[0, :3])
+        spy.runner.measurement(11 * DT, plant.x[0, :3])
+    told, untold = spies[True].controls, spies[False].controls
+    assert len(told) == len(untold) == 10
+    for k in range(10):
+        np.testing.assert_array_equal(told[k], reports[k][1], err_msg=f'estimator told, step {k}')
+        np.testing.assert_array_equal(untold[k], controls(k), err_msg=f'estimator untold, step {k}')
+    assert any(not np.array_equal(reports[k][1], controls(k)) for k in late)

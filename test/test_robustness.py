@@ -572,3 +572,30 @@ def test_controller_safe_mode_covers_a_dead_sensor_and_reports_its_peers(control
     step(16, settle=0.3)  # both back (the safe-mode timer may answer this step first, with zero)
     assert step(17).accel.linear.x != 0.0 and not controller.safe_mode
     assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('peer.measurement') == 'OK')
+
+
+def test_an_integer_set_at_runtime_for_a_double_is_taken_as_that_double_through_the_parameter_service():
+    """`ros2 param set /cw_plant real_time_factor 10` sends an INTEGER ParameterValue through the
+    standard set_parameters service, as this test does; rclpy alone refuses it as the wrong
+    type. A double parameter takes it as the double; a read-only one is still refused as
+    read-only, and a string for a double as the wrong type."""
+    from rcl_interfaces.msg import ParameterType
+    assert Parameter('x', value=10).to_parameter_msg().value.type == ParameterType.PARAMETER_INTEGER
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller', diagnostics_period=0.0)
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant', mode='realtime', duration=0.0, start=False)
+        gain = controller.gain
+        results = harness.set_parameters('lqr_controller', estimate_timeout=2, lqr_state_weight=[2, 2, 2, 1, 1, 1])
+        assert all(r.successful for r in results), [r.reason for r in results]
+        timeout = controller.get_parameter('estimate_timeout')
+        assert timeout.type_ == Parameter.Type.DOUBLE and timeout.value == 2.0
+        weight = controller.get_parameter('lqr_state_weight')
+        assert weight.type_ == Parameter.Type.DOUBLE_ARRAY and list(weight.value) == [2.0, 2.0, 2.0, 1.0, 1.0, 1.0]
+        assert not np.allclose(controller.gain, gain)  # the new weight designed a new gain
+        refused = harness.set_parameters('cw_plant', real_time_factor=10)[0]
+        assert not refused.successful and refused.reason == 'Trying to set a read-only parameter: real_time_factor.'
+        assert plant.get_parameter('real_time_factor').value == 1.0
+        wrong = harness.set_parameters('lqr_controller', estimate_timeout='long')[0]
+        assert not wrong.successful and 'Wrong parameter type' in wrong.reason
+        assert controller.get_parameter('estimate_timeout').value == 2.0

@@ -17,7 +17,10 @@ control; the node only converts messages, runs the timers and publishes:
   thrust (a dead controller's last command does not fly the chaser away).
 
 Stamps are integer nanoseconds; ``publish(stamp_ns, resend)`` is called for every sample (the
-plant then holds x at ``stamp_ns``); ``finished()`` after the last step.
+plant then holds x at ``stamp_ns``); ``applied(stamp_ns, u)`` for every step, with the control
+it stepped with from ``stamp_ns`` (before the truth of the step's end: the estimator predicts
+with it, so estimate and truth agree on what was applied even when a control came after the
+realtime plant's tick); ``finished()`` after the last step.
 """
 
 from __future__ import annotations
@@ -104,9 +107,10 @@ class PlantRunner:
 
     def __init__(self, plant, settings: PlantSettings, publish: Callable[[int, bool], None],
                  finished: Callable[[], None] = lambda: None, log: Callable[[str, str], None] | None = None,
-                 wall_clock: Callable[[], float] = time.monotonic):
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 applied: Callable[[int, np.ndarray], None] = lambda stamp_ns, u: None):
         self.plant, self.settings = plant, settings
-        self._publish, self._on_finished = publish, finished
+        self._publish, self._on_finished, self._applied = publish, finished, applied
         self._log = log or (lambda level, message: None)
         self._wall = wall_clock
         self._dt_ns = seconds_to_ns(settings.time_step)
@@ -255,6 +259,7 @@ class PlantRunner:
             if self.plant.saturated_steps[0] > saturated:
                 self._log('warning', f'thrust limit: commanded {np.array2string(u, precision=4)} m/s^2, '
                           f'applied {np.array2string(self.plant.applied[0], precision=4)} m/s^2')
+            self._applied(self.t_ns, u)
             self.step += 1
             self.t_ns += self._dt_ns
             self._prune()

@@ -19,7 +19,11 @@ else:
   least-squares fit of the recent measurements, never the parameters' initial state
   mid-flight; reset storms are reported); a new time base (the clock or the stamps went
   back) starts again from the parameters at the next measurement;
-* a missing control: the one in force by the plant's rule (:mod:`snn_estimator.loop.plant_runner`).
+* the control of a step: the one the plant reports it stepped with (:meth:`applied`, its
+  ``applied_control``) once a plant reports them, so estimate and truth agree on what was applied
+  also when a control came after a realtime plant's tick; else (no such report, or it was lost)
+  the controller's u_k; a missing control: the one in force by the plant's rule
+  (:mod:`snn_estimator.loop.plant_runner`).
 
 Stamps are integer nanoseconds. The caller supplies the clock reading ``now_ns`` (0 when there
 is no clock yet), a wall clock (for the dropout wait) and a ``publish(stamp_ns)`` callback
@@ -100,6 +104,8 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
         self._pending: dict[int, np.ndarray] = {}
         self._from_history: set[int] = set()  # queued stamps that came with the start-up history
         self._controls: dict[int, np.ndarray] = {}
+        self._applied: dict[int, np.ndarray] = {}  # what the plant reports it stepped with, by stamp
+        self._plant_reports = False  # a plant reports its applied controls: wait for them
         self._last_measurement_ns: int | None = None
         self._newest_ns: int | None = None
         self._last_arrival = wall_clock()
@@ -194,6 +200,21 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
             self._process()
         return None
 
+    def applied(self, stamp_ns: int, u: np.ndarray) -> str | None:
+        """Offer the control the plant reports it stepped with from ``stamp_ns``; None if
+        accepted, else the rejection reason. From the first one on, a step waits for the
+        plant's report (as long as it waits for a control) and predicts with it."""
+        if self.start_ns is not None and stamp_ns < self.start_ns:
+            self.control_rejected['applied_before_init'] += 1
+            return 'applied_before_init'
+        self._applied[stamp_ns] = np.asarray(u, dtype=float)
+        if len(self._applied) > CONTROL_MEMORY:
+            del self._applied[min(self._applied)]
+        self._plant_reports = True
+        if self.started:
+            self._process()
+        return None
+
     def _say(self, reason: str, detail: str) -> str:
         self._log('warning', f'rejected {detail}')
         return reason
@@ -219,6 +240,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
         self._from_history = {t for t in self._from_history if t in self._pending}
         self._awaiting_start = False
         self._controls = {t: u for t, u in self._controls.items() if t >= stamp_ns}
+        self._applied = {t: u for t, u in self._applied.items() if t >= stamp_ns}
         if publish:
             self._publish(stamp_ns)
 
@@ -245,6 +267,8 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
         self._held_z = None
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()
+        self._applied.clear()
+        self._plant_reports = False
         self._high_nis = 0
         self._awaiting_start = True
 
@@ -267,10 +291,15 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
 
     # ---------------------------------------------------------------- stepping
     def _control_for(self, stamp_ns: int) -> np.ndarray | None:
-        u = self._controls.get(stamp_ns)
+        """The control of the step from ``stamp_ns`` that settles it: the plant's report of
+        what it applied once a plant reports them, else the controller's; None: not here yet."""
+        return self._stamped(self._applied if self._plant_reports else self._controls, stamp_ns)
+
+    def _stamped(self, controls: dict, stamp_ns: int) -> np.ndarray | None:
+        u = controls.get(stamp_ns)
         if u is not None:
             return u
-        for control_ns, value in self._controls.items():
+        for control_ns, value in controls.items():
             if abs(control_ns - stamp_ns) * 2 < self._dt_ns:
                 return value
         return None
@@ -315,6 +344,9 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
         if continued:
             return self._continue_hold(z, stamp_ns, dt_ns, publish)
         u = self._control_for(stamp_ns)
+        if u is None and self._plant_reports:  # the plant's report was lost or is late
+            u = self._stamped(self._controls, stamp_ns)
+            self.events['applied_missing'] += 1
         if u is None:
             u = self._in_force(stamp_ns)
             self.controls_missing += 1
@@ -343,6 +375,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
             del self.step_seconds[:1000]
         self.time_ns = stamp_ns + (self._dt_ns if dt_ns is None else dt_ns)
         self._controls = {t: v for t, v in self._controls.items() if t > stamp_ns}
+        self._applied = {t: v for t, v in self._applied.items() if t > stamp_ns}
         if publish:
             self._publish(self.time_ns)
 
