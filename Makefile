@@ -7,6 +7,7 @@
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make bench | bench-loop | bench-campaign | bench-live | bench-latency [SAMPLES=n]   speed figures -> results/
+#   make spike-budget [RUNS=n]  spikes against accuracy per network coding -> results/spike_budget.{json,md}
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 #   make faults [CELLS=controller:kill,...]   kill/stop each node mid-run -> results/faults.json, docs/robustness.md
 PYTHON ?= python3.11
@@ -27,6 +28,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
+	spike-budget \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -83,6 +85,10 @@ bench-loop: $(STAMP)
 bench-latency: $(STAMP)
 	$(BIN)/snn_latency_bench --out results/latency.json $(if $(SAMPLES),--samples $(SAMPLES)) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
+
+# every spiking kind under each network coding and unit, dispersed rendezvous, against its twin
+spike-budget: $(STAMP)
+	$(BIN)/python -m snn_tools.spike_budget $(if $(RUNS),--runs $(RUNS)) --out results/spike_budget.json
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json

@@ -33,6 +33,10 @@ PRECISIONS = ('float64', 'loihi')
 #: A(x_hat) x_hat + B u with A the Jacobian (Eq. 14, 17: the paper's network); nonlinear, f(x_hat, u)
 #: (Eq. 3's drift, what the non-spiking twin integrates). The same for a linear model.
 NETWORK_DRIVES = ('linearized', 'nonlinear')
+#: What the spiking network codes (docs/decisions.md, 13b): state, the estimate itself (x_hat = S D r,
+#: Eq. 12: the paper's network); deviation, the estimate's deviation from its model prediction
+#: (x_hat = x_pred + S D r, x_pred advanced off the network by A_d x_hat + B_d u or f).
+NETWORK_CODINGS = ('state', 'deviation')
 #: How the continuous equations are stepped (models.DISCRETIZATIONS, repeated here so that
 #: the parameter tables need not load the models; a test keeps them equal).
 DISCRETIZATIONS = ('exact', 'euler')
@@ -181,6 +185,11 @@ FIELDS: tuple[Field, ...] = (
     Field('network_drive', 'choice', 'linearized', "the spiking network's prediction: linearized, "
           'A(x_hat) x_hat + B u (Eq. 14, 17); nonlinear, f(x_hat, u) as the twin integrates (Eq. 3); '
           'the same for a linear model (docs/decisions.md, 13)', choices=NETWORK_DRIVES),
+    Field('network_coding', 'choice', 'state', 'what the spiking network codes: state, the estimate '
+          'x_hat = S D r (Eq. 12: the paper); deviation, the deviation from the model prediction, '
+          'x_hat = x_pred + S D r with x_pred advanced off the network by A x_hat + B u (or f) and the '
+          'network integrating only the correction K nu (Eq. 14-17 without A and B; far fewer spikes; '
+          'float64 network only; docs/decisions.md, 13b)', choices=NETWORK_CODINGS),
     # the chip's network (snn_estimator/spiking/chip.py: formats from Davies et al. 2018 and Lava's
     # bit-accurate LIF model; docs/decisions.md and results/neuromorphic.md)
     Field('precision', 'choice', 'float64', "the spiking network's arithmetic: float64, or loihi "

@@ -95,6 +95,9 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
     if not (estimator.spiking and (estimator.constant_gain or network is not None) and estimator.runs == 1):
         raise ValueError('network_graph needs a single-run spiking estimator with gain_schedule '
                          'steady_state or switched (see constant_gain_estimator)')
+    if estimator.coding != 'state':
+        raise ValueError('network_graph exports the network of network_coding state: with deviation '
+                         'the prediction x_pred runs off the network, which a NIR graph does not hold')
     s = estimator.settings
     if network is None:
         w = estimator.weights(dt=dt)

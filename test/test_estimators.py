@@ -261,8 +261,12 @@ def test_a_step_that_would_make_p_indefinite_is_refused_before_it_is_taken():
     assert spectral.settings.r_hat[0, 0] == pytest.approx(0.05)
 
 
-def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol():
-    scenario = van_der_pol_scenario()
+@pytest.mark.parametrize('changes', [{}, {'network_coding': 'deviation'},
+                                     {'network_coding': 'deviation', 'network_drive': 'nonlinear'}],
+                         ids=['paper', 'deviation', 'deviation_f_drive'])
+def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol(changes):
+    """The paper's coding, and the deviation coding (test_network_coding.py) on either drive."""
+    scenario = van_der_pol_scenario(**changes)
     rng = np.random.default_rng(3)
     fast = make_estimator('snn_emsif', scenario.estimator, scenario.model)
     dense = DenseSpikingFilter(fast)

@@ -28,13 +28,13 @@ from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
 from snn_estimator.offline.simulation import lqr_control, lqr_gain  # noqa: E402
 
 
-def run_lockstep(kind, steps, plant_class=PlantNode):
+def run_lockstep(kind, steps, plant_class=PlantNode, **estimator_parameters):
     """The four nodes in one process; returns the estimates by stamp and the truths by stamp."""
     duration = steps * 0.1
     with ros_context() as (context, executor, nodes):
         probe = Probe(context, executor, nodes)
         make(ControllerNode, context, executor, nodes, 'lqr_controller')
-        make(EstimatorNode, context, executor, nodes, 'estimator', filter_type=kind)
+        make(EstimatorNode, context, executor, nodes, 'estimator', filter_type=kind, **estimator_parameters)
         make(SensorNode, context, executor, nodes, 'position_sensor')
         plant = make(plant_class, context, executor, nodes, plant_class.NAME, duration=duration,
                      control_timeout=30.0)
@@ -51,11 +51,14 @@ def run_lockstep(kind, steps, plant_class=PlantNode):
         return estimates, truths
 
 
-@pytest.mark.parametrize('kind', ['snn_emsif', 'ekf'])
-def test_lockstep_ros_run_equals_the_offline_simulation(kind):
+@pytest.mark.parametrize('kind, parameters', [('snn_emsif', {}), ('ekf', {}),
+                                              ('snn_ekf', {'network_coding': 'deviation'})],
+                         ids=['snn_emsif', 'ekf', 'snn_ekf_deviation_coding'])
+def test_lockstep_ros_run_equals_the_offline_simulation(kind, parameters):
+    """Also the deviation coding (docs/decisions.md, 13b), set by its schema parameter alone."""
     steps = 300
-    estimates, truths = run_lockstep(kind, steps)
-    scenario = rendezvous_scenario(initial_state_dispersion=True)  # as config/rendezvous.yaml
+    estimates, truths = run_lockstep(kind, steps, **parameters)
+    scenario = rendezvous_scenario(initial_state_dispersion=True, **parameters)  # as config/rendezvous.yaml
     offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), kind)
     for k in range(steps + 1):
         stamp = k * 100_000_000

@@ -35,7 +35,7 @@ from snn_estimator import gains
 from snn_estimator.catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
 from snn_estimator.config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from snn_estimator.models import DT_CACHE_SIZE, StateSpaceModel
-from snn_estimator.schema import RUNTIME
+from snn_estimator.schema import NETWORK_CODINGS, RUNTIME
 from snn_estimator.spiking import chip
 from snn_estimator.spiking.network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
 
@@ -133,6 +133,14 @@ class EstimatorViews:
     def batch_spikes(self) -> np.ndarray | None:
         """Spikes per neuron in the last step for all runs, (runs, N), read-only view."""
         return _read_only(self._network.spikes) if self.spiking else None
+
+    @property
+    def prediction(self) -> np.ndarray | None:
+        """x_pred of network_coding deviation (x_hat = x_pred + S D r), shape (n,) or (runs, n), a
+        copy; None for the paper's coding and the non-spiking filters."""
+        if not self.spiking or self.coding != 'deviation':
+            return None
+        return self._single(self._network.reference).copy()
 
     @property
     def gain(self) -> np.ndarray:
@@ -233,10 +241,17 @@ class Estimator(EstimatorViews):
         self._chip = (chip.ChipNetwork(kind, model, config, self.settings, net.decoder, net.alive,
                                        self._x_hat, net.spikes, net.total_spikes)
                       if chip.wanted(config) else None)
+        #: What the network codes (schema network_coding): the estimate, or its deviation from
+        #: the prediction x_pred (held in the network's ``reference``)
+        self.coding = s.network_coding if self.spiking else 'state'
+        if self._chip is not None and self.coding != 'state':
+            raise ValueError('network_coding deviation runs on the float64 network only: use '
+                             'network_coding state with precision loihi or gain_schedule switched')
         self.has_covariance = self.has_covariance and self._chip is None  # the chip computes no P
         self._packed = self._pack()
         self._kernel = kernels.step_kernel(self.gain_law if not self.constant_gain else 'fixed', self.covariance_law,
-                                           self.spiking, s.spike_rule, drift=not (model.is_linear or linearized))
+                                           self.spiking, s.spike_rule, drift=not (model.is_linear or linearized),
+                                           coding=self.coding)
         self._call_dt: float | None = None
         self.reset()
 
@@ -273,9 +288,9 @@ class Estimator(EstimatorViews):
                             np.zeros((self.runs, n_u)), self._network.zero_noise)
         if self.spiking:
             net = self._network
-            kernels.compile_for(kernels.fire_kernel(self.settings.spike_rule), 1, net.decoder, net.gram,
-                                net.thresholds, net.alive, net.r, net.v, self._scale, net.spikes, net.total_spikes,
-                                self._x_hat)
+            kernels.compile_for(kernels.fire_kernel(self.settings.spike_rule, self.coding), 1, net.decoder,
+                                net.gram, net.thresholds, net.alive, net.r, net.v, self._scale, net.spikes,
+                                net.total_spikes, self._x_hat, net.reference)
 
     # ------------------------------------------------------------------ state
     def initial_states(self) -> np.ndarray:
@@ -317,8 +332,18 @@ class Estimator(EstimatorViews):
                 self.encode(x0[b], run=b)
 
     def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
-        """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons)."""
+        """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons;
+        with network_coding deviation the prediction restarts at ``x_hat`` and the network
+        codes a zero deviation)."""
         self._net('r')
+        if self.coding == 'deviation':
+            x_hat = np.asarray(x_hat, dtype=float)
+            if not np.isfinite(x_hat).all():
+                raise ValueError(f'cannot encode {x_hat.tolist()}: not finite')
+            self._network.encode(run, np.zeros_like(x_hat))
+            self._network.reference[run] = x_hat
+            self._x_hat[run] = x_hat
+            return
         with np.errstate(over='ignore', invalid='ignore'):  # overflow is checked and refused below
             target = np.asarray(x_hat, dtype=float) / self._scale
         if not np.isfinite(target).all():
@@ -369,9 +394,9 @@ class Estimator(EstimatorViews):
         net.lose(wanted)
         # The survivors react on the fast time scale (instantaneous in continuous time), before
         # the slow dynamics of the next step see the decoded estimate.
-        self.recovery_spikes += kernels.fire_kernel(self.settings.spike_rule)(
+        self.recovery_spikes += kernels.fire_kernel(self.settings.spike_rule, self.coding)(
             self.settings.max_spikes_per_step, net.decoder, net.gram, net.thresholds, net.alive, net.r, net.v,
-            self._scale, net.spikes, net.total_spikes, self._x_hat)
+            self._scale, net.spikes, net.total_spikes, self._x_hat, net.reference)
 
     # ------------------------------------------------------------------ settings and steps
     def retune(self, **changes) -> None:
@@ -509,7 +534,7 @@ class Estimator(EstimatorViews):
         gain = (steady_state_gain(self.gain_law, self.model, self.settings, dt) if self.constant_gain
                 else self._gain[run])
         return weights(decoder, self._scale, a_d, b_d, gain, self._c, self.settings.leak_rate,
-                       self._network.thresholds[run])
+                       self._network.thresholds[run], self.coding)
 
 
 def make_estimator(kind: str, config: EstimatorConfig | None = None,
@@ -548,15 +573,20 @@ def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedC
 
 
 def warm_up_all() -> None:
-    """Compile (or load) the kernels of every filter kind, gain schedule and spike rule on small
-    filters of the CW model (linear) and Van der Pol (nonlinear: the direct filters' drift)."""
+    """Compile (or load) the kernels of every filter kind, gain schedule and spike rule (and of
+    network_coding deviation with the greedy rule) on small filters of the CW model (linear) and
+    Van der Pol (nonlinear: the direct filters' drift)."""
     from snn_estimator.models import ClohessyWiltshire
     from snn_estimator.offline.simulation import van_der_pol_scenario
     linear, nonlinear = ClohessyWiltshire(), van_der_pol_scenario()
     for kind, spec in FILTER_KINDS.items():
         for rule in (kernels.SPIKE_RULES if spec.spiking else ('greedy',)):
-            for schedule in ('time_varying', 'steady_state'):
-                config = EstimatorConfig(neuron_count=4, spike_rule=rule, gain_schedule=schedule)
-                Estimator(kind, linear, config).warm_up()
-            config = nonlinear.estimator.replace(neuron_count=4, spike_rule=rule)
-            Estimator(kind, nonlinear.model, config).warm_up()
+            # the deviation coding (Decision 13b) with the default rule only: the other rules
+            # compile on first use, which keeps make's warm-up from growing by half
+            for coding in (NETWORK_CODINGS if spec.spiking and rule == 'greedy' else ('state',)):
+                for schedule in ('time_varying', 'steady_state'):
+                    config = EstimatorConfig(neuron_count=4, spike_rule=rule, gain_schedule=schedule,
+                                             network_coding=coding)
+                    Estimator(kind, linear, config).warm_up()
+                config = nonlinear.estimator.replace(neuron_count=4, spike_rule=rule, network_coding=coding)
+                Estimator(kind, nonlinear.model, config).warm_up()

@@ -48,7 +48,7 @@ CONSTANTS = (('c', ('m', 'n')), ('c_pinv', ('n', 'm')), ('q_hat', ('n', 'n')), (
 STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')))
 NETWORK = (('decoder', ('runs', 'n', 'N')), ('gram', ('runs', 'N', 'N')), ('thresholds', ('runs', 'N')),
            ('alive', ('runs', 'N')), ('r', ('runs', 'N')), ('v', ('runs', 'N')), ('spikes', ('runs', 'N')),
-           ('total_spikes', ('runs',)))
+           ('total_spikes', ('runs',)), ('reference', ('runs', 'n')))
 INPUTS = (('dynamics', ('d', 'n', 'w')), ('drift', ('d', 'n')), ('z', ('runs', 'm')), ('u', ('runs', 'nu')),
           ('noise', ('runs', 'N')))
 _SCALARS = {'leak': float, 'max_spikes': int}
@@ -308,18 +308,57 @@ def _direct(b, dt, increment, noise, consts, state, network, scratch):
     return finite, 0, False
 
 
+# ---------------------------------------------------------------- network codings
+@_jit
+def _state_drive(b, dt, increment, leak, scale, x_hat, reference, gain, nu, drive):
+    """The paper's coding: the network holds x~ = S^-1 x_hat (Eq. 12), drive = dt S^-1
+    (increment + lambda x_hat) (Eq. 14)."""
+    for k in range(x_hat.shape[1]):  # x_hat holds S D r from the end of the previous step
+        drive[k] = dt * (increment[k] + leak * x_hat[b, k]) / scale[k]
+
+
+@_jit
+def _state_decode(b, k, acc, scale, reference):
+    """x_hat = S D r (Eq. 12)."""
+    return scale[k] * acc
+
+
+@_jit
+def _deviation_drive(b, dt, increment, leak, scale, x_hat, reference, gain, nu, drive):
+    """The deviation coding (docs/decisions.md, 13b): the network holds e~ = S^-1 (x_hat - x_pred),
+    drive = dt S^-1 (K nu + lambda e); the prediction x_pred advances off the network by the
+    rest of the increment, dt (A_d x_hat + B_d u) (or the drift f)."""
+    m = nu.shape[0]
+    for k in range(x_hat.shape[1]):
+        correction = 0.0
+        for j in range(m):
+            correction += gain[b, k, j] * nu[j]
+        deviation = x_hat[b, k] - reference[b, k]
+        drive[k] = dt * (correction + leak * deviation) / scale[k]
+        reference[b, k] += dt * (increment[k] - correction)
+
+
+@_jit
+def _deviation_decode(b, k, acc, scale, reference):
+    """x_hat = x_pred + S D r."""
+    return reference[b, k] + scale[k] * acc
+
+
+_CODING = {'state': (_state_drive, _state_decode), 'deviation': (_deviation_drive, _deviation_decode)}
+
+
 def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
-    """The network on x~ = S^-1 x (Eq. 10-15, forward Euler):
-    v = (1 - lambda dt) v + dt D^T (S^-1 increment + lambda D r) + noise, r = (1 - lambda dt) r,
-    then spikes by the rule (r_i += 1, v -= D^T D_i), x_hat = S D r (Eq. 12)."""
+    """The network on x~ = S^-1 x (Eq. 10-15, forward Euler), or on the deviation from the
+    prediction (network_coding, the ``_drive`` and ``_decode`` pieces):
+    v = (1 - lambda dt) v + D^T drive + noise, r = (1 - lambda dt) r, then spikes by the rule
+    (r_i += 1, v -= D^T D_i), x_hat = S D r (Eq. 12; plus x_pred for the deviation)."""
     scale, leak, max_spikes = consts[7], consts[9], consts[10]
-    x_hat = state[0]
-    decoder, gram, thresholds, alive, r, v, spikes, total_spikes = network
+    x_hat, gain = state[0], state[2]
+    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network
     drive, input_current = scratch[9], scratch[10]
     n, neurons = decoder.shape[1], decoder.shape[2]
     decay = 1.0 - leak * dt
-    for k in range(n):  # x_hat holds S D r from the end of the previous step
-        drive[k] = dt * (increment[k] + leak * x_hat[b, k]) / scale[k]
+    _drive(b, dt, increment, leak, scale, x_hat, reference, gain, scratch[0], drive)
     for i in range(neurons):
         input_current[i] = noise[b, i]
     for k in range(n):  # D^T drive, row by row so the inner loop is contiguous
@@ -337,7 +376,7 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
         acc = 0.0
         for i in range(neurons):
             acc += decoder[b, k, i] * r[b, i]
-        value = scale[k] * acc
+        value = _decode(b, k, acc, scale, reference)
         x_hat[b, k] = value
         if not np.isfinite(value):
             finite = False
@@ -347,7 +386,7 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
 # ---------------------------------------------------------------- the step
 #: The pieces the templates below call, given by :func:`_specialise` as their globals (the
 #: templates are never compiled as written).
-_terms = _gain = _increment = _covariance = _integrate = _fire = None
+_terms = _gain = _increment = _covariance = _integrate = _fire = _drive = _decode = None
 
 
 def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, noise):
@@ -399,9 +438,11 @@ def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, 
     return status, capped
 
 
-def _fire_only_template(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes, x_hat):
+def _fire_only_template(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes, x_hat,
+                        reference):
     """The fast time scale alone: let every run spike until its coding error is below
-    threshold (used right after neurons are lost), then decode x_hat = S D r."""
+    threshold (used right after neurons are lost), then decode x_hat = S D r (plus the
+    prediction ``reference`` for the deviation coding)."""
     runs, n, neurons = decoder.shape
     emitted = 0
     for b in range(runs):
@@ -414,7 +455,7 @@ def _fire_only_template(max_spikes, decoder, gram, thresholds, alive, r, v, scal
             acc = 0.0
             for i in range(neurons):
                 acc += decoder[b, k, i] * r[b, i]
-            x_hat[b, k] = scale[k] * acc
+            x_hat[b, k] = _decode(b, k, acc, scale, reference)
     return emitted
 
 
@@ -459,22 +500,29 @@ def _law_piece(law: str):
     return chained
 
 
-def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'greedy', drift: bool = False):
+def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'greedy', drift: bool = False,
+                coding: str = 'state'):
     """The step kernel of one combination: gain ``law`` (a module of snn_estimator.gains),
     ``covariance`` (riccati | gain | none), network or direct integration (``spike_rule`` only
     matters for a network), and whether the filter integrates a given nonlinear ``drift`` (a
-    direct filter on a nonlinear model, or a network with network_drive: nonlinear).
+    direct filter on a nonlinear model, or a network with network_drive: nonlinear), and what a
+    network codes (``coding``: state, the paper's; deviation, x_hat - x_pred).
     Called as ``kernel(constants, state, network, measured, dt, dynamics, drift, z, u, noise)``."""
     if covariance not in COVARIANCE_LAWS:
         raise ValueError(f'unknown covariance law {covariance!r}; choose one of {", ".join(COVARIANCE_LAWS)}')
     if spike_rule not in _FIRE:
         raise ValueError(f'unknown spike rule {spike_rule!r}; choose one of {", ".join(_FIRE)}')
+    if coding not in _CODING:
+        raise ValueError(f'unknown network coding {coding!r}; choose one of {", ".join(_CODING)}')
     module = gains.law(law)
-    mode = (f'spiking_{spike_rule}' + ('_drift' if drift else '')) if spiking else ('drift' if drift else 'linear')
+    tag = '' if coding == 'state' else f'_{coding}'
+    mode = (f'spiking_{spike_rule}{tag}' + ('_drift' if drift else '')) if spiking else ('drift' if drift else 'linear')
     name = f'step_{law}_{covariance}_{mode}'
     if (_step_template.__name__, name) in _KERNELS:
         return _KERNELS[(_step_template.__name__, name)]
-    integrate = _specialise(_spiking_template, f'network_{spike_rule}', _fire=_FIRE[spike_rule]) if spiking else _direct
+    drive, decode = _CODING[coding]
+    integrate = (_specialise(_spiking_template, f'network_{spike_rule}{tag}', _fire=_FIRE[spike_rule], _drive=drive,
+                             _decode=decode) if spiking else _direct)
     uses_p = module.USES_P or covariance == 'riccati'
     return _specialise(
         _step_template, name, _terms=_p_terms if uses_p else _no_p_terms, _gain=_law_piece(law),
@@ -488,10 +536,12 @@ def compile_for(kernel, *args) -> None:
     kernel.compile(tuple(numba.typeof(a) for a in args))
 
 
-def fire_kernel(spike_rule: str):
+def fire_kernel(spike_rule: str, coding: str = 'state'):
     """``kernel(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes,
-    x_hat)``: the spikes of ``spike_rule`` alone (see _fire_only_template)."""
-    return _specialise(_fire_only_template, f'fire_only_{spike_rule}', _fire=_FIRE[spike_rule])
+    x_hat, reference)``: the spikes of ``spike_rule`` alone (see _fire_only_template)."""
+    tag = '' if coding == 'state' else f'_{coding}'
+    return _specialise(_fire_only_template, f'fire_only_{spike_rule}{tag}', _fire=_FIRE[spike_rule],
+                       _decode=_CODING[coding][1])
 
 
 @numba.njit(cache=True)

@@ -170,10 +170,13 @@ class DenseSpikingFilter:
         self.alive = estimator.alive
         self.method = s.discretization
         self.spikes = np.zeros(self.decoder.shape[1], dtype=np.int64)
+        # network_coding deviation: the network codes x_hat - x_pred, the prediction runs beside it
+        self.deviation = s.network_coding == 'deviation'
+        self.x_pred = estimator.prediction.copy() if self.deviation else np.zeros(n)
 
     @property
     def x_hat(self) -> np.ndarray:
-        return self.scale * (self.decoder @ self.r)                          # Eq. 12
+        return self.x_pred + self.scale * (self.decoder @ self.r)            # Eq. 12 (+ x_pred)
 
     def step(self, z, u, dt: float) -> np.ndarray:
         model = self.model
@@ -195,6 +198,11 @@ class DenseSpikingFilter:
         omega_k = -d.T @ (s_inv[:, None] * k_gain) @ (c * self.scale[None, :]) @ d  # Eq. 19/21/23
         f_k = d.T @ (s_inv[:, None] * k_gain)                                  # Eq. 20/22/24
         self.P = written_out_covariance_step(self.source, self.P, model.jacobian(x_hat, u), k_gain, dt)
+        if self.deviation:  # the prediction leaves the network: no F u, no A in Omega_s, no f
+            z = z - c @ self.x_pred                                             # F_k reads z - C x_pred
+            self.x_pred = self.x_pred + dt * (a_d @ x_hat + b_d @ u + nonlinear)
+            f_weights, nonlinear = np.zeros_like(f_weights), np.zeros_like(nonlinear)
+            omega_s = d.T @ (self.leak * np.eye(n)) @ d
         v_dot = (-self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z  # Eq. 15
                  + d.T @ (s_inv * nonlinear))
         self.v = self.v + dt * v_dot

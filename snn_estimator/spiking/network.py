@@ -36,19 +36,23 @@ class Network:
         self.alive[:, list(silenced)] = False
         self.spikes = np.zeros((runs, neurons), dtype=np.int64)
         self.total_spikes = np.zeros(runs, dtype=np.int64)
+        #: x_pred of network_coding deviation (x_hat = x_pred + S D r); zero for the paper's coding
+        self.reference = np.zeros((runs, n))
         self.zero_noise = np.zeros((runs, neurons))
 
     @property
     def arrays(self) -> dict:
         """The kernel's network arguments by name (kernels.NETWORK)."""
         return {'decoder': self.decoder, 'gram': self.gram, 'thresholds': self.thresholds, 'alive': self.alive,
-                'r': self.r, 'v': self.v, 'spikes': self.spikes, 'total_spikes': self.total_spikes}
+                'r': self.r, 'v': self.v, 'spikes': self.spikes, 'total_spikes': self.total_spikes,
+                'reference': self.reference}
 
     def clear(self) -> None:
         self.r[:] = 0.0
         self.v[:] = 0.0
         self.spikes[:] = 0
         self.total_spikes[:] = 0
+        self.reference[:] = 0.0
 
     def noise(self, sigma: float) -> np.ndarray:
         """Membrane noise of one step for every run, N(0, sigma^2) per neuron."""
@@ -86,11 +90,15 @@ class Network:
 
 
 def weights(decoder: np.ndarray, scale: np.ndarray, a_d: np.ndarray, b_d: np.ndarray, gain: np.ndarray,
-            c: np.ndarray, leak: float, thresholds: np.ndarray) -> dict:
+            c: np.ndarray, leak: float, thresholds: np.ndarray, coding: str = 'state') -> dict:
     """The network's matrices (Eq. 16-22) in scaled units: ``F = D^T S^-1 B_d``,
     ``Omega_s = D^T (S^-1 A_d S + lambda I) D``, ``Omega_f = -D^T D``,
-    ``Omega_k = -D^T S^-1 K C S D``, ``F_k = D^T S^-1 K``, thresholds."""
+    ``Omega_k = -D^T S^-1 K C S D``, ``F_k = D^T S^-1 K``, thresholds. With ``coding``
+    deviation the prediction runs off the network: ``F = 0``, ``Omega_s = lambda D^T D``, and
+    F_k reads z - C x_pred instead of z (docs/decisions.md, 13b)."""
     d = decoder
+    if coding == 'deviation':
+        a_d, b_d = np.zeros_like(a_d), np.zeros_like(b_d)
     a_scaled = a_d / scale[:, None] * scale[None, :]
     k_scaled = gain / scale[:, None]
     c_scaled = c * scale[None, :]
