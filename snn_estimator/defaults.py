@@ -63,3 +63,25 @@ FAR_RANGE_LQR_INPUT_WEIGHT = 1e10
 FAR_RANGE_ESTIMATOR = {
     'initial_state': FAR_RANGE_X0, 'initial_covariance': (0.04, 0.04, 0.04, 1e-4, 1e-4, 1e-4),
     'initial_state_dispersion': True, 'state_scale': (0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3)}
+
+# ---------------------------------------------------------------- sensor models (issue 22; not in the paper)
+#: R per sample of each sensor model in its units: LIDAR range 0.1 m (Table 6's position sigma)
+#: and angles 1 mrad; camera angles 1 mrad.
+SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevation': (1e-2, 1e-6, 1e-6),
+                'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6}
+#: The close approach's sensor on the chaser, 70 m ahead of the target: boresight LVLH -x
+#: (180 deg about z, quaternion [x, y, z, w]), looking back at the target.
+CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)
+#: Angles-only far approach (open loop): the chaser 1 km behind the target and 50 m below its
+#: orbit (z toward Earth) drifts toward it under free CW motion (x' = 1.5 n z); a camera on the
+#: chaser looks forward (identity mounting: boresight LVLH +x). 1 s samples over 3000 s.
+ANGLES_ONLY_X0 = (-1000.0, 0.0, 50.0, 0.0, 0.0, 0.0)  # vx set to the drift 1.5 n z by the scenario
+ANGLES_ONLY_TIME_STEP = 1.0
+ANGLES_ONLY_DURATION = 3000.0
+ANGLES_ONLY_METRIC_WINDOW = 600.0
+#: The estimate starts 100 m off along the line of sight (10 % of the range) and 1 m across it;
+#: P0 says so (100 m, 1 m, 1 m, 1 cm/s).
+ANGLES_ONLY_INITIAL_ERROR = (100.0, 1.0, -1.0, 0.0, 0.0, 0.0)
+ANGLES_ONLY_INITIAL_COVARIANCE = (1e4, 1.0, 1.0, 1e-4, 1e-4, 1e-4)
+#: The observability maneuver: a known radial burn (m/s^2, LVLH) held over [start, end) s.
+ANGLES_ONLY_MANEUVER = (500.0, 520.0, (0.0, 0.0, -2.5e-3))

@@ -111,6 +111,8 @@ class StateSpaceModel(ABC):
             raise TypeError(f'{type(self).__name__} is nonlinear: it has no constant Phi')
         cache = self.__dict__.setdefault('_zoh_cache', {})
         if dt not in cache:
+            if len(cache) >= 64:  # bounded: stamps off a grid give a new dt every step
+                cache.clear()
             a = self.jacobian(np.zeros(self.n_state), np.zeros(self.n_input))
             cache[dt] = zoh_matrices(a, self.input_matrix, dt)
         return cache[dt]
