@@ -72,6 +72,10 @@ SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevati
 #: The close approach's sensor on the chaser, 70 m ahead of the target: boresight LVLH -x
 #: (180 deg about z, quaternion [x, y, z, w]), looking back at the target.
 CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)
+#: Its minimum range, m: closer, no sample (sensor_msgs/Range: discard). An EKF on angles fails
+#: once the range is comparable to its position error (h is far from linear over the error) and
+#: H grows as 1/range; without a limit the close approach diverges (docs/sensors.md).
+CLOSE_SENSOR_MIN_RANGE = 0.3
 #: Angles-only far approach (open loop): the chaser 1 km behind the target and 50 m below its
 #: orbit (z toward Earth) drifts toward it under free CW motion (x' = 1.5 n z); a camera on the
 #: chaser looks forward (identity mounting: boresight LVLH +x). 1 s samples over 3000 s.
@@ -79,9 +83,10 @@ ANGLES_ONLY_X0 = (-1000.0, 0.0, 50.0, 0.0, 0.0, 0.0)  # vx set to the drift 1.5 
 ANGLES_ONLY_TIME_STEP = 1.0
 ANGLES_ONLY_DURATION = 3000.0
 ANGLES_ONLY_METRIC_WINDOW = 600.0
-#: The estimate starts 100 m off along the line of sight (10 % of the range) and 1 m across it;
-#: P0 says so (100 m, 1 m, 1 m, 1 cm/s).
-ANGLES_ONLY_INITIAL_ERROR = (100.0, 1.0, -1.0, 0.0, 0.0, 0.0)
-ANGLES_ONLY_INITIAL_COVARIANCE = (1e4, 1.0, 1.0, 1e-4, 1e-4, 1e-4)
+#: The estimate starts 30 m off along the line of sight (3 % of the range) and 1 m across it;
+#: P0 says so (30 m, 1 m, 1 m, 1 cm/s). A larger P0 along x fails Estimator.check_time_step at
+#: 1 s steps: with the chaser 50 m below, the elevation sees x as 50/r^2 rad/m.
+ANGLES_ONLY_INITIAL_ERROR = (30.0, 1.0, -1.0, 0.0, 0.0, 0.0)
+ANGLES_ONLY_INITIAL_COVARIANCE = (900.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4)
 #: The observability maneuver: a known radial burn (m/s^2, LVLH) held over [start, end) s.
 ANGLES_ONLY_MANEUVER = (500.0, 520.0, (0.0, 0.0, -2.5e-3))

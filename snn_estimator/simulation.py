@@ -147,15 +147,20 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
     """Sec. 3.2 measured by ``sensor`` (a model of snn_estimator.measurements) instead of Table
     6's position (issue 22): noise R per sample ``noise`` (default defaults.SENSOR_NOISE), the
     sensor on the chaser looking back at the target (defaults.CLOSE_SENSOR_MOUNTING; no field of
-    view or range limit unless ``sensor_options`` sets them). The filters take the sensor's R as
-    their R (times measurement_noise_scale) unless ``measurement_noise`` is given."""
+    view, and the range limit defaults.CLOSE_SENSOR_MIN_RANGE, unless ``sensor_options`` sets
+    them). The filters take the sensor's R as their R (times measurement_noise_scale) and one
+    sensor sigma per component as the boundary layer delta (Table 6: delta = 0.1 m = sigma),
+    unless ``measurement_noise`` or ``boundary_layer`` is given."""
     from .measurements import make_model
     base = rendezvous_scenario(preset, **estimator_changes)
-    options = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, **(sensor_options or {})}
+    options = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE,
+               **(sensor_options or {})}
     model = make_model(sensor, D.SENSOR_NOISE[sensor] if noise is None else noise, **options)
     config = base.estimator
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
+    if 'boundary_layer' not in estimator_changes:  # Table 6's delta is one sensor sigma: per component
+        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
     return replace(base, name=f'rendezvous_{sensor}', sensor=model, estimator=config,
                    measurement_noise=model.noise)
 
@@ -163,7 +168,7 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
 def angles_only_scenario(maneuver: bool = False, noise=None, **estimator_changes) -> Scenario:
     """An angles-only far approach (issue 22; not in the paper): a camera (line_of_sight) on the
     chaser, 1 km behind the target and 50 m below its orbit, drifting toward it under free CW
-    motion, open loop, 1 s samples for 3000 s (defaults.ANGLES_ONLY_*). The filters start 100 m
+    motion, open loop, 1 s samples for 3000 s (defaults.ANGLES_ONLY_*). The filters start 30 m
     off along the line of sight. Under free drift the bearings of x and of k x are the same for
     every k (linear dynamics, no input), so the range cannot be observed; ``maneuver`` adds a known
     radial burn (defaults.ANGLES_ONLY_MANEUVER), which breaks that scale symmetry."""

@@ -154,7 +154,9 @@ def test_the_ekf_agrees_with_filterpys_extended_kalman_filter(name):
     differ in the same H P H^T / R_hat and at O(dt^2) in the prediction: the same estimator in
     the limit H P H^T << R_hat, dt -> 0. So P0 is small against R on the measured directions
     (0.03 m against 0.1 m in range and 0.07 m against 1 mrad at 76 m across), 10 Hz samples
-    over 60 s, and the RMSE of the position over the last 30 s, over 12 seeds, agrees within 2 %."""
+    over 60 s, and the RMSE over the last 30 s and 12 seeds agrees within 2 %: of the position
+    for range/azimuth/elevation, of the bearings for the line of sight (whose range error, hardly
+    observable, would hide any difference in the update)."""
     model = sensor(name)
     dt, steps = 0.1, 600
     config = config_for(model, initial_covariance=(1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-6),
@@ -170,9 +172,14 @@ def test_the_ekf_agrees_with_filterpys_extended_kalman_filter(name):
     window = slice(steps // 2, steps)
 
     def rmse(estimates):
-        return np.sqrt(np.mean((estimates[:, window, :3] - truths[:, window, :3]) ** 2))
+        if name == 'line_of_sight':  # the range is hardly observable: compare the bearing errors
+            errors = model.residual(model.h(estimates[:, window]), model.h(truths[:, window]))
+        else:
+            errors = estimates[:, window, :3] - truths[:, window, :3]
+        return np.sqrt(np.mean(errors ** 2))
     assert rmse(ours) == pytest.approx(rmse(theirs), rel=0.02)
-    assert rmse(ours) < np.linalg.norm([0.3, -0.2, 0.1])  # below the initial error
+    start = rmse(np.broadcast_to(np.array(config.initial_state), ours.shape))
+    assert rmse(ours) < 0.5 * start  # both learnt from the samples
 
 
 # ---------------------------------------------------------------- no measurement outside the field of view
@@ -252,3 +259,29 @@ def test_a_linear_filter_at_jittered_steps_keeps_its_caches_bounded():
     for dt in 0.1 * (1.0 + 0.3 * rng.uniform(-1.0, 1.0, 400)):
         estimator.step(np.array([70.0, 30.0, -5.0]), np.zeros(3), float(dt))
     assert len(estimator.model.__dict__['_zoh_cache']) <= 65
+
+
+# ---------------------------------------------------------------- the scenarios (docs/sensors.md)
+@pytest.mark.slow
+def test_the_lidar_close_approach_docks_with_the_default_filter():
+    """Table 6's dispersed rendezvous measured by range/azimuth/elevation: the default filter
+    (snn_ekf) and the EKF close the loop to below 0.1 m in every run."""
+    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
+    for kind in ('ekf', 'snn_ekf'):
+        result = simulate(scenario, kind, runs=4)
+        assert result.final_range().max() < 0.1, kind
+        assert result.extra['unmeasured_steps'].min() > 0  # inside the minimum range: no sample
+
+
+@pytest.mark.slow
+def test_angles_only_the_range_is_observable_only_with_a_maneuver():
+    """Bearings alone under free CW drift leave the range error at ~2 % of the range after
+    50 minutes; a known radial burn brings it below 0.6 %."""
+    from snn_estimator.simulation import angles_only_scenario
+    final = {}
+    for maneuver in (False, True):
+        result = simulate(angles_only_scenario(maneuver=maneuver), 'ekf')
+        truth, estimate = result.truth[0, -1, :3], result.estimate[0, -1, :3]
+        final[maneuver] = abs(np.linalg.norm(estimate) - np.linalg.norm(truth)) / np.linalg.norm(truth)
+    assert final[False] > 0.015
+    assert final[True] < 0.006 and final[True] < final[False] / 3
