@@ -209,6 +209,7 @@ class Estimator(EstimatorViews):
         #: The sensor model z = h(x) + v the filter linearises each step (None: the model's C).
         self.measurement = _check_measurement(measurement, model)
         self._linearize = self.measurement is not None and self.measurement.linear_matrix is None
+        self._n_meas = model.n_meas if self.measurement is None else self.measurement.dim
         self.settings: ResolvedConfig = resolve(config, model, self.n_meas)
         self._choose_laws(FILTER_KINDS[kind])
         self.runs = int(runs)
@@ -495,7 +496,7 @@ class Estimator(EstimatorViews):
     @property
     def n_meas(self) -> int:
         """Components of the measurement the filter takes (the measurement model's, or the model's C)."""
-        return self.model.n_meas if self.measurement is None else self.measurement.dim
+        return self._n_meas
 
     def step(self, z, u, dt: float, valid=None) -> np.ndarray:
         """Advance every run by ``dt`` seconds with measurement ``z`` (at the current time) and
@@ -511,7 +512,7 @@ class Estimator(EstimatorViews):
         Raises ValueError for non-finite input or a bad dt (the state is then unchanged) and
         FloatingPointError if the state became non-finite (reset() before going on).
         """
-        runs, m = self.runs, self.n_meas
+        runs, m = self.runs, self._n_meas
         if z is None:
             z, measured = self._no_measurement, self._none_measured
         else:
