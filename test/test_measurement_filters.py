@@ -285,3 +285,21 @@ def test_angles_only_the_range_is_observable_only_with_a_maneuver():
         final[maneuver] = abs(np.linalg.norm(estimate) - np.linalg.norm(truth)) / np.linalg.norm(truth)
     assert final[False] > 0.015
     assert final[True] < 0.006 and final[True] < final[False] / 3
+
+
+def test_a_step_that_would_overshoot_eq_6_is_split_into_held_sub_steps():
+    """At 3 m a LIDAR's angles give dt H P0 H^T R^-1 ~ 0.8 in one 0.1 s step (allowed: < 1, but
+    above MAX_STEP_INFORMATION = 0.5): the step is split in two sub-steps of 0.05 s with z held,
+    exactly as two steps of 0.05 s with the same sample (R a density: the same R either way)."""
+    model = make_model('range_azimuth_elevation', [1e-2, 1e-6, 1e-6], mounting_rotation=MOUNTING)
+    x = np.array([3.0, 0.2, -0.1, -0.01, 0.0, 0.0])
+    config = EstimatorConfig(measurement_noise=model.noise, initial_state=tuple(x + [0.0, 0.01, 0.01, 0, 0, 0]),
+                             initial_covariance=(7e-5, 7e-5, 7e-5, 1e-6, 1e-6, 1e-6), measurement_noise_scale=1.0)
+    z = model.h(x)
+    whole, halves = (make_estimator('ekf', config, measurement=model) for _ in range(2))
+    whole.step(z, np.zeros(3), 0.1)
+    halves.step(z, np.zeros(3), 0.05)
+    halves.step(z, np.zeros(3), 0.05)
+    assert (whole.split_steps, halves.split_steps, whole.steps) == (1, 0, 1)
+    np.testing.assert_allclose(whole.x_hat, halves.x_hat, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(whole.P, halves.P, rtol=1e-12, atol=1e-18)
