@@ -43,10 +43,11 @@ ResolvedConfig = dataclasses.make_dataclass(
 ResolvedConfig.__module__ = __name__
 
 
-def resolve(config: EstimatorConfig, model: StateSpaceModel) -> ResolvedConfig:
+def resolve(config: EstimatorConfig, model: StateSpaceModel, n_meas: int | None = None) -> ResolvedConfig:
     """Validate ``config`` for ``model`` field by field (schema.Field.check); raise ValueError
-    naming the field and the fix."""
-    dims = {'n': model.n_state, 'm': model.n_meas}
+    naming the field and the fix. ``n_meas``: the measurement's size when a measurement model
+    replaces the model's C (default: the model's)."""
+    dims = {'n': model.n_state, 'm': model.n_meas if n_meas is None else int(n_meas)}
     values = {}
     for spec in FIELDS:
         value = getattr(config, spec.name)

@@ -63,3 +63,30 @@ FAR_RANGE_LQR_INPUT_WEIGHT = 1e10
 FAR_RANGE_ESTIMATOR = {
     'initial_state': FAR_RANGE_X0, 'initial_covariance': (0.04, 0.04, 0.04, 1e-4, 1e-4, 1e-4),
     'initial_state_dispersion': True, 'state_scale': (0.1, 0.1, 0.1, 1e-3, 1e-3, 1e-3)}
+
+# ---------------------------------------------------------------- sensor models (issue 22; not in the paper)
+#: R per sample of each sensor model in its units: LIDAR range 0.1 m (Table 6's position sigma)
+#: and angles 1 mrad; camera angles 1 mrad.
+SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevation': (1e-2, 1e-6, 1e-6),
+                'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6}
+#: The close approach's sensor on the chaser, 70 m ahead of the target: boresight LVLH -x
+#: (180 deg about z, quaternion [x, y, z, w]), looking back at the target.
+CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)
+#: Its minimum range, m: closer, no sample (sensor_msgs/Range: discard). An EKF on angles fails
+#: once the range is comparable to its position error (h is far from linear over the error) and
+#: H grows as 1/range; without a limit the close approach diverges (docs/sensors.md).
+CLOSE_SENSOR_MIN_RANGE = 0.3
+#: Angles-only far approach (open loop): the chaser 1 km behind the target and 50 m below its
+#: orbit (z toward Earth) drifts toward it under free CW motion (x' = 1.5 n z); a camera on the
+#: chaser looks forward (identity mounting: boresight LVLH +x). 1 s samples over 3000 s.
+ANGLES_ONLY_X0 = (-1000.0, 0.0, 50.0, 0.0, 0.0, 0.0)  # vx set to the drift 1.5 n z by the scenario
+ANGLES_ONLY_TIME_STEP = 1.0
+ANGLES_ONLY_DURATION = 3000.0
+ANGLES_ONLY_METRIC_WINDOW = 600.0
+#: The estimate starts 30 m off along the line of sight (3 % of the range) and 1 m across it;
+#: P0 says so (30 m, 1 m, 1 m, 1 cm/s). A larger P0 along x fails Estimator.check_time_step at
+#: 1 s steps: with the chaser 50 m below, the elevation sees x as 50/r^2 rad/m.
+ANGLES_ONLY_INITIAL_ERROR = (30.0, 1.0, -1.0, 0.0, 0.0, 0.0)
+ANGLES_ONLY_INITIAL_COVARIANCE = (900.0, 1.0, 1.0, 1e-4, 1e-4, 1e-4)
+#: The observability maneuver: a known radial burn (m/s^2, LVLH) held over [start, end) s.
+ANGLES_ONLY_MANEUVER = (500.0, 520.0, (0.0, 0.0, -2.5e-3))

@@ -329,13 +329,17 @@ def test_the_measurements_package_imports_numpy_and_validation_only():
 def test_the_measurement_bench_times_every_model(tmp_path):
     from snn_tools import measurement_bench
     out = tmp_path / 'bench.json'
-    assert measurement_bench.main(['--repeat', '2', '--runs', '3', '--out', str(out)]) == 0
+    assert measurement_bench.main(['--repeat', '2', '--runs', '3', '--steps', '25', '--out', str(out)]) == 0
     import json
     figures = json.loads(out.read_text())
-    assert set(figures) == {'runs=1', 'runs=3'}
+    steps = figures.pop('filter_step_us')
+    assert set(figures) == {'runs=1', 'runs=3'} == set(steps)
     for rows in figures.values():
         assert set(rows) == {'PositionSensor.measure', *MODELS}
         assert all(value > 0 for name in MODELS for value in rows[name].values())
+    for rows in steps.values():  # the filter's step with each model, and on the model's own C
+        assert set(rows) == {'model_c', *MODELS}
+        assert all(value > 0 for row in rows.values() for value in row.values())
 
 
 def test_sample_period_keeps_its_grid_whatever_the_truth_steps():

@@ -34,6 +34,7 @@ import scipy.linalg
 from snn_estimator import gains
 from snn_estimator.catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
 from snn_estimator.config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
+from snn_estimator.measurements import MeasurementModel
 from snn_estimator.models import DT_CACHE_SIZE, StateSpaceModel
 from snn_estimator.schema import NETWORK_CODINGS, RUNTIME
 from snn_estimator.spiking import chip
@@ -210,21 +211,34 @@ class Estimator(EstimatorViews):
     RETUNABLE = RUNTIME
 
     def __init__(self, kind: str, model: StateSpaceModel, config: EstimatorConfig,
-                 runs: int = 1, seeds: Sequence[int] | None = None):
+                 runs: int = 1, seeds: Sequence[int] | None = None, measurement: MeasurementModel | None = None):
         if kind not in FILTER_KINDS:
             raise ValueError(f'unknown filter kind {kind!r}; choose one of {", ".join(FILTER_KINDS)}')
         if int(runs) < 1:
             raise ValueError(f'runs must be >= 1, got {runs}')
         self.kind, self.model, self.config = kind, model, config
-        self.settings: ResolvedConfig = resolve(config, model)
+        #: The sensor model z = h(x) + v the filter linearises each step (None: the model's C).
+        self.measurement = _check_measurement(measurement, model)
+        self._linearize = self.measurement is not None and self.measurement.linear_matrix is None
+        self._n_meas = model.n_meas if self.measurement is None else self.measurement.dim
+        self.settings: ResolvedConfig = resolve(config, model, self.n_meas)
         self._choose_laws(FILTER_KINDS[kind])
         self.runs = int(runs)
         self.seeds = ([self.settings.seed + b for b in range(self.runs)] if seeds is None
                       else [int(s) for s in seeds])
         if len(self.seeds) != self.runs:
             raise ValueError(f'seeds must have {self.runs} entries, got {len(self.seeds)}')
-        n, m = model.n_state, model.n_meas
-        self._c = np.ascontiguousarray(model.measurement_matrix, dtype=float)
+        n, m = model.n_state, self.n_meas
+        # H and its pseudo-inverse: one shared (1, m, n) for a linear measurement, else one per
+        # run, written in place each step (the kernel's constants hold these arrays)
+        linear_c = (model.measurement_matrix if self.measurement is None else self.measurement.linear_matrix)
+        if self._linearize:
+            self._c, self._c_pinv = np.zeros((self.runs, m, n)), np.zeros((self.runs, n, m))
+        else:
+            self._c = np.ascontiguousarray(np.asarray(linear_c, dtype=float)[None])
+            self._c_pinv = np.ascontiguousarray(np.linalg.pinv(self._c[0])[None])
+        self._all_measured = np.ones(self.runs, dtype=np.bool_)
+        self._none_measured = np.zeros(self.runs, dtype=np.bool_)
         self._gain = np.zeros((self.runs, n, m))
         self._no_measurement = np.zeros((self.runs, m))
         linearized = self.spiking and self.settings.network_drive == 'linearized'
@@ -238,6 +252,9 @@ class Estimator(EstimatorViews):
                                 s.silenced_neurons)
         # precision loihi / gain_schedule switched: the network runs on snn_estimator.spiking.chip
         net = self._network
+        if chip.wanted(config) and self.measurement is not None:
+            raise ValueError('the chip network (precision loihi, gain_schedule switched) holds the constant C of '
+                             'the model: it takes no measurement model; use precision float64')
         self._chip = (chip.ChipNetwork(kind, model, config, self.settings, net.decoder, net.alive,
                                        self._x_hat, net.spikes, net.total_spikes)
                       if chip.wanted(config) else None)
@@ -258,9 +275,9 @@ class Estimator(EstimatorViews):
     def _choose_laws(self, spec: FilterKind) -> None:
         self.spiking = spec.spiking
         self.constant_gain = self.settings.gain_schedule == 'steady_state'
-        if self.constant_gain and not self.model.is_linear:
-            raise ValueError('gain_schedule steady_state needs a linear model (the gain is the '
-                             'fixed point of Eq. 6); use time_varying')
+        if self.constant_gain and (not self.model.is_linear or self._linearize):
+            raise ValueError('gain_schedule steady_state needs a linear model and measurement (the gain is '
+                             'the fixed point of Eq. 6); use time_varying')
         #: The gain law of the kind (a module of snn_estimator.gains), even when held constant.
         self.gain_law = spec.gain
         covariance = spec.covariance
@@ -272,10 +289,10 @@ class Estimator(EstimatorViews):
     def _pack(self) -> kernels.Packed:
         """The kernel's constants, filter state and network state, shape-checked once; the
         dt-dependent constants are set by :meth:`prepare` before the first step of a dt."""
-        n, m, n_u = self.model.n_state, self.model.n_meas, self.model.n_input
+        n, m, n_u = self.model.n_state, self.n_meas, self.model.n_input
         dims = {'runs': self.runs, 'n': n, 'm': m, 'nu': n_u, 'N': self._network.r.shape[1], 'w': 2 * n + n_u}
         return kernels.Packed(
-            dims, c=self._c, c_pinv=np.ascontiguousarray(np.linalg.pinv(self._c)), r_density=np.eye(m),
+            dims, c=self._c, c_pinv=self._c_pinv, r_density=np.eye(m),
             r_density_inv=np.eye(m), **_settings_constants(self.settings), scale=self._scale,
             fixed_gain=np.zeros((n, m)), x_hat=self._x_hat, p=self._p, gain=self._gain, **self._network.arrays)
 
@@ -283,8 +300,9 @@ class Estimator(EstimatorViews):
         """Compile (or load from numba's cache) this filter's kernels without stepping: a node
         calls this at configure so that its first step is not its slowest."""
         n, n_u = self.model.n_state, self.model.n_input
-        kernels.compile_for(self._kernel, self._packed.constants, self._packed.state, self._packed.network, True,
-                            0.1, np.zeros((1, n, 2 * n + n_u)), self._dynamics.no_drift, self._no_measurement,
+        kernels.compile_for(self._kernel, self._packed.constants, self._packed.state, self._packed.network,
+                            self._all_measured, 0.1, np.zeros((1, n, 2 * n + n_u)), self._dynamics.no_drift,
+                            self._no_measurement,
                             np.zeros((self.runs, n_u)), self._network.zero_noise)
         if self.spiking:
             net = self._network
@@ -326,10 +344,15 @@ class Estimator(EstimatorViews):
         self._x_hat[:] = x0
         self._gain[:] = 0.0
         self.steps = self.capped_steps = self.recovery_spikes = 0
+        #: Steps split into sub-steps because one Euler step of Eq. 6 would overshoot (_parts).
+        self.split_steps = 0
         if self.spiking:
             self._network.clear()
             for b in range(self.runs):
                 self.encode(x0[b], run=b)
+        if self._linearize:
+            self._c[:] = 0.0
+            self._relinearize(None, self._none_measured)
 
     def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
         """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons;
@@ -409,7 +432,7 @@ class Estimator(EstimatorViews):
         if self._chip is not None and changes:
             raise ValueError('the chip network holds its weights: rebuild the estimator to change them')
         config = self.config.replace(**changes)
-        settings = resolve(config, self.model)
+        settings = resolve(config, self.model, self.n_meas)
         if self._call_dt is not None:  # the step size in use must still work
             self.check_time_step(self._call_dt, settings)
         self.config, self.settings = config, settings
@@ -431,8 +454,8 @@ class Estimator(EstimatorViews):
             raise ValueError(f'leak_rate * dt must be < 1 (got {s.leak_rate} * {dt}); use a smaller step')
         if not self.has_covariance:
             return
-        c = self._c
-        step_gain = dt * c @ s.initial_covariance @ c.T @ np.linalg.inv(gain_noise_density(s, dt))
+        c = self._c  # (1 or runs, m, n): H at the current estimate
+        step_gain = dt * c @ s.initial_covariance @ np.swapaxes(c, 1, 2) @ np.linalg.inv(gain_noise_density(s, dt))
         largest = float(np.max(np.linalg.eigvals(step_gain).real))
         if largest > 1.0 + 1e-9:
             hint = (', or measurement_noise_units spectral_density'
@@ -451,12 +474,15 @@ class Estimator(EstimatorViews):
         self.check_time_step(dt)
         self._set_step(dt)
 
-    def _set_step(self, dt: float) -> None:
-        """What depends on a checked ``dt``: the R of Eq. 5-6 and a constant gain."""
+    def _set_step(self, dt: float, density: np.ndarray | None = None) -> None:
+        """What depends on a checked ``dt``: the R of Eq. 5-6 (``density``: a sample's, kept
+        over its sub-steps) and a constant gain."""
         s = self.settings
-        density = gain_noise_density(s, dt)
+        density = gain_noise_density(s, dt) if density is None else density
+        self._packed_density = density
+        self._r_density_inv = np.linalg.inv(density)
         changes = {'r_density': np.ascontiguousarray(density),
-                   'r_density_inv': np.ascontiguousarray(np.linalg.inv(density))}
+                   'r_density_inv': np.ascontiguousarray(self._r_density_inv)}
         if self.constant_gain:
             changes['fixed_gain'] = np.ascontiguousarray(steady_state_gain(self.gain_law, self.model, s, dt))
         self._packed.update(**changes)
@@ -473,8 +499,19 @@ class Estimator(EstimatorViews):
         r = np.ascontiguousarray(measurement_covariance, dtype=float)
         if r.shape != (z.shape[1], z.shape[1]):
             raise ValueError(f'measurement_covariance must be {z.shape[1]}x{z.shape[1]}, got {r.shape}')
+        if self._linearize:  # the wrapped residual and S = H P H^T + R at the current estimate
+            h = self.measurement.h(self._x_hat)
+            nu = self.measurement.residual(z, h)
+            c = self.measurement.jacobian(self._x_hat)
+            s = (c @ self._p @ np.swapaxes(c, 1, 2) + r if self.has_covariance
+                 else np.broadcast_to(r, c.shape[:1] + r.shape))
+            try:
+                nis = np.einsum('bi,bi->b', nu, np.linalg.solve(s, nu[..., None])[..., 0])
+            except np.linalg.LinAlgError:
+                return np.full(self.runs, np.inf)
+            return np.where(np.isfinite(nis), nis, np.inf)
         try:
-            return kernels.innovation_nis(z, self._x_hat, self._c, self._p, r, self.has_covariance)
+            return kernels.innovation_nis(z, self._x_hat, self._c[0], self._p, r, self.has_covariance)
         except np.linalg.LinAlgError:
             return np.full(self.runs, np.inf)
 
@@ -484,30 +521,103 @@ class Estimator(EstimatorViews):
         its measurement term."""
         return self.step(None, u, dt)
 
-    def step(self, z, u, dt: float) -> np.ndarray:
+    @property
+    def n_meas(self) -> int:
+        """Components of the measurement the filter takes (the measurement model's, or the model's C)."""
+        return self._n_meas
+
+    def step(self, z, u, dt: float, valid=None) -> np.ndarray:
         """Advance every run by ``dt`` seconds with measurement ``z`` (at the current time) and
         control ``u`` (held over the step). Shapes (m,), (m_u,) or with a leading runs axis;
-        ``z`` None means no measurement this step (see :meth:`predict`).
+        ``z`` None means no measurement this step (see :meth:`predict`); ``valid`` (a bool per
+        run, default all) marks the runs that have one (the others' rows are not read: a
+        sample the sensor could not take, e.g. out of its field of view).
+
+        With a nonlinear measurement model the filter re-linearises at the current estimate:
+        C = H(x_hat) (Eq. 3-9, 19-22) and the innovation is the model's wrapped residual
+        z - h(x_hat) (Eq. 3-4).
 
         Raises ValueError for non-finite input or a bad dt (the state is then unchanged) and
         FloatingPointError if the state became non-finite (reset() before going on).
         """
-        runs = self.runs
-        measured = z is not None
-        z = (np.asarray(z, dtype=float).reshape(runs, -1) if measured
-             else self._no_measurement)
+        runs, m = self.runs, self._n_meas
+        if z is None:
+            z, measured = self._no_measurement, self._none_measured
+        else:
+            z = np.asarray(z, dtype=float).reshape(runs, -1)
+            measured = self._all_measured
+            if valid is not None:
+                measured = np.ascontiguousarray(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (runs,)))
+                if not measured.all():
+                    z = np.where(measured[:, None], z, 0.0)
         u = np.asarray(u, dtype=float).reshape(runs, -1)
-        if z.shape[1] != self.model.n_meas or u.shape[1] != self.model.n_input:
-            raise ValueError(f'z must have {self.model.n_meas} and u {self.model.n_input} entries '
+        if z.shape[1] != m or u.shape[1] != self.model.n_input:
+            raise ValueError(f'z must have {m} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
-        if dt != self._call_dt:
+        if self._linearize:
+            if not np.isfinite(z[measured]).all():
+                raise ValueError('z and u must be finite')
+            if dt != self._call_dt:
+                self.prepare(dt)
+            raw_z, raw_measured = z, measured
+            z, measured = self._relinearize(z, measured)
+            parts = self._parts(dt, measured)
+            if parts > 1:
+                return self._step_in_parts(raw_z, raw_measured, u, dt, parts)
+        elif dt != self._call_dt:
             self.prepare(dt)  # checks dt the first time it is used
+        return self._advance(z, measured, u, dt)
+
+    #: A step of Eq. 6 is split when dt lambda_max(H P H^T R^-1) exceeds this (see _parts).
+    MAX_STEP_INFORMATION = 0.5
+    #: At most this many sub-steps per step.
+    MAX_PARTS = 64
+
+    def _parts(self, dt: float, measured: np.ndarray) -> int:
+        """Sub-steps for this step: one Euler step of Eq. 6 removes dt H P H^T R^-1 of the
+        covariance along H, so once that reaches 1 P stops being a covariance and the filter
+        diverges. A position sensor never gets there (check_time_step bounds it at P0 and P only
+        shrinks along C), but H of an angle grows as 1/range: a LIDAR at 1 m gives 70^2 times the
+        information per step it gave at 70 m. Such a step is split into k equal sub-steps with z
+        held (the continuous filter of Eq. 3-6 sees the sample held over its interval), k such that
+        each removes at most MAX_STEP_INFORMATION; the R of Eq. 5-6 stays the sample's."""
+        if self.covariance_law != 'riccati' or not measured.any():
+            return 1
+        c = self._c[measured]
+        information = c @ self._p[measured] @ np.swapaxes(c, 1, 2) @ self._r_density_inv
+        if not np.isfinite(information).all():
+            return 1
+        largest = dt * float(np.max(np.linalg.eigvals(information).real))
+        return min(self.MAX_PARTS, max(1, math.ceil(largest / self.MAX_STEP_INFORMATION)))
+
+    def _step_in_parts(self, z, measured, u, dt: float, parts: int) -> np.ndarray:
+        """``parts`` sub-steps of dt / parts with ``z`` held, re-linearised before each; the
+        spikes of the step are the sum of the sub-steps'."""
+        self.split_steps += 1
+        sample_density = self._packed_density
+        part = dt / parts
+        spikes = np.zeros_like(self._network.spikes)
+        self._set_step(part, density=sample_density)
+        try:
+            for _ in range(parts):
+                z_eq, valid = self._relinearize(z, measured)
+                self._advance(z_eq, valid, u, part)
+                spikes += self._network.spikes
+                self.steps -= 1
+        finally:
+            self._set_step(dt)
+        self.steps += 1
+        self._network.spikes[:] = spikes
+        return self.x_hat
+
+    def _advance(self, z, measured, u, dt: float) -> np.ndarray:
+        """One kernel step of ``dt`` (prepared) with the kernel's z and measured runs."""
         dynamics, drift = self._dynamics(self._x_hat, u, dt)
         noise = self._network.zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:
             noise = self._network.noise(self.settings.membrane_noise * math.sqrt(dt))
         if self._chip is not None:  # the chip network (snn_estimator.spiking.chip) replaces the kernel
-            self._chip.step(z if measured else None, u, dt)
+            self._chip.step(z if measured.any() else None, u, dt)
             self.steps += 1
             self.capped_steps = self._chip.capped_steps
             return self.x_hat
@@ -522,6 +632,28 @@ class Estimator(EstimatorViews):
             raise FloatingPointError(f'the {self.kind} state became non-finite; call reset()')
         return self.x_hat
 
+    def _relinearize(self, z, measured):
+        """Write H(x_hat) (and its pseudo-inverse) of every run into the kernel's C, and return
+        the equivalent linear measurement z_eq = residual(z, h(x_hat)) + H x_hat, so that the
+        kernel's z_eq - C x_hat is the wrapped residual; and the runs measured. A run whose H or
+        h is not finite at x_hat (on a singular direction) keeps its last H and is not updated."""
+        model, x_hat = self.measurement, self._x_hat
+        jac = model.jacobian(x_hat)
+        predicted = model.h(x_hat)
+        finite = np.isfinite(jac).all(axis=(1, 2)) & np.isfinite(predicted).all(axis=1)
+        if finite.all():
+            self._c[:] = jac
+        else:
+            self._c[finite] = jac[finite]
+        if self.gain_law != 'kalman':  # C^+ of Eq. 7-8, 21-24 (the Kalman gain needs none)
+            self._c_pinv[:] = np.linalg.pinv(self._c)
+        if z is None:
+            return None, measured
+        measured = measured & finite
+        z_eq = np.einsum('bij,bj->bi', self._c, x_hat)
+        z_eq[measured] += model.residual(z[measured], predicted[measured])
+        return np.ascontiguousarray(z_eq), np.ascontiguousarray(measured)
+
     # ------------------------------------------------------------------ inspection
     def weights(self, u=None, dt: float = 0.1, run: int = 0) -> dict:
         """The network's matrices at the current state (Eq. 16-22, :func:`network.weights`), in
@@ -533,19 +665,35 @@ class Estimator(EstimatorViews):
         a_d, b_d = self.model.linearized_increment(self._x_hat[run], dt, self.settings.discretization)
         gain = (steady_state_gain(self.gain_law, self.model, self.settings, dt) if self.constant_gain
                 else self._gain[run])
-        return weights(decoder, self._scale, a_d, b_d, gain, self._c, self.settings.leak_rate,
+        c = self._c[0] if self._c.shape[0] == 1 else self._c[run]
+        return weights(decoder, self._scale, a_d, b_d, gain, c, self.settings.leak_rate,
                        self._network.thresholds[run], self.coding)
 
 
 def make_estimator(kind: str, config: EstimatorConfig | None = None,
                    model: StateSpaceModel | None = None, runs: int = 1,
-                   seeds: Sequence[int] | None = None) -> Estimator:
+                   seeds: Sequence[int] | None = None, measurement: MeasurementModel | None = None) -> Estimator:
     """Build the filter ``kind`` (see :data:`FILTER_KINDS`) for ``model`` (default: the
-    standard CW rendezvous model) with ``config`` (default: :class:`EstimatorConfig`)."""
+    standard CW rendezvous model) with ``config`` (default: :class:`EstimatorConfig`), measuring
+    through ``measurement`` (a snn_estimator.measurements model; default: the model's linear C).
+    The filter's R_hat is ``config.measurement_noise`` (times its scale) in that model's units."""
     if model is None:
         from snn_estimator.models import ClohessyWiltshire
         model = ClohessyWiltshire()
-    return Estimator(kind, model, config or EstimatorConfig(), runs=runs, seeds=seeds)
+    return Estimator(kind, model, config or EstimatorConfig(), runs=runs, seeds=seeds, measurement=measurement)
+
+
+def _check_measurement(measurement, model: StateSpaceModel):
+    """``measurement`` if it is a measurement model of ``model``'s state, else ValueError."""
+    if measurement is None:
+        return None
+    if not isinstance(measurement, MeasurementModel):
+        raise ValueError(f'measurement must be a snn_estimator.measurements model (make_model), got '
+                         f'{type(measurement).__name__}')
+    if measurement.n_state != model.n_state:
+        raise ValueError(f'the measurement model {measurement.name} takes {measurement.n_state} states, the '
+                         f'model has {model.n_state}')
+    return measurement
 
 
 def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedConfig,

@@ -12,7 +12,7 @@ below; nothing is chosen by a code at run time. Each composition is compiled onc
 numba's on-disk cache (under a name carrying a hash of the sources it is made of, so an edited
 piece is never served stale). Its arguments are packed (:class:`Packed`): the constants, the
 filter state and the network state are tuples built and shape-checked in one place; a step
-passes those three and its own seven inputs.
+passes those three and its own seven inputs (``measured`` a bool per run).
 """
 
 from __future__ import annotations
@@ -41,8 +41,11 @@ STATUS_NON_FINITE = 2    # the state became non-finite: reset before stepping ag
 
 #: The packed arguments, in symbols: runs (batch), n (states), m (measurements), nu (inputs), N
 #: (neurons, 0 for a non-spiking filter), d (1, or runs: a linear model shares one dynamics
-#: block), w (2 n + nu: the packed dynamics). Names in the order of each tuple.
-CONSTANTS = (('c', ('m', 'n')), ('c_pinv', ('n', 'm')), ('q_hat', ('n', 'n')), ('r_density', ('m', 'm')),
+#: block, a linear measurement one C), w (2 n + nu: the packed dynamics). Names in the order of
+#: each tuple. ``c`` and ``c_pinv`` are the measurement Jacobian H and its pseudo-inverse, one
+#: shared (1, m, n) for a linear measurement or one per run, re-linearised by the caller each
+#: step (written in place: the tuple is not rebuilt).
+CONSTANTS = (('c', ('d', 'm', 'n')), ('c_pinv', ('d', 'n', 'm')), ('q_hat', ('n', 'n')), ('r_density', ('m', 'm')),
              ('r_density_inv', ('m', 'm')), ('r_hat_diag', ('m',)), ('delta', ('m',)), ('scale', ('n',)),
              ('fixed_gain', ('n', 'm')), ('leak', ()), ('max_spikes', ()))
 STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')))
@@ -50,9 +53,11 @@ NETWORK = (('decoder', ('runs', 'n', 'N')), ('gram', ('runs', 'N', 'N')), ('thre
            ('alive', ('runs', 'N')), ('r', ('runs', 'N')), ('v', ('runs', 'N')), ('spikes', ('runs', 'N')),
            ('total_spikes', ('runs',)), ('reference', ('runs', 'n')))
 INPUTS = (('dynamics', ('d', 'n', 'w')), ('drift', ('d', 'n')), ('z', ('runs', 'm')), ('u', ('runs', 'nu')),
-          ('noise', ('runs', 'N')))
+          ('noise', ('runs', 'N')), ('measured', ('runs',)))
 _SCALARS = {'leak': float, 'max_spikes': int}
-_DTYPES = {'alive': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64}
+_DTYPES = {'alive': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64, 'measured': np.bool_}
+#: Arguments whose leading axis is 1 (shared by every run) or runs.
+_SHARED_OR_PER_RUN = ('dynamics', 'drift', 'c', 'c_pinv')
 
 
 class Packed:
@@ -94,7 +99,7 @@ class Packed:
         if np.shape(value) != expected:
             raise ValueError(f'step kernel argument {name}: shape {np.shape(value)}, expected '
                              f'{expected} ({", ".join(shape)})')
-        if name in ('dynamics', 'drift') and value.shape[0] not in (1, self._dims['runs']):
+        if name in _SHARED_OR_PER_RUN and value.shape[0] not in (1, self._dims['runs']):
             raise ValueError(f'step kernel argument {name}: leading axis must be 1 or runs')
         if value.dtype != _DTYPES.get(name, np.float64) or not value.flags.c_contiguous:
             raise ValueError(f'step kernel argument {name}: needs a C-contiguous {_DTYPES.get(name, "float64")} array')
@@ -397,16 +402,20 @@ def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, 
     P by the covariance piece (forward Euler); then the direct or the network integration.
     R in Eq. 5-6 is ``r_density`` (see config.gain_noise_density); P^zz of Eq. 9 uses the
     per-sample ``r_hat_diag``. ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + nu)); a leading
-    axis of 1 is shared. Without a measurement (``measured`` False: a sensor dropout) K = 0 and
-    z is not read.
+    axis of 1 is shared. C and C^+ (``consts[0]``, ``consts[1]``) are H(x_hat) and its
+    pseudo-inverse, shared (leading axis 1) or per run: every piece sees run b's own (a 2-D
+    C). A nonlinear h reaches the kernel as an equivalent linear measurement z = residual(z,
+    h(x_hat)) + H x_hat, so nu is the wrapped residual (Eq. 3-4) and the network's
+    F_k z + Omega_k r = D^T K nu (Eq. 14). Without a measurement for run b (``measured[b]``
+    False: a sensor dropout, no valid sample) its K = 0 and its z is not read.
     """
-    c, r_density_inv = consts[0], consts[4]
+    c_all, c_pinv_all, r_density_inv = consts[0], consts[1], consts[4]
     x_hat, p, gain = state
     runs, n = x_hat.shape
     m = z.shape[1]
     for b in range(runs):
         for j in range(m):
-            if measured and not np.isfinite(z[b, j]):
+            if measured[b] and not np.isfinite(z[b, j]):
                 return STATUS_BAD_INPUT, 0
         for j in range(u.shape[1]):
             if not np.isfinite(u[b, j]):
@@ -421,16 +430,20 @@ def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, 
     status = STATUS_OK
     for b in range(runs):
         bd = 0 if dynamics.shape[0] == 1 else b
-        _innovation(b, measured, z, c, x_hat, nu)
+        bc = 0 if c_all.shape[0] == 1 else b
+        c = c_all[bc]
+        run_consts = (c, c_pinv_all[bc]) + consts[2:]
+        measured_b = measured[b]
+        _innovation(b, measured_b, z, c, x_hat, nu)
         _terms(b, p, c, r_density_inv, pct, pctr)
-        _gain(b, gain, nu, pct, pctr, consts, scratch)
-        if not measured:
+        _gain(b, gain, nu, pct, pctr, run_consts, scratch)
+        if not measured_b:
             for i in range(n):
                 for j in range(m):
                     gain[b, i, j] = 0.0
         _increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment)
-        _covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch)
-        finite, _, hit_cap = _integrate(b, dt, increment, noise, consts, state, network, scratch)
+        _covariance(b, bd, measured_b, dt, dynamics, p, gain, run_consts, pct, pctr, scratch)
+        finite, _, hit_cap = _integrate(b, dt, increment, noise, run_consts, state, network, scratch)
         if hit_cap:
             capped += 1
         if not finite:
@@ -507,7 +520,8 @@ def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'gre
     matters for a network), and whether the filter integrates a given nonlinear ``drift`` (a
     direct filter on a nonlinear model, or a network with network_drive: nonlinear), and what a
     network codes (``coding``: state, the paper's; deviation, x_hat - x_pred).
-    Called as ``kernel(constants, state, network, measured, dt, dynamics, drift, z, u, noise)``."""
+    Called as ``kernel(constants, state, network, measured, dt, dynamics, drift, z, u, noise)``,
+    ``measured`` a bool per run."""
     if covariance not in COVARIANCE_LAWS:
         raise ValueError(f'unknown covariance law {covariance!r}; choose one of {", ".join(COVARIANCE_LAWS)}')
     if spike_rule not in _FIRE:

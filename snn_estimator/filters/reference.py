@@ -123,21 +123,39 @@ def written_out_steady_state_gain(source: Estimator, dt: float) -> np.ndarray:
     return c_pinv @ saturation + (np.eye(n) - c_pinv @ c) @ kalman
 
 
-def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, dt: float) -> np.ndarray:
+def measurement_terms(source: Estimator, x_hat: np.ndarray, z) -> tuple[np.ndarray, np.ndarray | None]:
+    """(C, innovation) at ``x_hat``: the model's C and z - C x_hat, or with a measurement model
+    its Jacobian H(x_hat) (Eq. 3-6: C = dh/dx at x_hat) and the wrapped residual z - h(x_hat)
+    (Eq. 3-4); innovation None without z."""
+    model = source.measurement
+    if model is None:
+        c = source.model.measurement_matrix
+        return c, None if z is None else z - c @ x_hat
+    c = model.jacobian(x_hat)
+    return c, None if z is None else model.residual(z, model.h(x_hat))
+
+
+def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, dt: float,
+                     c: np.ndarray | None = None) -> np.ndarray:
     """The gain of ``source``'s kind from the formulas: its law's ``reference`` (Eq. 5, 7, 8-9
-    and the remedies, written from the paper in snn_estimator.gains), or the steady state."""
+    and the remedies, written from the paper in snn_estimator.gains), or the steady state. ``c``:
+    the measurement Jacobian at the estimate (default: the model's C)."""
     s = source.settings
     if source.constant_gain:
         return written_out_steady_state_gain(source, dt)
-    return gains.law(source.gain_law).reference(p, source.model.measurement_matrix, innovation,
-                                                gain_noise_density(s, dt), s.r_hat, s.boundary_layer)
+    c = source.model.measurement_matrix if c is None else c
+    return gains.law(source.gain_law).reference(p, c, innovation, gain_noise_density(s, dt), s.r_hat,
+                                                s.boundary_layer)
 
 
 def written_out_covariance_step(source: Estimator, p: np.ndarray, jac: np.ndarray, gain: np.ndarray,
-                                dt: float) -> np.ndarray:
-    """One forward-Euler step of the covariance law of ``source`` (Eq. 6, or that of the gain)."""
+                                dt: float, c: np.ndarray | None = None, measured: bool = True) -> np.ndarray:
+    """One forward-Euler step of the covariance law of ``source`` (Eq. 6, or that of the gain;
+    without a measurement, K = 0 and Eq. 6 without its measurement term)."""
     s = source.settings
-    c = source.model.measurement_matrix
+    c = source.model.measurement_matrix if c is None else c
+    if not measured:
+        c = np.zeros_like(c)
     density = gain_noise_density(s, dt)
     if source.covariance_law == 'riccati':
         return p + dt * (jac @ p + p @ jac.T + s.q_hat - p @ c.T @ np.linalg.inv(density) @ c @ p)  # Eq. 6
@@ -182,8 +200,8 @@ class DenseSpikingFilter:
         model = self.model
         d, s_inv = self.decoder, 1.0 / self.scale
         x_hat = self.x_hat
-        c = model.measurement_matrix
-        k_gain = written_out_gain(self.source, self.P, z - c @ x_hat, dt)
+        c, innovation = measurement_terms(self.source, x_hat, z)
+        k_gain = written_out_gain(self.source, self.P, innovation, dt, c)
         a_d, b_d = drift_matrices(model, x_hat, dt, self.method)
         if self.source.settings.network_drive == 'nonlinear':  # f(x_hat, u) instead of A(x_hat) x_hat
             a_d = np.zeros_like(a_d)
@@ -197,13 +215,16 @@ class DenseSpikingFilter:
         omega_s = d.T @ (a_scaled + self.leak * np.eye(n)) @ d                 # Eq. 17
         omega_k = -d.T @ (s_inv[:, None] * k_gain) @ (c * self.scale[None, :]) @ d  # Eq. 19/21/23
         f_k = d.T @ (s_inv[:, None] * k_gain)                                  # Eq. 20/22/24
-        self.P = written_out_covariance_step(self.source, self.P, model.jacobian(x_hat, u), k_gain, dt)
+        self.P = written_out_covariance_step(self.source, self.P, model.jacobian(x_hat, u), k_gain, dt, c)
+        # Eq. 14's K (z - h(x_hat)) with a nonlinear h: F_k takes the linear measurement that
+        # gives the same innovation against C x_hat
+        z_linear = innovation + c @ x_hat
         if self.deviation:  # the prediction leaves the network: no F u, no A in Omega_s, no f
-            z = z - c @ self.x_pred                                             # F_k reads z - C x_pred
+            z_linear = z_linear - c @ self.x_pred                               # F_k reads z - C x_pred
             self.x_pred = self.x_pred + dt * (a_d @ x_hat + b_d @ u + nonlinear)
             f_weights, nonlinear = np.zeros_like(f_weights), np.zeros_like(nonlinear)
             omega_s = d.T @ (self.leak * np.eye(n)) @ d
-        v_dot = (-self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z  # Eq. 15
+        v_dot = (-self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z_linear  # Eq. 15
                  + d.T @ (s_inv * nonlinear))
         self.v = self.v + dt * v_dot
         self.r = self.r * (1.0 - self.leak * dt)                               # Eq. 11
@@ -244,9 +265,14 @@ class DenseFilter:
         self.method = estimator.settings.discretization
 
     def step(self, z, u, dt: float) -> np.ndarray:
-        c = self.model.measurement_matrix
-        innovation = z - c @ self.x_hat
-        gain = written_out_gain(self.source, self.P, innovation, dt)
-        self.P = written_out_covariance_step(self.source, self.P, self.model.jacobian(self.x_hat, u), gain, dt)
+        """One step; ``z`` None: no measurement (K = 0)."""
+        c, innovation = measurement_terms(self.source, self.x_hat, z)
+        if z is None:
+            gain = np.zeros((self.x_hat.size, c.shape[0]))
+            innovation = np.zeros(c.shape[0])
+        else:
+            gain = written_out_gain(self.source, self.P, innovation, dt, c)
+        self.P = written_out_covariance_step(self.source, self.P, self.model.jacobian(self.x_hat, u), gain, dt, c,
+                                             measured=z is not None)
         self.x_hat = filter_transition(self.model, self.x_hat, u, dt, self.method) + dt * gain @ innovation
         return self.x_hat

@@ -98,6 +98,9 @@ class MeasurementModel(ABC):
     #: False for a model without limits or angles: every finite sample is valid and nothing is
     #: wrapped, so a sensor may skip validity, check_measured and normalize (position).
     has_limits: bool = True
+    #: The constant C of a linear model (h(x) = C x, nothing wrapped), else None: a filter then
+    #: uses C as it is and does not re-linearise (position: exactly the model's C).
+    linear_matrix: np.ndarray | None = None
 
     def __init__(self, noise, n_state: int = 6):
         self.n_state = int(n_state)

@@ -32,6 +32,7 @@ class Position(MeasurementModel):
         super().__init__(noise, n_state)
         self.matrix = np.zeros((len(axes), self.n_state))
         self.matrix[np.arange(len(axes)), axes] = 1.0
+        self.linear_matrix = self.matrix
 
     def h(self, x) -> np.ndarray:
         return np.asarray(x, dtype=float) @ self.matrix.T

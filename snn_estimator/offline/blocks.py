@@ -90,6 +90,8 @@ class Plant:
         u = np.asarray(u, dtype=float).reshape(self.runs, -1)
         root = self._sqrt_cache.get(dt)
         if root is None:
+            if len(self._sqrt_cache) >= 64:  # bounded: steps off a grid give a new dt every step
+                self._sqrt_cache.clear()
             root = matrix_sqrt(self.step_noise_covariance(dt))
             if len(self._sqrt_cache) >= DT_CACHE_SIZE:
                 self._sqrt_cache.clear()

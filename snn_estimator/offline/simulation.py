@@ -12,7 +12,7 @@ run with seed s reproduces run 0 of an offline batch with seed s.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -27,6 +27,7 @@ from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the l
     PLANT_STREAM,
     SENSOR_STREAM,
     GaussianStream,
+    MeasurementSensor,
     Plant,
     PositionSensor,
     lqr_control,
@@ -61,6 +62,11 @@ class Scenario:
     #: How the truth reads Eq. 1's w: spectral_density (variance Q dt per step) | held_sample
     #: (w ~ N(0, Q) held over the step, variance ~ Q dt^2): blocks.TRUTH_NOISE_READINGS.
     truth_noise: str = 'spectral_density'
+    #: The sensor (a snn_estimator.measurements model) the loop measures with and the filters
+    #: linearise; None: the model's linear C with ``measurement_noise`` (Table 6's position).
+    sensor: object | None = None
+    #: Open loop (no LQR weights): the known control of each step, (steps, m_u) (None: u = 0).
+    control_schedule: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
@@ -135,6 +141,58 @@ def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: flo
         lqr_input_weight=D.FAR_RANGE_LQR_INPUT_WEIGHT * np.eye(3),
         metric_window=D.FAR_RANGE_METRIC_WINDOW, setpoint=np.array(D.FAR_RANGE_SETPOINT),
         basilisk=_truth_settings(plant, basilisk, orbit_radius))
+
+
+def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: str = 'default', noise=None,
+                              sensor_options: dict | None = None, **estimator_changes) -> Scenario:
+    """Sec. 3.2 measured by ``sensor`` (a model of snn_estimator.measurements) instead of Table
+    6's position (issue 22): noise R per sample ``noise`` (default defaults.SENSOR_NOISE), the
+    sensor on the chaser looking back at the target (defaults.CLOSE_SENSOR_MOUNTING; no field of
+    view, and the range limit defaults.CLOSE_SENSOR_MIN_RANGE, unless ``sensor_options`` sets
+    them). The filters take the sensor's R as their R (times measurement_noise_scale) and one
+    sensor sigma per component as the boundary layer delta (Table 6: delta = 0.1 m = sigma),
+    unless ``measurement_noise`` or ``boundary_layer`` is given."""
+    from snn_estimator.measurements import make_model
+    base = rendezvous_scenario(preset, **estimator_changes)
+    options = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE,
+               **(sensor_options or {})}
+    model = make_model(sensor, D.SENSOR_NOISE[sensor] if noise is None else noise, **options)
+    config = base.estimator
+    if 'measurement_noise' not in estimator_changes:
+        config = config.replace(measurement_noise=model.noise)
+    if 'boundary_layer' not in estimator_changes:  # Table 6's delta is one sensor sigma: per component
+        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
+    return replace(base, name=f'rendezvous_{sensor}', sensor=model, estimator=config,
+                   measurement_noise=model.noise)
+
+
+def angles_only_scenario(maneuver: bool = False, noise=None, **estimator_changes) -> Scenario:
+    """An angles-only far approach (issue 22; not in the paper): a camera (line_of_sight) on the
+    chaser, 1 km behind the target and 50 m below its orbit, drifting toward it under free CW
+    motion, open loop, 1 s samples for 3000 s (defaults.ANGLES_ONLY_*). The filters start 30 m
+    off along the line of sight. Under free drift the bearings of x and of k x are the same for
+    every k (linear dynamics, no input), so the range cannot be observed; ``maneuver`` adds a known
+    radial burn (defaults.ANGLES_ONLY_MANEUVER), which breaks that scale symmetry."""
+    from snn_estimator.measurements import make_model
+    truth = ClohessyWiltshire()
+    x0 = np.array(D.ANGLES_ONLY_X0, dtype=float)
+    x0[3] = 1.5 * truth.mean_motion * x0[2]  # the drift of a lower orbit: no secular radial motion
+    camera = make_model('line_of_sight', D.SENSOR_NOISE['line_of_sight'] if noise is None else noise)
+    config = EstimatorConfig().replace(**{
+        'initial_state': tuple(x0 + np.array(D.ANGLES_ONLY_INITIAL_ERROR)),
+        'initial_covariance': D.ANGLES_ONLY_INITIAL_COVARIANCE, 'measurement_noise': camera.noise,
+        'state_scale': (1.0, 1e-2, 1e-2, 1e-3, 1e-3, 1e-3), **estimator_changes})
+    steps = int(round(D.ANGLES_ONLY_DURATION / D.ANGLES_ONLY_TIME_STEP))
+    schedule = np.zeros((steps, 3))
+    if maneuver:
+        start, end, acceleration = D.ANGLES_ONLY_MANEUVER
+        times = D.ANGLES_ONLY_TIME_STEP * np.arange(steps)
+        schedule[(times >= start) & (times < end)] = acceleration
+    return Scenario(
+        name='angles_only' + ('_maneuver' if maneuver else ''), model=truth, x0=x0, dt=D.ANGLES_ONLY_TIME_STEP,
+        duration=D.ANGLES_ONLY_DURATION, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
+        measurement_noise=camera.noise, estimator=config, metric_window=D.ANGLES_ONLY_METRIC_WINDOW,
+        sensor=camera, control_schedule=schedule)
 
 
 def van_der_pol_scenario(preset: str = 'default', **estimator_changes) -> Scenario:
@@ -225,9 +283,13 @@ class SimulationResult:
             return {}
         window = self.window(seconds)
         runs = self.nees.shape[0]
+        sensor = self.scenario.sensor
+        nis = self.nis[:, window.start - 1:window.stop - 1]
+        if sensor is not None:  # steps without a measurement have no NIS (NaN): average the others
+            nis = nis[:, np.isfinite(nis).all(axis=0)]
         return {'nees': consistency_check(self.nees[:, window].mean(axis=0), runs, self.truth.shape[2]),
-                'nis': consistency_check(self.nis[:, window.start - 1:window.stop - 1].mean(axis=0), runs,
-                                         self.scenario.model.n_meas)}
+                'nis': consistency_check(nis.mean(axis=0), runs,
+                                         self.scenario.model.n_meas if sensor is None else sensor.dim)}
 
 
 def consistency_check(per_step: np.ndarray, runs: int, dof: int) -> dict:
@@ -261,10 +323,15 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     seeds = [seed + b for b in range(runs)]
     config = scenario.estimator if config is None else config
     model = scenario.model
-    estimator = make_estimator(kind, config.replace(seed=seed), model, runs=runs, seeds=seeds)
+    estimator = make_estimator(kind, config.replace(seed=seed), model, runs=runs, seeds=seeds,
+                               measurement=scenario.sensor)
     truth_model = scenario.truth_model or model
     plant = truth_plant(scenario, seeds)
-    sensor = PositionSensor(truth_model, scenario.measurement_noise, seeds)
+    if scenario.sensor is None:
+        sensor = PositionSensor(truth_model, scenario.measurement_noise, seeds)
+    else:
+        sensor = MeasurementSensor(scenario.sensor, seeds)
+    unmeasured = np.zeros(runs, dtype=np.int64)
     setpoint = np.zeros(model.n_state) if scenario.setpoint is None else scenario.setpoint
     gain = (lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
             if scenario.lqr_state_weight is not None else None)
@@ -289,10 +356,23 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
             u = spiking_lqr.control(x_hat - setpoint, dt)
         else:
             u = lqr_control(gain, x_hat - setpoint) if gain is not None else zero_u
-        z = sensor.measure(plant.x)
-        if covariance is not None:
-            record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
-        estimator.step(z, u, dt)
+            if gain is None and scenario.control_schedule is not None:  # a known open-loop control
+                u = np.broadcast_to(scenario.control_schedule[k], zero_u.shape)
+        if scenario.sensor is None:
+            z = sensor.measure(plant.x)
+            if covariance is not None:
+                record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
+            estimator.step(z, u, dt)
+        else:  # a sensor with limits: the runs it cannot measure predict only (counted)
+            sample = sensor.measure(plant.x)
+            valid = sample.valid
+            unmeasured += ~valid
+            if covariance is not None:
+                record.nis[:, k] = np.nan
+                if valid.any():
+                    record.nis[valid, k] = estimator.innovation_nis(np.where(valid[:, None], sample.z, 0.0),
+                                                                    r_hat)[valid]
+            estimator.step(sample.z, u, dt, valid=valid)
         plant.step(u, dt)
         record.controls[:, k] = plant.applied
         record.sample(k + 1, plant, x_hat, covariance)
@@ -308,7 +388,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         estimate=record.estimate, covariance_diag=record.cov, control=record.controls,
         spikes_per_step=record.spikes, raster=record.raster, neuron_count=estimator.neuron_count,
         wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
-        extra={'saturated_steps': plant.saturated_steps.copy(),
+        extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': unmeasured,
                'controller_spikes': None if spiking_lqr is None else spiking_lqr.total_spikes.copy()})
 
 
