@@ -41,10 +41,10 @@ from snn_estimator.spiking import chip
 from snn_estimator.spiking.network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
 
 from . import kernels
+from .estimator_parts import DISPERSION_STREAM, EstimatorState, MeasuredSteps  # noqa: F401 (re-exported)
 
 __doc__ = __doc__.format(kinds=kinds_table(), laws=gains.table())
 
-DISPERSION_STREAM = 5  # rng stream id of the dispersed initial estimate
 
 
 def _settings_constants(settings: ResolvedConfig) -> dict:
@@ -201,7 +201,7 @@ class EstimatorViews:
         return tuple(int(i) for i in np.flatnonzero(~self._network.alive[0])) if self.spiking else ()
 
 
-class Estimator(EstimatorViews):
+class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
     """A filter from :data:`FILTER_KINDS` over ``runs`` independent runs.
 
     Build with :func:`make_estimator`. ``step(z, u, dt)`` returns the new estimate.
@@ -229,14 +229,7 @@ class Estimator(EstimatorViews):
         if len(self.seeds) != self.runs:
             raise ValueError(f'seeds must have {self.runs} entries, got {len(self.seeds)}')
         n, m = model.n_state, self.n_meas
-        # H and its pseudo-inverse: one shared (1, m, n) for a linear measurement, else one per
-        # run, written in place each step (the kernel's constants hold these arrays)
-        linear_c = (model.measurement_matrix if self.measurement is None else self.measurement.linear_matrix)
-        if self._linearize:
-            self._c, self._c_pinv = np.zeros((self.runs, m, n)), np.zeros((self.runs, n, m))
-        else:
-            self._c = np.ascontiguousarray(np.asarray(linear_c, dtype=float)[None])
-            self._c_pinv = np.ascontiguousarray(np.linalg.pinv(self._c[0])[None])
+        self._c, self._c_pinv = self._measurement_matrices(n, m)
         self._all_measured = np.ones(self.runs, dtype=np.bool_)
         self._none_measured = np.zeros(self.runs, dtype=np.bool_)
         self._gain = np.zeros((self.runs, n, m))
@@ -272,6 +265,15 @@ class Estimator(EstimatorViews):
         self._call_dt: float | None = None
         self.reset()
 
+    def _measurement_matrices(self, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """H and its pseudo-inverse: one shared (1, m, n) for a linear measurement, else one
+        per run, written in place each step (the kernel's constants hold these arrays)."""
+        if self._linearize:
+            return np.zeros((self.runs, m, n)), np.zeros((self.runs, n, m))
+        linear_c = self.model.measurement_matrix if self.measurement is None else self.measurement.linear_matrix
+        c = np.ascontiguousarray(np.asarray(linear_c, dtype=float)[None])
+        return c, np.ascontiguousarray(np.linalg.pinv(c[0])[None])
+
     def _choose_laws(self, spec: FilterKind) -> None:
         self.spiking = spec.spiking
         self.constant_gain = self.settings.gain_schedule == 'steady_state'
@@ -306,121 +308,10 @@ class Estimator(EstimatorViews):
                             np.zeros((self.runs, n_u)), self._network.zero_noise)
         if self.spiking:
             net = self._network
-            kernels.compile_for(kernels.fire_kernel(self.settings.spike_rule, self.coding), 1, net.decoder,
-                                net.gram, net.thresholds, net.alive, net.r, net.v, self._scale, net.spikes,
-                                net.total_spikes, self._x_hat, net.reference)
+            kernels.compile_for(kernels.fire_kernel(self.settings.spike_rule, self.coding), 1, net.kernel_tuple(),
+                                self._scale, self._x_hat)
 
     # ------------------------------------------------------------------ state
-    def initial_states(self) -> np.ndarray:
-        """The configured start of every run, (runs, n): initial_state, or with
-        initial_state_dispersion a draw from N(initial_state, P0) seeded by the run's seed
-        (stream 5), the same on every call and for a run alone or in a batch."""
-        s = self.settings
-        x0 = np.broadcast_to(s.initial_state, (self.runs, s.initial_state.size)).copy()
-        if s.initial_state_dispersion:
-            root = np.linalg.cholesky(s.initial_covariance)
-            for b, seed in enumerate(self.seeds):
-                x0[b] += root @ np.random.default_rng([seed, DISPERSION_STREAM]).standard_normal(x0.shape[1])
-        return x0
-
-    def reset(self, x_hat0=None, P0=None) -> None:
-        """Restart from ``x_hat0`` (default: :meth:`initial_states`) and ``P0``; silenced
-        neurons stay silent.
-
-        Spiking filters set rates r >= 0 that decode to x_hat0 (non-negative least squares)
-        and potentials v = D^T (x~0 - D r), i.e. zero coding error.
-        """
-        n = self.model.n_state
-        x0 = self.initial_states() if x_hat0 is None else np.asarray(x_hat0, dtype=float)
-        x0 = np.broadcast_to(x0, (self.runs, n)).astype(float)
-        if not np.isfinite(x0).all():
-            raise ValueError('x_hat0 must be finite')
-        p0 = self.settings.initial_covariance if P0 is None else np.asarray(P0, dtype=float)
-        p0 = np.broadcast_to(p0, (self.runs, n, n))
-        if not np.isfinite(p0).all():
-            raise ValueError('P0 must be finite')
-        # in place: the kernel's packed arguments and the offline simulator hold these arrays
-        self._p[:] = p0
-        self._x_hat[:] = x0
-        self._gain[:] = 0.0
-        self.steps = self.capped_steps = self.recovery_spikes = 0
-        #: Steps split into sub-steps because one Euler step of Eq. 6 would overshoot (_parts).
-        self.split_steps = 0
-        if self.spiking:
-            self._network.clear()
-            for b in range(self.runs):
-                self.encode(x0[b], run=b)
-        if self._linearize:
-            self._c[:] = 0.0
-            self._relinearize(None, self._none_measured)
-
-    def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
-        """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons;
-        with network_coding deviation the prediction restarts at ``x_hat`` and the network
-        codes a zero deviation)."""
-        self._net('r')
-        if self.coding == 'deviation':
-            x_hat = np.asarray(x_hat, dtype=float)
-            if not np.isfinite(x_hat).all():
-                raise ValueError(f'cannot encode {x_hat.tolist()}: not finite')
-            self._network.encode(run, np.zeros_like(x_hat))
-            self._network.reference[run] = x_hat
-            self._x_hat[run] = x_hat
-            return
-        with np.errstate(over='ignore', invalid='ignore'):  # overflow is checked and refused below
-            target = np.asarray(x_hat, dtype=float) / self._scale
-        if not np.isfinite(target).all():
-            raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: not finite on the network '
-                             f'scale S = {self._scale.tolist()}')
-        if self._chip is not None:  # the chip encodes with its own (quantized) decoder
-            self._x_hat[run] = self._chip.encode(run, target)
-            return
-        try:
-            decoded = self._network.encode(run, target)
-        except ValueError:
-            raise ValueError(f'cannot encode {np.asarray(x_hat).tolist()}: the network overflows') from None
-        self._x_hat[run] = self._scale * decoded
-
-    def set_state(self, x_hat, P=None) -> None:
-        """Replace the estimate (and covariance) of every run, keeping the network's decoder."""
-        n = self.model.n_state
-        x = np.broadcast_to(np.asarray(x_hat, dtype=float), (self.runs, n))
-        if not np.isfinite(x).all():
-            raise ValueError('x_hat must be finite')
-        covariance = None if P is None else np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n))
-        if covariance is not None and not np.isfinite(covariance).all():
-            raise ValueError('P must be finite')
-        if self.spiking:
-            for b in range(self.runs):
-                self.encode(x[b], run=b)  # raises before changing the run if x is not encodable
-        else:
-            self._x_hat[:] = x
-        if covariance is not None:
-            self._p[:] = covariance
-
-    def silence(self, neurons: Sequence[int]) -> None:
-        """Silence exactly ``neurons`` (others revive). A silenced neuron stops firing and its
-        filtered train r_i and the synaptic input it sent (r_i times its Omega_f column) vanish,
-        so the remaining neurons see the coding error and compensate at once by spiking
-        (counted in ``total_spikes`` and ``recovery_spikes``).
-        """
-        self._net('r')
-        if self._chip is not None:
-            raise ValueError('silence() is not available on the chip network: set silenced_neurons')
-        total = self.settings.neuron_count
-        wanted = np.zeros(total, dtype=bool)
-        indices = [int(i) for i in neurons]
-        if any(i < 0 or i >= total for i in indices):
-            raise ValueError(f'neuron indices must be in [0, {total - 1}], got {indices}')
-        wanted[indices] = True
-        net = self._network
-        net.lose(wanted)
-        # The survivors react on the fast time scale (instantaneous in continuous time), before
-        # the slow dynamics of the next step see the decoded estimate.
-        self.recovery_spikes += kernels.fire_kernel(self.settings.spike_rule, self.coding)(
-            self.settings.max_spikes_per_step, net.decoder, net.gram, net.thresholds, net.alive, net.r, net.v,
-            self._scale, net.spikes, net.total_spikes, self._x_hat, net.reference)
-
     # ------------------------------------------------------------------ settings and steps
     def retune(self, **changes) -> None:
         """Change settings of :attr:`RETUNABLE` between steps. Validated first (the step in
@@ -490,31 +381,6 @@ class Estimator(EstimatorViews):
         if self._chip is not None:
             self._chip.prepare(dt)
 
-    def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
-        """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
-        estimate, per run (R per sample; P = 0 for the covariance-free filters). Infinite where
-        C P C^T + R cannot be inverted (a P that is no covariance any more): the estimate is then
-        inconsistent with any measurement, which the runner's NIS check treats as such."""
-        z = np.ascontiguousarray(z, dtype=float).reshape(self.runs, -1)
-        r = np.ascontiguousarray(measurement_covariance, dtype=float)
-        if r.shape != (z.shape[1], z.shape[1]):
-            raise ValueError(f'measurement_covariance must be {z.shape[1]}x{z.shape[1]}, got {r.shape}')
-        if self._linearize:  # the wrapped residual and S = H P H^T + R at the current estimate
-            h = self.measurement.h(self._x_hat)
-            nu = self.measurement.residual(z, h)
-            c = self.measurement.jacobian(self._x_hat)
-            s = (c @ self._p @ np.swapaxes(c, 1, 2) + r if self.has_covariance
-                 else np.broadcast_to(r, c.shape[:1] + r.shape))
-            try:
-                nis = np.einsum('bi,bi->b', nu, np.linalg.solve(s, nu[..., None])[..., 0])
-            except np.linalg.LinAlgError:
-                return np.full(self.runs, np.inf)
-            return np.where(np.isfinite(nis), nis, np.inf)
-        try:
-            return kernels.innovation_nis(z, self._x_hat, self._c[0], self._p, r, self.has_covariance)
-        except np.linalg.LinAlgError:
-            return np.full(self.runs, np.inf)
-
     # ------------------------------------------------------------------ stepping
     def predict(self, u, dt: float) -> np.ndarray:
         """Advance by ``dt`` without a measurement (sensor dropout): K = 0, and Eq. 6 without
@@ -568,48 +434,6 @@ class Estimator(EstimatorViews):
             self.prepare(dt)  # checks dt the first time it is used
         return self._advance(z, measured, u, dt)
 
-    #: A step of Eq. 6 is split when dt lambda_max(H P H^T R^-1) exceeds this (see _parts).
-    MAX_STEP_INFORMATION = 0.5
-    #: At most this many sub-steps per step.
-    MAX_PARTS = 64
-
-    def _parts(self, dt: float, measured: np.ndarray) -> int:
-        """Sub-steps for this step: one Euler step of Eq. 6 removes dt H P H^T R^-1 of the
-        covariance along H, so once that reaches 1 P stops being a covariance and the filter
-        diverges. A position sensor never gets there (check_time_step bounds it at P0 and P only
-        shrinks along C), but H of an angle grows as 1/range: a LIDAR at 1 m gives 70^2 times the
-        information per step it gave at 70 m. Such a step is split into k equal sub-steps with z
-        held (the continuous filter of Eq. 3-6 sees the sample held over its interval), k such that
-        each removes at most MAX_STEP_INFORMATION; the R of Eq. 5-6 stays the sample's."""
-        if self.covariance_law != 'riccati' or not measured.any():
-            return 1
-        c = self._c[measured]
-        information = c @ self._p[measured] @ np.swapaxes(c, 1, 2) @ self._r_density_inv
-        if not np.isfinite(information).all():
-            return 1
-        largest = dt * float(np.max(np.linalg.eigvals(information).real))
-        return min(self.MAX_PARTS, max(1, math.ceil(largest / self.MAX_STEP_INFORMATION)))
-
-    def _step_in_parts(self, z, measured, u, dt: float, parts: int) -> np.ndarray:
-        """``parts`` sub-steps of dt / parts with ``z`` held, re-linearised before each; the
-        spikes of the step are the sum of the sub-steps'."""
-        self.split_steps += 1
-        sample_density = self._packed_density
-        part = dt / parts
-        spikes = np.zeros_like(self._network.spikes)
-        self._set_step(part, density=sample_density)
-        try:
-            for _ in range(parts):
-                z_eq, valid = self._relinearize(z, measured)
-                self._advance(z_eq, valid, u, part)
-                spikes += self._network.spikes
-                self.steps -= 1
-        finally:
-            self._set_step(dt)
-        self.steps += 1
-        self._network.spikes[:] = spikes
-        return self.x_hat
-
     def _advance(self, z, measured, u, dt: float) -> np.ndarray:
         """One kernel step of ``dt`` (prepared) with the kernel's z and measured runs."""
         dynamics, drift = self._dynamics(self._x_hat, u, dt)
@@ -631,28 +455,6 @@ class Estimator(EstimatorViews):
         if status == kernels.STATUS_NON_FINITE:
             raise FloatingPointError(f'the {self.kind} state became non-finite; call reset()')
         return self.x_hat
-
-    def _relinearize(self, z, measured):
-        """Write H(x_hat) (and its pseudo-inverse) of every run into the kernel's C, and return
-        the equivalent linear measurement z_eq = residual(z, h(x_hat)) + H x_hat, so that the
-        kernel's z_eq - C x_hat is the wrapped residual; and the runs measured. A run whose H or
-        h is not finite at x_hat (on a singular direction) keeps its last H and is not updated."""
-        model, x_hat = self.measurement, self._x_hat
-        jac = model.jacobian(x_hat)
-        predicted = model.h(x_hat)
-        finite = np.isfinite(jac).all(axis=(1, 2)) & np.isfinite(predicted).all(axis=1)
-        if finite.all():
-            self._c[:] = jac
-        else:
-            self._c[finite] = jac[finite]
-        if self.gain_law != 'kalman':  # C^+ of Eq. 7-8, 21-24 (the Kalman gain needs none)
-            self._c_pinv[:] = np.linalg.pinv(self._c)
-        if z is None:
-            return None, measured
-        measured = measured & finite
-        z_eq = np.einsum('bij,bj->bi', self._c, x_hat)
-        z_eq[measured] += model.residual(z[measured], predicted[measured])
-        return np.ascontiguousarray(z_eq), np.ascontiguousarray(measured)
 
     # ------------------------------------------------------------------ inspection
     def weights(self, u=None, dt: float = 0.1, run: int = 0) -> dict:

@@ -451,11 +451,11 @@ def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, 
     return status, capped
 
 
-def _fire_only_template(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes, x_hat,
-                        reference):
+def _fire_only_template(max_spikes, network, scale, x_hat):
     """The fast time scale alone: let every run spike until its coding error is below
     threshold (used right after neurons are lost), then decode x_hat = S D r (plus the
-    prediction ``reference`` for the deviation coding)."""
+    prediction ``reference`` for the deviation coding). ``network``: the :data:`NETWORK` tuple."""
+    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network
     runs, n, neurons = decoder.shape
     emitted = 0
     for b in range(runs):
@@ -551,8 +551,8 @@ def compile_for(kernel, *args) -> None:
 
 
 def fire_kernel(spike_rule: str, coding: str = 'state'):
-    """``kernel(max_spikes, decoder, gram, thresholds, alive, r, v, scale, spikes, total_spikes,
-    x_hat, reference)``: the spikes of ``spike_rule`` alone (see _fire_only_template)."""
+    """``kernel(max_spikes, network, scale, x_hat)`` (``network`` the :data:`NETWORK` tuple): the
+    spikes of ``spike_rule`` alone (see _fire_only_template)."""
     tag = '' if coding == 'state' else f'_{coding}'
     return _specialise(_fire_only_template, f'fire_only_{spike_rule}{tag}', _fire=_FIRE[spike_rule],
                        _decode=_CODING[coding][1])

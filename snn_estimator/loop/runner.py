@@ -43,12 +43,8 @@ from snn_estimator.catalog import MEASUREMENT_TIMINGS, START_MODES  # noqa: F401
 from snn_estimator.filters.estimators import Estimator
 
 from .gates import NS, seconds_to_ns
-from .plant_runner import control_in_force
 from .recovery import Recovery
-from .runner_parts import Gating, HeldMeasurements, History, Reporting, StartUp  # noqa: F401 (History re-exported)
-
-#: Controls kept for pairing and replay.
-CONTROL_MEMORY = 2000
+from .runner_parts import CONTROL_MEMORY, Controls, Gating, HeldMeasurements, History, Reporting, StartUp  # noqa: F401 (History, CONTROL_MEMORY re-exported)
 
 
 @dataclass(frozen=True)
@@ -85,7 +81,7 @@ class RunnerSettings:
                              f'got {self.measurement_timing!r}')
 
 
-class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
+class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
     """Steps ``estimator`` from time-stamped inputs (see the module docstring)."""
 
     def __init__(self, estimator: Estimator, settings: RunnerSettings, measurement_covariance,
@@ -186,35 +182,6 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
         self._process()
         return None
 
-    def control(self, stamp_ns: int, u: np.ndarray) -> str | None:
-        """Offer u stamped ``stamp_ns``; None if accepted, else the rejection reason."""
-        if self.start_ns is not None and stamp_ns < self.start_ns:
-            self.control_rejected['before_init'] += 1
-            self._log('warning', f'rejected control at {stamp_ns / NS:.3f} s: it predates the start '
-                      f'at {self.start_ns / NS:.3f} s')
-            return 'before_init'
-        self._controls[stamp_ns] = np.asarray(u, dtype=float)
-        if len(self._controls) > CONTROL_MEMORY:
-            del self._controls[min(self._controls)]
-        if self.started:
-            self._process()
-        return None
-
-    def applied(self, stamp_ns: int, u: np.ndarray) -> str | None:
-        """Offer the control the plant reports it stepped with from ``stamp_ns``; None if
-        accepted, else the rejection reason. From the first one on, a step waits for the
-        plant's report (as long as it waits for a control) and predicts with it."""
-        if self.start_ns is not None and stamp_ns < self.start_ns:
-            self.control_rejected['applied_before_init'] += 1
-            return 'applied_before_init'
-        self._applied[stamp_ns] = np.asarray(u, dtype=float)
-        if len(self._applied) > CONTROL_MEMORY:
-            del self._applied[min(self._applied)]
-        self._plant_reports = True
-        if self.started:
-            self._process()
-        return None
-
     def _say(self, reason: str, detail: str) -> str:
         self._log('warning', f'rejected {detail}')
         return reason
@@ -290,20 +257,6 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
             self._log('warning', f'dropped the measurement at {stamp_ns / NS:.3f} s: {why}')
 
     # ---------------------------------------------------------------- stepping
-    def _control_for(self, stamp_ns: int) -> np.ndarray | None:
-        """The control of the step from ``stamp_ns`` that settles it: the plant's report of
-        what it applied once a plant reports them, else the controller's; None: not here yet."""
-        return self._stamped(self._applied if self._plant_reports else self._controls, stamp_ns)
-
-    def _stamped(self, controls: dict, stamp_ns: int) -> np.ndarray | None:
-        u = controls.get(stamp_ns)
-        if u is not None:
-            return u
-        for control_ns, value in controls.items():
-            if abs(control_ns - stamp_ns) * 2 < self._dt_ns:
-                return value
-        return None
-
     def _process(self) -> None:
         """Step through every measurement whose control is known (in stamp order); a missing
         measurement between two that came is predicted over."""
@@ -321,19 +274,6 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements):
                 self._step(self._pending.pop(first) if first == self.time_ns else None, self.time_ns)
             else:
                 self._advance_to(first)
-
-    def _in_force(self, stamp_ns: int) -> np.ndarray:
-        """The control the plant applied from ``stamp_ns`` when none stamped for it came: the
-        last one while younger than control_validity, else zero thrust (the plant's rule)."""
-        validity_ns = seconds_to_ns(self.settings.control_validity)
-        u, stamp = control_in_force(self._held, stamp_ns, validity_ns, self.estimator.model.n_input)
-        if stamp is None and self._held:
-            self.events['controls_expired'] += 1
-            if not self._expired:
-                self._log('warning', f'the control of t = {max(self._held) / NS:.3f} s expired at t = '
-                          f'{stamp_ns / NS:.3f} s: predicting with zero thrust, as the plant applies')
-            self._expired = True
-        return u
 
     def _step(self, z: np.ndarray | None, stamp_ns: int, dt_ns: int | None = None,
               continued: bool = False, publish: bool = True) -> None:

@@ -26,6 +26,8 @@ from .plant_runner import control_in_force
 #: On grid stamps both publish the same estimates at the same stamps. An interval of
 #: HOLD_LIMIT steps or more is a dropout: the measurement is held one step, the rest predicted.
 HOLD_LIMIT = 2
+#: Controls kept for pairing and replay.
+CONTROL_MEMORY = 2000
 
 
 @dataclass
@@ -307,3 +309,64 @@ class HeldMeasurements:
         self.time_ns = stamp_ns + dt_ns
         if publish:
             self._publish(self.time_ns)
+
+
+class Controls:
+    """The control of each step: the controller's u_k, the one the plant reports it applied
+    (applied_control) once it reports them, or the one in force by the plant's rule."""
+
+    def control(self, stamp_ns: int, u: np.ndarray) -> str | None:
+        """Offer u stamped ``stamp_ns``; None if accepted, else the rejection reason."""
+        if self.start_ns is not None and stamp_ns < self.start_ns:
+            self.control_rejected['before_init'] += 1
+            self._log('warning', f'rejected control at {stamp_ns / NS:.3f} s: it predates the start '
+                      f'at {self.start_ns / NS:.3f} s')
+            return 'before_init'
+        self._controls[stamp_ns] = np.asarray(u, dtype=float)
+        if len(self._controls) > CONTROL_MEMORY:
+            del self._controls[min(self._controls)]
+        if self.started:
+            self._process()
+        return None
+
+    def applied(self, stamp_ns: int, u: np.ndarray) -> str | None:
+        """Offer the control the plant reports it stepped with from ``stamp_ns``; None if
+        accepted, else the rejection reason. From the first one on, a step waits for the
+        plant's report (as long as it waits for a control) and predicts with it."""
+        if self.start_ns is not None and stamp_ns < self.start_ns:
+            self.control_rejected['applied_before_init'] += 1
+            return 'applied_before_init'
+        self._applied[stamp_ns] = np.asarray(u, dtype=float)
+        if len(self._applied) > CONTROL_MEMORY:
+            del self._applied[min(self._applied)]
+        self._plant_reports = True
+        if self.started:
+            self._process()
+        return None
+
+    def _control_for(self, stamp_ns: int) -> np.ndarray | None:
+        """The control of the step from ``stamp_ns`` that settles it: the plant's report of
+        what it applied once a plant reports them, else the controller's; None: not here yet."""
+        return self._stamped(self._applied if self._plant_reports else self._controls, stamp_ns)
+
+    def _stamped(self, controls: dict, stamp_ns: int) -> np.ndarray | None:
+        u = controls.get(stamp_ns)
+        if u is not None:
+            return u
+        for control_ns, value in controls.items():
+            if abs(control_ns - stamp_ns) * 2 < self._dt_ns:
+                return value
+        return None
+
+    def _in_force(self, stamp_ns: int) -> np.ndarray:
+        """The control the plant applied from ``stamp_ns`` when none stamped for it came: the
+        last one while younger than control_validity, else zero thrust (the plant's rule)."""
+        validity_ns = seconds_to_ns(self.settings.control_validity)
+        u, stamp = control_in_force(self._held, stamp_ns, validity_ns, self.estimator.model.n_input)
+        if stamp is None and self._held:
+            self.events['controls_expired'] += 1
+            if not self._expired:
+                self._log('warning', f'the control of t = {max(self._held) / NS:.3f} s expired at t = '
+                          f'{stamp_ns / NS:.3f} s: predicting with zero thrust, as the plant applies')
+            self._expired = True
+        return u

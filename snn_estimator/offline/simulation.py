@@ -309,6 +309,66 @@ def consistency_check(per_step: np.ndarray, runs: int, dof: int) -> dict:
             'fraction_inside': inside, 'verdict': verdict}
 
 
+class _Control:
+    """The control of every run from its estimate: u = -K (x_hat - setpoint) (Eq. 42), the same law
+    by the spiking LQR, a known open-loop schedule (no LQR weights), or none."""
+
+    def __init__(self, scenario: Scenario, seeds, controller: str, options: dict | None):
+        model = scenario.model
+        self.setpoint = np.zeros(model.n_state) if scenario.setpoint is None else scenario.setpoint
+        self.gain = (lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
+                     if scenario.lqr_state_weight is not None else None)
+        self.spiking_lqr = None
+        if controller == 'snn_lqr' and self.gain is not None:
+            from snn_estimator.spiking.lqr import SpikingLQR
+            self.spiking_lqr = SpikingLQR(self.gain, seeds=seeds, **(options or {}))
+        elif controller not in ('lqr', 'snn_lqr'):
+            raise ValueError(f"controller must be one of lqr, snn_lqr; got {controller!r}")
+        self.schedule = scenario.control_schedule
+        self.zero_u = np.zeros((len(seeds), model.n_input))
+
+    def __call__(self, k: int, x_hat: np.ndarray, dt: float) -> np.ndarray:
+        if self.spiking_lqr is not None:
+            return self.spiking_lqr.control(x_hat - self.setpoint, dt)
+        if self.gain is not None:
+            return lqr_control(self.gain, x_hat - self.setpoint)
+        if self.schedule is not None:  # a known open-loop control
+            return np.broadcast_to(self.schedule[k], self.zero_u.shape)
+        return self.zero_u
+
+
+class _Sensing:
+    """The sensor of every run and the filter's step on its sample, with the NIS recorded: the
+    position sensor (z = C x + v), or a measurement model with limits, whose runs without a
+    sample predict only (counted in ``unmeasured``)."""
+
+    def __init__(self, scenario: Scenario, estimator, seeds):
+        truth_model = scenario.truth_model or scenario.model
+        self.with_limits = scenario.sensor is not None
+        self.sensor = (MeasurementSensor(scenario.sensor, seeds) if self.with_limits
+                       else PositionSensor(truth_model, scenario.measurement_noise, seeds))
+        self.c, self.r_hat = scenario.model.measurement_matrix, estimator.settings.r_hat
+        self.unmeasured = np.zeros(len(seeds), dtype=np.int64)
+
+    def step(self, k: int, plant, estimator, record, u: np.ndarray, dt: float) -> None:
+        x_hat, covariance, c, r_hat = estimator.batch_x_hat, estimator.batch_P, self.c, self.r_hat
+        if not self.with_limits:
+            z = self.sensor.measure(plant.x)
+            if covariance is not None:
+                record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
+            estimator.step(z, u, dt)
+            return
+        sample = self.sensor.measure(plant.x)
+        valid = sample.valid
+        self.unmeasured += ~valid
+        if covariance is not None:
+            record.nis[:, k] = np.nan
+            if valid.any():
+                record.nis[valid, k] = estimator.innovation_nis(np.where(valid[:, None], sample.z, 0.0),
+                                                                r_hat)[valid]
+        estimator.step(sample.z, u, dt, valid=valid)
+
+
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
              config: EstimatorConfig | None = None, on_step: Callable[[int], None] | None = None,
              events: dict[int, Callable] | None = None, controller: str = 'lqr',
@@ -322,60 +382,24 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     """
     seeds = [seed + b for b in range(runs)]
     config = scenario.estimator if config is None else config
-    model = scenario.model
-    estimator = make_estimator(kind, config.replace(seed=seed), model, runs=runs, seeds=seeds,
+    estimator = make_estimator(kind, config.replace(seed=seed), scenario.model, runs=runs, seeds=seeds,
                                measurement=scenario.sensor)
-    truth_model = scenario.truth_model or model
     plant = truth_plant(scenario, seeds)
-    if scenario.sensor is None:
-        sensor = PositionSensor(truth_model, scenario.measurement_noise, seeds)
-    else:
-        sensor = MeasurementSensor(scenario.sensor, seeds)
-    unmeasured = np.zeros(runs, dtype=np.int64)
-    setpoint = np.zeros(model.n_state) if scenario.setpoint is None else scenario.setpoint
-    gain = (lqr_gain(model, scenario.lqr_state_weight, scenario.lqr_input_weight)
-            if scenario.lqr_state_weight is not None else None)
-    spiking_lqr = None
-    if controller == 'snn_lqr' and gain is not None:
-        from snn_estimator.spiking.lqr import SpikingLQR
-        spiking_lqr = SpikingLQR(gain, seeds=seeds, **(controller_options or {}))
-    elif controller not in ('lqr', 'snn_lqr'):
-        raise ValueError(f"controller must be one of lqr, snn_lqr; got {controller!r}")
+    sensing = _Sensing(scenario, estimator, seeds)
+    control = _Control(scenario, seeds, controller, controller_options)
     steps, dt = scenario.steps, scenario.dt
     x_hat = estimator.batch_x_hat  # (runs, n) view, updated in place by the estimator
-    covariance = estimator.batch_P
-    c, r_hat = model.measurement_matrix, estimator.settings.r_hat
     record = _Record(estimator, runs, steps)
-    record.sample(0, plant, x_hat, covariance)
-    zero_u = np.zeros((runs, model.n_input))
+    record.sample(0, plant, x_hat, estimator.batch_P)
     started = time.perf_counter()
     for k in range(steps):
         if events and k in events:
             events[k](estimator)
-        if spiking_lqr is not None:
-            u = spiking_lqr.control(x_hat - setpoint, dt)
-        else:
-            u = lqr_control(gain, x_hat - setpoint) if gain is not None else zero_u
-            if gain is None and scenario.control_schedule is not None:  # a known open-loop control
-                u = np.broadcast_to(scenario.control_schedule[k], zero_u.shape)
-        if scenario.sensor is None:
-            z = sensor.measure(plant.x)
-            if covariance is not None:
-                record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
-            estimator.step(z, u, dt)
-        else:  # a sensor with limits: the runs it cannot measure predict only (counted)
-            sample = sensor.measure(plant.x)
-            valid = sample.valid
-            unmeasured += ~valid
-            if covariance is not None:
-                record.nis[:, k] = np.nan
-                if valid.any():
-                    record.nis[valid, k] = estimator.innovation_nis(np.where(valid[:, None], sample.z, 0.0),
-                                                                    r_hat)[valid]
-            estimator.step(sample.z, u, dt, valid=valid)
+        u = control(k, x_hat, dt)
+        sensing.step(k, plant, estimator, record, u, dt)
         plant.step(u, dt)
         record.controls[:, k] = plant.applied
-        record.sample(k + 1, plant, x_hat, covariance)
+        record.sample(k + 1, plant, x_hat, estimator.batch_P)
         if estimator.spiking:
             step_spikes = estimator.batch_spikes
             record.spikes[:, k] = step_spikes.sum(axis=1)
@@ -388,8 +412,9 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         estimate=record.estimate, covariance_diag=record.cov, control=record.controls,
         spikes_per_step=record.spikes, raster=record.raster, neuron_count=estimator.neuron_count,
         wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
-        extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': unmeasured,
-               'controller_spikes': None if spiking_lqr is None else spiking_lqr.total_spikes.copy()})
+        extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': sensing.unmeasured,
+               'controller_spikes': (None if control.spiking_lqr is None
+                                     else control.spiking_lqr.total_spikes.copy())})
 
 
 class _Record:

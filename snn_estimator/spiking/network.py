@@ -47,6 +47,11 @@ class Network:
                 'r': self.r, 'v': self.v, 'spikes': self.spikes, 'total_spikes': self.total_spikes,
                 'reference': self.reference}
 
+    def kernel_tuple(self) -> tuple:
+        """The same arrays as the kernel's NETWORK tuple, in its order (the fire kernel's argument)."""
+        return (self.decoder, self.gram, self.thresholds, self.alive, self.r, self.v, self.spikes,
+                self.total_spikes, self.reference)
+
     def clear(self) -> None:
         self.r[:] = 0.0
         self.v[:] = 0.0
