@@ -8,6 +8,7 @@
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make bench | bench-loop | bench-campaign | bench-live | bench-latency [SAMPLES=n]   speed figures -> results/
 #   make spike-budget [RUNS=n]  spikes against accuracy per network coding -> results/spike_budget.{json,md}
+#   make sensors [RUNS=n]     the filters on the LIDAR and the camera, offline -> results/sensors.{json,md}
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 #   make faults [CELLS=controller:kill,...]   kill/stop each node mid-run -> results/faults.json, docs/robustness.md
 PYTHON ?= python3.11
@@ -28,7 +29,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget \
+	spike-budget sensors \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -89,6 +90,10 @@ bench-latency: $(STAMP)
 # every spiking kind under each network coding and unit, dispersed rendezvous, against its twin
 spike-budget: $(STAMP)
 	$(BIN)/python -m snn_tools.spike_budget $(if $(RUNS),--runs $(RUNS)) --out results/spike_budget.json
+
+# the LIDAR close approach (dispersed) and angles-only navigation, offline (docs/sensors.md)
+sensors: $(STAMP)
+	$(BIN)/python -m snn_tools.sensor_results $(if $(RUNS),--runs $(RUNS)) --out results
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json

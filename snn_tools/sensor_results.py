@@ -1,0 +1,124 @@
+"""snn_sensor_results: the filters on the rendezvous sensors, offline (issue 22), as
+results/sensors.json and results/sensors.md (the tables of docs/sensors.md and the README).
+
+* the close approach of Sec. 3.2 measured by a LIDAR (range_azimuth_elevation) instead of
+  Table 6's position, closed loop from the dispersed start: final range and RMSE per filter;
+* angles-only navigation (line_of_sight) of a far approach under free CW drift, with and
+  without a known radial burn: the range error along the way, and its filter sigma.
+
+Usage: python -m snn_tools.sensor_results [--runs 4] [--out results]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from snn_estimator.offline.simulation import angles_only_scenario, sensor_rendezvous_scenario, simulate
+from snn_tools.campaign_cells import code_version
+
+LIDAR_FILTERS = ('ekf', 'snn_ekf', 'emsif_weighted', 'snn_emsif_weighted')
+ANGLES_FILTERS = ('ekf', 'snn_ekf')
+ANGLES_TIMES = (0.0, 500.0, 1000.0, 2000.0, 3000.0)
+#: The goal of issue 22 for the closed loop from the dispersed start.
+FINAL_RANGE_GOAL = 0.1
+SENSORS_DOC = Path(__file__).resolve().parents[1] / 'docs' / 'sensors.md'
+BEGIN, END = '<!-- sensor tables: begin (make sensors) -->', '<!-- sensor tables: end -->'
+
+
+def lidar_rows(runs: int) -> list[dict]:
+    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
+    rows = []
+    for kind in LIDAR_FILTERS:
+        result = simulate(scenario, kind, runs=runs)
+        final = result.final_range()
+        rows.append({'filter': kind, 'runs': runs, 'final_range_max_m': float(final.max()),
+                     'final_range_median_m': float(np.median(final)),
+                     'rmse_last_60s': [float(v) for v in result.rmse(60.0)],
+                     'spike_fraction': result.spike_fraction,
+                     'unmeasured_run_steps': int(result.extra['unmeasured_steps'].sum()),
+                     'goal_met': bool(final.max() < FINAL_RANGE_GOAL)})
+    return rows
+
+
+def angles_rows() -> list[dict]:
+    rows = []
+    for maneuver in (False, True):
+        scenario = angles_only_scenario(maneuver=maneuver)
+        for kind in ANGLES_FILTERS:
+            result = simulate(scenario, kind, runs=1)
+            truth, estimate = result.truth[0], result.estimate[0]
+            errors, percents = [], []
+            for t in ANGLES_TIMES:
+                k = int(round(t / scenario.dt))
+                true_range = float(np.linalg.norm(truth[k, :3]))
+                error = abs(float(np.linalg.norm(estimate[k, :3])) - true_range)
+                errors.append(error)
+                percents.append(100.0 * error / true_range)
+            sigma = (float(np.sqrt(result.covariance_diag[0, -1, 0])) if result.covariance_diag is not None
+                     else None)
+            rows.append({'filter': kind, 'maneuver': maneuver, 'times_s': list(ANGLES_TIMES),
+                         'range_error_m': errors, 'range_error_percent': percents, 'sigma_x_end_m': sigma})
+    return rows
+
+
+def markdown(results: dict) -> str:
+    lines = [f"Offline, commit {results['commit']} (`make sensors`, snn_tools/sensor_results.py).", '',
+             f"### LIDAR close approach (range_azimuth_elevation, dispersed start, {results['runs']} runs)", '',
+             '| filter | final range max (m) | median (m) | RMSE x, y, z last 60 s (m) | spikes | goal < 0.1 m |',
+             '|---|---|---|---|---|---|']
+    for row in results['lidar']:
+        rmse = ', '.join(f'{v:.3f}' for v in row['rmse_last_60s'][:3])
+        spikes = '-' if row['spike_fraction'] is None else f"{100 * row['spike_fraction']:.2f} %"
+        lines.append(f"| {row['filter']} | {row['final_range_max_m']:.3f} | {row['final_range_median_m']:.3f} | "
+                     f"{rmse} | {spikes} | {'met' if row['goal_met'] else '**missed**'} |")
+    times = ' | '.join(f't = {t:.0f} s' for t in ANGLES_TIMES)
+    lines += ['', '### Angles only (line_of_sight, one seed): range error |r_hat - r|, m (% of range)', '',
+              f'| filter, case | {times} | sigma_x at the end |', '|---|' + '---|' * (len(ANGLES_TIMES) + 1)]
+    for row in results['angles_only']:
+        case = 'radial burn' if row['maneuver'] else 'free drift'
+        cells = ' | '.join(f'{e:.1f} ({p:.1f} %)' for e, p in zip(row['range_error_m'], row['range_error_percent']))
+        sigma = '-' if row['sigma_x_end_m'] is None else f"{row['sigma_x_end_m']:.1f} m"
+        lines.append(f"| {row['filter']}, {case} | {cells} | {sigma} |")
+    return '\n'.join(lines) + '\n'
+
+
+def write_doc_tables(doc: Path, text: str) -> bool:
+    """Put the tables between the markers of ``doc`` (docs/sensors.md); False if it has none."""
+    if not doc.exists():
+        return False
+    content = doc.read_text()
+    if BEGIN not in content or END not in content:
+        return False
+    head, rest = content.split(BEGIN, 1)
+    doc.write_text(head + BEGIN + '\n' + text + END + rest.split(END, 1)[1])
+    return True
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='snn_sensor_results', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--runs', type=int, default=4, help='dispersed runs of the LIDAR approach (default 4)')
+    parser.add_argument('--out', type=Path, default=Path('results'), help='folder for sensors.json and sensors.md')
+    parser.add_argument('--no-doc', dest='doc', action='store_false',
+                        help='do not rewrite the tables of docs/sensors.md')
+    args = parser.parse_args(argv)
+    if args.runs < 1:
+        parser.error('--runs must be >= 1')
+    results = {'commit': code_version(), 'runs': args.runs, 'lidar': lidar_rows(args.runs),
+               'angles_only': angles_rows()}
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / 'sensors.json').write_text(json.dumps(results, indent=2) + '\n')
+    tables = markdown(results)
+    (args.out / 'sensors.md').write_text('# The filters on the rendezvous sensors\n\n' + tables)
+    print(tables)
+    print(f"wrote {args.out / 'sensors.json'} and {args.out / 'sensors.md'}")
+    if args.doc and write_doc_tables(SENSORS_DOC, tables):
+        print(f'updated the tables of {SENSORS_DOC}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
