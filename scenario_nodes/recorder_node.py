@@ -5,11 +5,18 @@ type hashes and message definitions from the Jazzy type store, offered QoS profi
 ``ros2 bag info/play``, Foxglove and PlotJuggler open it. Receive timestamps come from the node
 clock (simulated time with use_sim_time, like ``ros2 bag record --use-sim-time``) and never
 go backwards. SIGINT/SIGTERM close the bag cleanly.
+
+Samples published before the recorder's subscription matched their publisher (discovery on a
+loaded machine can take longer than the plant's start_delay) are not lost: for the topics whose
+publishers keep a ``<topic>/history`` (measurement, control, estimate: qos.HISTORY_DEPTHS), the
+recorder also reads that transient-local history and writes, under the topic itself, every
+sample whose stamp it has not recorded yet (counted as ``backfilled``).
 """
 
 from __future__ import annotations
 
 import importlib
+import struct
 import time
 from datetime import datetime
 from pathlib import Path
@@ -37,6 +44,20 @@ KNOWN_TYPES = {
 }
 
 _ZERO = QosTime(sec=0, nsec=0)
+_STAMP = struct.Struct('<iI')  # header.stamp after the 4-byte CDR encapsulation header
+#: Stamps remembered per backfilled topic (the newest; a history holds at most a few hundred).
+SEEN_STAMPS = 5000
+#: Wall s a history subscription stays after its first sample (its backlog arrives at once; later
+#: samples are copies of live ones, which would double the recorder's work).
+BACKFILL_WINDOW = 5.0
+
+
+def header_stamp(raw: bytes) -> int | None:
+    """The header stamp (ns) of a CDR message that starts with a std_msgs/Header; None if too short."""
+    if len(raw) < 12:
+        return None
+    sec, nanosec = _STAMP.unpack_from(raw, 4)
+    return sec * 1_000_000_000 + nanosec
 
 
 def message_class(type_name: str):
@@ -87,6 +108,8 @@ class RecorderNode(ProcessHooks, Node):
         self._drain_timeout = p['drain_timeout']
         self._last_stamp = 0
         self.counts: dict[str, int] = {}
+        self.backfilled: dict[str, int] = {}
+        self._seen: dict[str, dict[int, None]] = {}  # backfilled topic -> recorded stamps (ordered)
         self.skipped: dict[str, str] = {}  # topic -> why it cannot be recorded
         self._waiting: dict[str, str] = {}  # fully qualified topic -> requested name
         for topic in p['topics']:
@@ -120,12 +143,49 @@ class RecorderNode(ProcessHooks, Node):
         except TypesysError as error:
             return self._skip(topic, type_name, f'not in the rosbags Jazzy typestore ({error})')
         self.counts[topic] = 0
+        base = topic.rsplit('/', 1)[-1]
+        seen = self._seen.setdefault(topic, {}) if base in qos.HISTORY_DEPTHS else None
 
         def on_message(raw: bytes, connection=connection, topic=topic) -> None:
+            if seen is not None:
+                self._remember(seen, header_stamp(raw))
             self._write(connection, topic, raw)
 
         self.create_subscription(message_type, topic, on_message, profile, raw=True)
+        if seen is not None:
+            self._backfill(topic, message_type, connection, seen)
         return True
+
+    def _backfill(self, topic: str, message_type, connection, seen: dict) -> None:
+        """Read ``<topic>/history`` and write the samples the live subscription missed."""
+        self.backfilled[topic] = 0
+        reader = {}
+
+        def on_history(raw: bytes) -> None:
+            if 'closing' not in reader:  # the backlog comes at once: after it only copies of live samples
+                steady = Clock(clock_type=ClockType.STEADY_TIME)
+                reader['closing'] = self.create_timer(BACKFILL_WINDOW, lambda: close_history(), clock=steady)
+            stamp = header_stamp(raw)
+            if stamp is None or stamp in seen:
+                return
+            self._remember(seen, stamp)
+            self._write(connection, topic, raw)
+            self.backfilled[topic] += 1
+
+        def close_history() -> None:
+            reader['closing'].cancel()
+            self.destroy_subscription(reader.pop('subscription'))
+
+        reader['subscription'] = self.create_subscription(message_type, qos.history_topic(topic), on_history,
+                                                          qos.HISTORY_QOS, raw=True)
+
+    @staticmethod
+    def _remember(seen: dict, stamp: int | None) -> None:
+        if stamp is None:
+            return
+        seen[stamp] = None
+        if len(seen) > SEEN_STAMPS:
+            del seen[next(iter(seen))]
 
     def _skip(self, topic: str, type_name: str, reason: str) -> bool:
         """Leave ``topic`` out of the bag, saying why; the other topics are still recorded."""
@@ -174,8 +234,11 @@ class RecorderNode(ProcessHooks, Node):
         started = time.monotonic()
         self._writer.close()
         total = sum(self.counts.values())
+        backfilled = {topic: n for topic, n in sorted(self.backfilled.items()) if n}
         self.get_logger().info(f'closed {self.path}: {total} messages '
-                               f'{dict(sorted(self.counts.items()))} ({time.monotonic() - started:.2f} s)')
+                               f'{dict(sorted(self.counts.items()))} ({time.monotonic() - started:.2f} s)'
+                               + (f'; from the publishers\' history (published before this recorder matched '
+                                  f'them): {backfilled}' if backfilled else ''))
 
 
 def main(args=None) -> int:

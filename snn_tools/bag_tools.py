@@ -133,6 +133,7 @@ def _first_per_stamp(samples: list) -> tuple[list, int]:
         if sample[0] not in seen:
             seen.add(sample[0])
             kept.append(sample)
+    kept.sort(key=lambda sample: sample[0])  # in stamp order: a recorder backfills missed samples later
     return kept, len(samples) - len(kept)
 
 

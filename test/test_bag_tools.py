@@ -152,3 +152,11 @@ def test_a_complete_bag_without_restarts_is_complete(tmp_path):
                            diagnostics('estimator', filter='ekf', estimates_published=5, spikes_published=0)]
     summary = summarize(read_bag(write_bag(tmp_path / 'bag', messages)))
     assert summary['recording_complete'] and summary['gaps'] == {'estimate': []}
+
+
+def test_a_series_reads_in_stamp_order_with_the_first_copy_of_each_stamp():
+    """A recorder writes backfilled samples after newer live ones; a resend repeats a stamp."""
+    from snn_tools.bag_tools import _first_per_stamp
+
+    kept, dropped = _first_per_stamp([(3, 'live'), (4, 'live'), (1, 'history'), (3, 'resend'), (2, 'history')])
+    assert kept == [(1, 'history'), (2, 'history'), (3, 'live'), (4, 'live')] and dropped == 1
