@@ -523,6 +523,8 @@ def yaml_document(header: str, estimator_overrides: dict) -> str:
            '# at start-up.', '']
 
     def block(section: str, specs, extra: dict, skip=()):
+        if not extra and all(spec.name in skip for spec in specs):
+            return  # nothing of its own: an empty ros__parameters is a parse error for rcl
         out.extend([f'{section}:', '  ros__parameters:'])
         for name, (comment, value) in extra.items():
             out.append(f'    # {comment}')

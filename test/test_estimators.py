@@ -656,3 +656,23 @@ def test_innovation_nis_is_infinite_not_a_crash_when_the_innovation_covariance_i
     r = 1e-2 * np.eye(3)
     estimator.set_state(np.zeros(6), np.diag([-1e-2, -1e-2, -1e-2, 1.0, 1.0, 1.0]))
     assert np.isinf(estimator.innovation_nis(np.ones(3), r)[0])
+
+
+@pytest.mark.parametrize('kind', ['ekf', 'snn_emsif_weighted'])
+def test_the_kernels_entry_point_sees_any_input_as_the_dispatcher_would(kind):
+    """After the first step the kernel is called through its compiled entry point (no per-call
+    type dispatch), which reads arrays as the first call's types: integer, non-contiguous and
+    read-only inputs must still give exactly what clean float arrays give."""
+    config = EstimatorConfig(neuron_count=30)
+    clean, odd = make_estimator(kind, config), make_estimator(kind, config)
+    wide = np.zeros((3, 6))
+    readonly = np.zeros(3)
+    readonly.flags.writeable = False
+    for k in range(40):
+        z = np.array([70.0 - k, 30.0, -5.0])
+        wide[:, 0] = z
+        inputs = (z, wide[:, 0], [70 - k, 30, -5])[k % 3]  # plain first, then a non-contiguous column, ints
+        clean.step(z, np.zeros(3), 0.1)
+        odd.step(inputs, readonly if k % 2 else [0, 0, 0], 0.1)
+    assert odd._step_entry is not odd._kernel  # the fast path is the one in use
+    np.testing.assert_array_equal(odd.x_hat, clean.x_hat)

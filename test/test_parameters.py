@@ -157,3 +157,15 @@ def test_the_readme_ros2_run_lines_set_what_they_say():
         finally:
             rclpy.try_shutdown(context=context)
     assert checked >= 7
+
+
+def test_a_node_with_only_the_shared_parameters_gets_no_empty_section(monkeypatch):
+    """A new node whose table is the shared MODEL one (issue 21's throwaway node found it):
+    every section of the generated file holds a ros__parameters mapping, which rcl requires
+    (an empty one is a parse error: 'Cannot have a value before ros__parameters')."""
+    from scenario_nodes import parameters
+
+    monkeypatch.setattr(parameters, 'NODES', {**parameters.NODES, 'range_monitor': parameters.MODEL})
+    document = yaml.safe_load(parameters.yaml_document('test', {}))
+    assert '/**/range_monitor' not in document
+    assert all(isinstance(section.get('ros__parameters'), dict) for section in document.values())

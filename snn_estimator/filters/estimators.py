@@ -262,6 +262,7 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         self._kernel = kernels.step_kernel(self.gain_law if not self.constant_gain else 'fixed', self.covariance_law,
                                            self.spiking, s.spike_rule, drift=not (model.is_linear or linearized),
                                            coding=self.coding)
+        self._step_entry = None  # the kernel's entry point for the step's argument types (see _advance)
         self._call_dt: float | None = None
         self.reset()
 
@@ -445,9 +446,13 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
             self.steps += 1
             self.capped_steps = self._chip.capped_steps
             return self.x_hat
-        status, capped = self._kernel(self._packed.constants, self._packed.state, self._packed.network, measured,
-                                      float(dt), dynamics, drift, np.ascontiguousarray(z), np.ascontiguousarray(u),
-                                      noise)
+        args = (self._packed.constants, self._packed.state, self._packed.network, measured, float(dt), dynamics,
+                drift, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(u, dtype=float), noise)
+        if self._step_entry is None:  # the first step: through numba's dispatch, then its entry point
+            status, capped = self._kernel(*args)
+            self._step_entry = kernels.entry_point(self._kernel, args)
+        else:
+            status, capped = self._step_entry(*args)
         if status == kernels.STATUS_BAD_INPUT:
             raise ValueError('z and u must be finite')
         self.steps += 1

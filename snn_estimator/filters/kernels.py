@@ -545,6 +545,18 @@ def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'gre
         _integrate=integrate)
 
 
+def entry_point(kernel, args: tuple):
+    """The compiled entry point of ``kernel`` for the types of ``args`` (after a call with them),
+    or ``kernel`` itself if there is none. Calling it skips numba's per-call dispatch, which
+    resolves the type of each of the ~30 arrays in the step kernel's packed tuples on every call
+    (~3 us of an ~11 us SNN-EMSIF step, docs/performance.md). The entry point does not check
+    types (a non-contiguous or integer array would be read wrongly), so a caller must pass the
+    same types on every call: :meth:`snn_estimator.filters.estimators.Estimator.step` builds
+    them (C-contiguous float64 z and u, the Packed tuples, a float dt, a bool array per run)."""
+    compiled = kernel.overloads.get(tuple(numba.typeof(a) for a in args))
+    return compiled.entry_point if compiled is not None else kernel
+
+
 def compile_for(kernel, *args) -> None:
     """Compile ``kernel`` for the types of ``args`` (or load it from the cache), without a call."""
     kernel.compile(tuple(numba.typeof(a) for a in args))
