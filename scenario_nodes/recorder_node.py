@@ -49,7 +49,7 @@ _STAMP = struct.Struct('<iI')  # header.stamp after the 4-byte CDR encapsulation
 SEEN_STAMPS = 5000
 #: Wall s a history subscription stays after its first sample (its backlog arrives at once; later
 #: samples are copies of live ones, which would double the recorder's work).
-BACKFILL_WINDOW = 5.0
+BACKFILL_WINDOW = 1.0
 
 
 def header_stamp(raw: bytes) -> int | None:
