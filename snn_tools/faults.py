@@ -23,7 +23,7 @@ import numpy as np
 
 from .bag_tools import read_bag, summarize
 from .demo import NODES, Pipeline, pipeline_env
-from .paths import config_file
+from .paths import config_file, replace_between_markers
 
 MODULES = dict(NODES)
 #: Matrix rows: the node a fault hits -> its process name in the pipeline.
@@ -210,11 +210,8 @@ def write_results(results: list[dict], meta: dict, out: Path) -> None:
     out.write_text(json.dumps({'meta': meta, 'cells': results}, indent=2) + '\n')
     table = markdown(results, meta)
     out.with_suffix('.md').write_text(table)
-    if ROBUSTNESS_DOC.exists() and out.resolve().parent == ROBUSTNESS_DOC.parents[1] / 'results':
-        text = ROBUSTNESS_DOC.read_text()
-        if BEGIN in text and END in text:
-            head, rest = text.split(BEGIN, 1)
-            ROBUSTNESS_DOC.write_text(head + BEGIN + '\n' + table + END + rest.split(END, 1)[1])
+    if out.resolve().parent == ROBUSTNESS_DOC.parents[1] / 'results':
+        replace_between_markers(ROBUSTNESS_DOC, BEGIN, END, table)
 
 
 def _commit() -> str:

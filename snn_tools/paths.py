@@ -28,3 +28,16 @@ def config_file(name: str = 'rendezvous.yaml') -> Path:
         if path.exists():
             return path
     raise FileNotFoundError(f'no config file {name!r} in {share_directory() / "config"} or {SOURCE_ROOT / "config"}')
+
+
+def replace_between_markers(doc: Path, begin: str, end: str, text: str) -> bool:
+    """Write ``text`` between the ``begin`` and ``end`` marker lines of ``doc`` (a generated
+    table inside hand-written docs); False, nothing written, when ``doc`` or a marker is missing."""
+    if not doc.exists():
+        return False
+    content = doc.read_text()
+    if begin not in content or end not in content:
+        return False
+    head, rest = content.split(begin, 1)
+    doc.write_text(head + begin + '\n' + text + end + rest.split(end, 1)[1])
+    return True

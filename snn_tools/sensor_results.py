@@ -19,6 +19,7 @@ import numpy as np
 
 from snn_estimator.offline.simulation import angles_only_scenario, sensor_rendezvous_scenario, simulate
 from snn_tools.campaign_cells import code_version
+from snn_tools.paths import replace_between_markers
 
 LIDAR_FILTERS = ('ekf', 'snn_ekf', 'emsif_weighted', 'snn_emsif_weighted')
 ANGLES_FILTERS = ('ekf', 'snn_ekf')
@@ -86,18 +87,6 @@ def markdown(results: dict) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def write_doc_tables(doc: Path, text: str) -> bool:
-    """Put the tables between the markers of ``doc`` (docs/sensors.md); False if it has none."""
-    if not doc.exists():
-        return False
-    content = doc.read_text()
-    if BEGIN not in content or END not in content:
-        return False
-    head, rest = content.split(BEGIN, 1)
-    doc.write_text(head + BEGIN + '\n' + text + END + rest.split(END, 1)[1])
-    return True
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='snn_sensor_results', description=__doc__.split('\n\n')[0])
     parser.add_argument('--runs', type=int, default=4, help='dispersed runs of the LIDAR approach (default 4)')
@@ -115,7 +104,7 @@ def main(argv=None) -> int:
     (args.out / 'sensors.md').write_text('# The filters on the rendezvous sensors\n\n' + tables)
     print(tables)
     print(f"wrote {args.out / 'sensors.json'} and {args.out / 'sensors.md'}")
-    if args.doc and write_doc_tables(SENSORS_DOC, tables):
+    if args.doc and replace_between_markers(SENSORS_DOC, BEGIN, END, tables):
         print(f'updated the tables of {SENSORS_DOC}')
     return 0
 
