@@ -246,6 +246,10 @@ RECORDER = (
     Spec('storage', 'mcap', 'Storage plugin', choices=('mcap', 'sqlite3')),
     Spec('drain_timeout', 5.0, 'On SIGINT/SIGTERM, wall-clock s at most to keep writing queued '
          'messages before closing the bag', low=0.0),
+    Spec('match_wait', 5.0, "Wall-clock s at most to wait, before subscribing to 'truth', until every "
+         'publisher of the other recorded topics has matched (the plant starts on matched truth '
+         'subscriptions: it then starts when the recorder hears the loop); 0: subscribe at once',
+         low=0.0, high=600.0),
 )
 
 LIVE_VIEW = MODEL + (

@@ -5,8 +5,9 @@
   loses a sample, and a late joiner gets the present (``ros2 topic echo --once`` adapts to
   the publisher's durability: with transient local it printed the oldest sample it was given).
 * the history of the topics a joining estimator starts from, on ``<topic>/history``
-  (measurement, control: keep last 200, 20 s; estimate: the newest one): reliable, transient
-  local, published beside the topic (2 us a sample with nobody listening).
+  (measurement, control, estimate: keep last 200, 20 s; a joining estimator takes the newest
+  estimate, the recorder backfills what it missed): reliable, transient local, published
+  beside the topic (2 us a sample with nobody listening).
 * every subscription of the loop: best effort, volatile, keep last 100 (the estimator's
   inputs 1000). It matches publishers with the default profile (``ros2 topic pub``,
   robot_localization), the sensor-data profile (drivers) and ours, as nav2 and
@@ -54,7 +55,7 @@ def _profile(reliability, durability, depth: int) -> QoSProfile:
 
 PUBLISHER_QOS = _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.VOLATILE, 5000)
 #: Samples each ``<topic>/history`` keeps for late joiners (a least-squares start fits 10 s).
-HISTORY_DEPTHS = {'measurement': 200, 'control': 200, 'estimate': 1}
+HISTORY_DEPTHS = {'measurement': 200, 'control': 200, 'estimate': 200}
 SUBSCRIPTION_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 100)
 #: The estimator's inputs: a deeper queue, so a burst (a replayed bag) is not cut.
 INPUT_QOS = _profile(ReliabilityPolicy.BEST_EFFORT, DurabilityPolicy.VOLATILE, 1000)

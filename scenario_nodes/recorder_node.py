@@ -11,6 +11,14 @@ loaded machine can take longer than the plant's start_delay) are not lost: for t
 publishers keep a ``<topic>/history`` (measurement, control, estimate: qos.HISTORY_DEPTHS), the
 recorder also reads that transient-local history and writes, under the topic itself, every
 sample whose stamp it has not recorded yet (counted as ``backfilled``).
+
+The unstamped topics (spike_count, spikes) cannot be repaired that way, so the recorder also
+holds the plant's start: it subscribes to 'truth' only once every publisher of the other topics
+it records has matched its subscription (and 'measurement', 'control', 'estimate' and
+'spike_count', when recorded, each have one), or after ``match_wait`` s with a warning naming
+what did not match. The plant starts on ``min_truth_subscribers`` matched 'truth' subscriptions
+(the demo: 2 with the recorder), so it starts when the recorder hears the whole loop: a match the
+plant cannot see (estimator <-> recorder, under load once 0.5 s late and 114 estimates lost).
 """
 
 from __future__ import annotations
@@ -50,6 +58,8 @@ SEEN_STAMPS = 5000
 #: Wall s a history subscription stays after its first sample (its backlog arrives at once; later
 #: samples are copies of live ones, which would double the recorder's work).
 BACKFILL_WINDOW = 1.0
+#: Topics of the loop the recorder waits to hear from before it subscribes to 'truth'.
+LOOP_TOPICS = (qos.MEASUREMENT, qos.CONTROL, qos.ESTIMATE, qos.SPIKE_COUNT)
 
 
 def header_stamp(raw: bytes) -> int | None:
@@ -112,6 +122,10 @@ class RecorderNode(ProcessHooks, Node):
         self._seen: dict[str, dict[int, None]] = {}  # backfilled topic -> recorded stamps (ordered)
         self.skipped: dict[str, str] = {}  # topic -> why it cannot be recorded
         self._waiting: dict[str, str] = {}  # fully qualified topic -> requested name
+        self._live: dict[str, object] = {}  # recorded topic -> its live subscription
+        self._held: tuple | None = None  # ('truth' args) until the loop's publishers matched
+        self._match_wait = p['match_wait']
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
         for topic in p['topics']:
             name = self.resolve_topic_name(topic)
             base = name.rsplit('/', 1)[-1]
@@ -119,13 +133,17 @@ class RecorderNode(ProcessHooks, Node):
                 type_name = KNOWN_TYPES.get(topic, KNOWN_TYPES.get(base))
                 if base == 'clock':
                     self._record(name, type_name, qos.CLOCK_QOS, qos.CLOCK_QOS)
+                elif base == qos.TRUTH and self._match_wait > 0:
+                    self._held = (name, type_name, qos.RECORDER_QOS, qos.PUBLISHER_QOS)
                 else:
                     self._record(name, type_name, qos.RECORDER_QOS, qos.PUBLISHER_QOS)
             else:
                 self._waiting[name] = topic
         if self._waiting:
-            self._discovery = self.create_timer(0.5, self._discover,
-                                                clock=Clock(clock_type=ClockType.STEADY_TIME))
+            self._discovery = self.create_timer(0.5, self._discover, clock=steady)
+        if self._held:
+            self._hold_started = time.monotonic()
+            self._hold_timer = self.create_timer(0.02, self._release_truth, clock=steady)
         self.get_logger().info(f"recording {sorted(self.counts) + sorted(self._waiting)} to {self.path} "
                                f"({p['storage']})")
 
@@ -151,10 +169,43 @@ class RecorderNode(ProcessHooks, Node):
                 self._remember(seen, header_stamp(raw))
             self._write(connection, topic, raw)
 
-        self.create_subscription(message_type, topic, on_message, profile, raw=True)
+        self._live[topic] = self.create_subscription(message_type, topic, on_message, profile, raw=True)
         if seen is not None:
             self._backfill(topic, message_type, connection, seen)
         return True
+
+    def unmatched(self) -> list[str]:
+        """The recorded topics (but 'truth') not heard from yet: a publisher in the graph that
+        has not matched this recorder's subscription, or no publisher at all on a loop topic."""
+        missing = [f'{name} (not in the graph yet)' for name in self._waiting]
+        for topic, subscription in self._live.items():
+            publishers = len(self.get_publishers_info_by_topic(topic))
+            if publishers and subscription.get_publisher_count() < publishers:
+                missing.append(f'{topic} ({subscription.get_publisher_count()} of {publishers} publishers matched)')
+            elif not publishers and topic.rsplit('/', 1)[-1] in LOOP_TOPICS:
+                missing.append(f'{topic} (no publisher)')
+        return missing
+
+    def _release_truth(self) -> None:
+        """Subscribe to 'truth' (the plant's start signal) once the loop is heard, or after match_wait."""
+        missing = self.unmatched()
+        waited = time.monotonic() - self._hold_started
+        if missing and waited < self._match_wait:
+            return
+        self._hold_timer.cancel()
+        if missing:
+            self.get_logger().warning(f"recording '{self._held[0]}' after {waited:.1f} s although not every "
+                                      f'publisher matched yet: {missing}; samples they publish before '
+                                      'matching may be missing from the bag')
+        else:
+            self.get_logger().info(f"every publisher matched after {waited:.2f} s: recording '{self._held[0]}'")
+        held, self._held = self._held, None
+        self._record(*held)
+
+    @property
+    def recording_truth(self) -> bool:
+        """True once 'truth' is subscribed (or was never asked for)."""
+        return self._held is None
 
     def _backfill(self, topic: str, message_type, connection, seen: dict) -> None:
         """Read ``<topic>/history`` and write the samples the live subscription missed."""

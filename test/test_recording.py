@@ -133,7 +133,7 @@ def test_a_topic_of_a_type_rosbags_does_not_know_is_skipped_and_the_others_recor
         truth = talker.create_publisher(Odometry, 'truth', qos.PUBLISHER_QOS)
         goals = talker.create_publisher(Goals, 'goals', 10)
         talker.create_timer(0.05, lambda: (truth.publish(Odometry()), goals.publish(Goals())))
-        assert spin_until(executor, lambda: '/goals' in recorder.skipped and recorder.counts['/truth'] >= 3)
+        assert spin_until(executor, lambda: '/goals' in recorder.skipped and recorder.counts.get('/truth', 0) >= 3)
         recorder.close()
     assert 'nav_msgs/msg/Goals' in recorder.skipped['/goals']
     assert re.search(r'ERROR.*/goals.*nav_msgs/msg/Goals', capfd.readouterr().err)
@@ -171,6 +171,38 @@ def test_samples_published_before_the_recorder_matched_are_backfilled_from_the_h
     data = read_bag(tmp_path / 'bag')
     assert np.allclose(data.measurement_t, 0.1 * np.arange(60)) and data.repeats.get('measurement', 0) == 0
     np.testing.assert_allclose(data.measurement[:, 0], 70.0 - np.arange(60))
+
+
+def _truth_subscribers(node) -> set:
+    return {info.node_name for info in node.get_subscriptions_info_by_topic('/truth')}
+
+
+def test_the_recorder_subscribes_to_truth_only_once_the_loop_publishers_matched_it(tmp_path, capfd):
+    """The plant starts on matched 'truth' subscriptions; the recorder subscribes to 'truth' only
+    once it hears the estimator (CI once lost 114 estimates and their spike counts: the
+    estimator matched the recorder 0.5 s after the plant had started), and, when a loop topic
+    has no publisher, after match_wait with a warning naming it."""
+    with ros_context() as (context, executor, nodes):
+        recorder = make(RecorderNode, context, executor, nodes, 'recorder', use_sim_time=False,
+                        topics=['truth', 'estimate'], output=str(tmp_path / 'bag'), match_wait=60.0)
+        talker = Node('estimator', context=context)
+        executor.add_node(talker)
+        nodes.append(talker)
+        spin_until(executor, lambda: False, timeout=1.0)
+        assert not recorder.recording_truth and 'recorder' not in _truth_subscribers(talker)
+        assert recorder.unmatched() == ['/estimate (no publisher)']
+        estimate = talker.create_publisher(Odometry, 'estimate', qos.PUBLISHER_QOS)
+        assert spin_until(executor, lambda: recorder.recording_truth)
+        assert estimate.get_subscription_count() == 1 and recorder.unmatched() == []
+        assert spin_until(executor, lambda: 'recorder' in _truth_subscribers(talker))
+        recorder.close()
+
+        alone = make(RecorderNode, context, executor, nodes, 'alone', use_sim_time=False,
+                     topics=['truth', 'spike_count'], output=str(tmp_path / 'alone'), match_wait=0.5)
+        assert spin_until(executor, lambda: alone.recording_truth, timeout=10.0)
+        alone.close()
+    assert re.search(r"WARN.*after 0\.\d s although not every publisher matched.*/spike_count \(no publisher\)",
+                     capfd.readouterr().err)
 
 
 class _DrainFails(RecorderNode):
