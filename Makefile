@@ -56,7 +56,7 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
 
 demo: $(STAMP)
-	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) \
+	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) $(if $(SENSOR),--sensor $(SENSOR)) \
 		$(if $(RTF),--real-time-factor $(RTF)) $(if $(LIVE),--live-view)
 
 experiments: $(STAMP)

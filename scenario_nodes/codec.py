@@ -18,7 +18,11 @@ Conventions (README, "Topics and QoS"):
   ``message_form`` (:func:`encode_measurement`, :func:`decode_measurement`; docs/sensors.md):
   'point' PointStamped as above, 'range' sensor_msgs/Range (field of view, limits and variance
   in the message), 'vector' geometry_msgs/Vector3Stamped with the components in model order
-  and NaN on unused ones.
+  and NaN on unused ones;
+* a sample the sensor took and could not measure (outside its field of view or range:
+  :func:`encode_no_measurement`) <-> a Range whose range is -inf (too close) or +inf (no
+  detection), as REP 117 prescribes, or a Vector3Stamped with NaN in every component; it decodes
+  to z None, so that an estimator predicts over that step at once.
 
 Fast path: plain little-endian CDR, recognised by the representation identifier (bytes 0-1 of
 the encapsulation header, 0x0001); the options (bytes 2-3) are ignored, as the XTypes standard
@@ -156,6 +160,13 @@ def _read_header(data: bytes) -> tuple[int, str, int]:
     if sec < 0 or nanosec >= NS:
         raise MessageError('out_of_range', f'stamp sec={sec} nanosec={nanosec} is not a valid time')
     return sec * NS + nanosec, data[16:end - 1].decode(), end
+
+
+def decode_stamp(data: bytes) -> int:
+    """The header stamp (ns) of any message that starts with a std_msgs/Header."""
+    if len(data) < 16:
+        raise MessageError('malformed', f'{len(data)} bytes hold no header')
+    return _read_header(data)[0]
 
 
 def _doubles(out: bytearray, values: np.ndarray) -> bytes:
@@ -357,16 +368,33 @@ def encode_measurement(model, z: np.ndarray, stamp_ns: int, frame_id: str) -> by
     raise ValueError(f"message_form must be one of {', '.join(MEASUREMENT_TYPES)}; got {form!r}")
 
 
-def decode_measurement(model, data: bytes) -> tuple[int, str, np.ndarray]:
+def encode_no_measurement(model, reason: str, stamp_ns: int, frame_id: str) -> bytes:
+    """CDR of "sampled at ``stamp_ns``, nothing measured" (``reason``: a REASONS key of
+    snn_estimator.measurements) for a model with limits: Range -inf when too close, +inf
+    otherwise (REP 117); a Vector3Stamped of NaN. A position has no limits: ValueError."""
+    form = model.message_form
+    if form == 'range':
+        return encode_range(-math.inf if reason == 'too_close' else math.inf, stamp_ns, frame_id,
+                            model.field_of_view, model.min_range, model.max_range or math.inf,
+                            float(model.noise[0, 0]))
+    if form == 'vector':
+        return encode_vector3(np.full(3, math.nan), stamp_ns, frame_id)
+    raise ValueError(f'{model.name} has no limits: every sample is measured or lost')
+
+
+def decode_measurement(model, data: bytes) -> tuple[int, str, np.ndarray | None]:
     """(stamp in ns, frame_id, z) of a measurement of ``model`` (the mirror of
-    :func:`encode_measurement`); MessageError for a value that is not finite, and for a range
-    outside the message's own [min_range, max_range] (sensor_msgs/Range: discard it)."""
+    :func:`encode_measurement`); z None for a sample the sensor says it could not measure
+    (:func:`encode_no_measurement`); MessageError for a value that is not finite, and for a
+    range outside the message's own [min_range, max_range] (sensor_msgs/Range: discard it)."""
     form = model.message_form
     if form == 'point':
         record = decode_point(data)
         return record.stamp_ns, record.frame_id, measurement_of(record, model.measured_axes)
     if form == 'range':
         record = decode_range(data)
+        if math.isinf(record.range):  # REP 117: -inf too close, +inf nothing within max_range
+            return record.stamp_ns, record.frame_id, None
         if not math.isfinite(record.range):
             raise MessageError('non_finite', f'range {record.range} (REP 117: no detection)')
         if not record.min_range <= record.range <= record.max_range:
@@ -375,6 +403,8 @@ def decode_measurement(model, data: bytes) -> tuple[int, str, np.ndarray]:
         return record.stamp_ns, record.frame_id, np.array([record.range])
     if form == 'vector':
         record = decode_vector3(data)
+        if np.isnan(record.vector).all():
+            return record.stamp_ns, record.frame_id, None
         z = record.vector[:model.dim]
         if not np.isfinite(z).all():
             raise MessageError('non_finite', f'{model.name} components {z.tolist()}')
@@ -437,6 +467,15 @@ def decode_spikes(data: bytes) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- records -> arrays, checked
+def read_measurement(model, data: bytes, frame_id: str) -> tuple[int, np.ndarray | None]:
+    """(stamp in ns, z or None: nothing measured) of a measurement of ``model`` in ``frame_id``
+    (:func:`decode_measurement`); MessageError('wrong_frame') for another frame."""
+    stamp_ns, frame, z = decode_measurement(model, data)
+    if frame != frame_id:
+        raise MessageError('wrong_frame', f"frame '{frame}', expected '{frame_id}'")
+    return stamp_ns, z
+
+
 def check_frame(record, frame_id: str):
     """``record`` if it is in ``frame_id``; MessageError('wrong_frame') otherwise."""
     if record.frame_id != frame_id:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
-from geometry_msgs.msg import AccelStamped, PointStamped
+from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
@@ -23,7 +23,7 @@ from snn_estimator.offline.blocks import lqr_control, lqr_gain
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
-from .codec import MessageError, decode_point, encode_accel, read_input, seconds_to_ns
+from .codec import MessageError, decode_stamp, encode_accel, read_input, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
@@ -68,7 +68,8 @@ class ControllerNode(ProcessHooks, Node):
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events,
                                                  peers=self._peers)
         qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)
-        qos.subscription(self, self._events, PointStamped, qos.MEASUREMENT, self._on_measurement)
+        # any sensor model's message (PointStamped, Vector3Stamped, Range): only its stamp is read
+        self._measurements = qos.PublishedTypeSubscription(self, self._events, qos.MEASUREMENT, self._on_measurement)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -100,7 +101,7 @@ class ControllerNode(ProcessHooks, Node):
         """Only whether the sensor is there: its newest stamp."""
         self._peers.saw(qos.MEASUREMENT)
         try:
-            stamp_ns = decode_point(data).stamp_ns
+            stamp_ns = decode_stamp(data)
         except MessageError:
             return
         self._last_measurement_ns = max(stamp_ns, self._last_measurement_ns or stamp_ns)

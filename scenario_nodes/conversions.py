@@ -85,9 +85,9 @@ def measurement_to_message(model, z: np.ndarray, stamp_ns: int, frame_id: str):
                                MEASUREMENT_CLASSES[model.message_form])
 
 
-def message_to_measurement(model, msg) -> np.ndarray:
-    """``z`` of a measurement message of ``model``; MessageError for a value not finite, or a
-    range outside the message's limits."""
+def message_to_measurement(model, msg) -> np.ndarray | None:
+    """``z`` of a measurement message of ``model`` (None: the sensor measured nothing);
+    MessageError for a value not finite, or a range outside the message's limits."""
     return decode_measurement(model, serialize_message(msg))[2]
 
 

@@ -43,8 +43,10 @@ from .codec import (
     encode_spikes,
     encode_uint32,
     read_input,
+    read_measurement,
     state_of,
 )
+from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher
 from .history import collect_history
 from .parameters import (
@@ -54,6 +56,7 @@ from .parameters import (
     cw_model,
     declare,
     estimator_config,
+    measurement_model,
     read,
     silenced_set,
 )
@@ -82,9 +85,12 @@ class Inputs:
     def __init__(self, node, runner: FilterRunner, outputs: 'Outputs', p: dict, report):
         self._node, self._runner, self._out, self._report = node, runner, outputs, report
         self._frame, self._axes = p['frame_id'], tuple(int(a) for a in p['measured_axes'])
+        self._model = runner.estimator.measurement  # None: position, z = C x (read_input)
+        self._sensor_frame = p['sensor_frame_id']
+        measurement_type = PointStamped if self._model is None else MEASUREMENT_CLASSES[self._model.message_form]
         events = node.events
         self.subscriptions = [
-            qos.subscription(node, events, PointStamped, qos.MEASUREMENT, self.on_measurement, qos.INPUT_QOS),
+            qos.subscription(node, events, measurement_type, qos.MEASUREMENT, self.on_measurement, qos.INPUT_QOS),
             qos.subscription(node, events, AccelStamped, qos.CONTROL, self.on_control, qos.INPUT_QOS),
             qos.subscription(node, events, AccelStamped, qos.APPLIED_CONTROL, self.on_applied, qos.INPUT_QOS),
             qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
@@ -93,13 +99,20 @@ class Inputs:
         self._node.peers.saw(qos.MEASUREMENT)
         runner = self._runner
         try:
-            record, z = read_input('measurement', data, self._frame, self._axes)
+            if self._model is None:
+                record, z = read_input('measurement', data, self._frame, self._axes)
+                stamp_ns = record.stamp_ns
+            else:  # z None: the sensor looked and measured nothing (outside its limits)
+                stamp_ns, z = read_measurement(self._model, data, self._sensor_frame)
         except MessageError as error:
             runner.measurements_received += 1
             return self._refuse(runner.rejected, 'measurement', error)
-        if self._node.active and runner.has_measurement(record.stamp_ns) and self._out.resend(record.stamp_ns):
+        if self._node.active and runner.has_measurement(stamp_ns) and self._out.resend(stamp_ns):
             runner.repeated()  # the same sample again (a lockstep resend): the same answer
-        elif runner.measurement(record.stamp_ns, z, clock_ns(self._node)) is not None:
+        elif z is None:
+            if runner.no_measurement(stamp_ns, clock_ns(self._node)) is not None:
+                self._report()
+        elif runner.measurement(stamp_ns, z, clock_ns(self._node)) is not None:
             self._report()
 
     def on_control(self, data: bytes) -> None:
@@ -288,12 +301,15 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         p = self._p = read(self, ESTIMATOR)
         check_choices(p, ESTIMATOR)
         axes = tuple(int(a) for a in p['measured_axes'])
-        estimator = make_estimator(p['filter_type'], estimator_config(p),
-                                   cw_model(p, form=p['cw_model'], measured_axes=axes))
+        config = estimator_config(p)
+        # position: z = C x of the model, exactly as before; any other model: H(x_hat) each step
+        measurement = None if p['model'] == 'position' else measurement_model(p, config.measurement_noise)
+        estimator = make_estimator(p['filter_type'], config, cw_model(p, form=p['cw_model'], measured_axes=axes),
+                                   measurement=measurement)
         estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
         estimator.warm_up()  # its kernels compiled (or loaded) now, not at the first step
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
-        history = (collect_history(self, p['frame_id'], axes, p['history_wait'])
+        history = (collect_history(self, p['frame_id'], axes, p['history_wait'], measurement, p['sensor_frame_id'])
                    if p['initialization'] != 'parameters' else None)
         self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log)
         self.peers = PeerWatch([qos.MEASUREMENT, qos.CONTROL, 'clock'], p['peer_timeout'], log=self.log)
@@ -303,7 +319,9 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         started = self._runner.start(p['initialization'], history)
         self.get_logger().info(
             f"{p['filter_type']} configured ({estimator.neuron_count} neurons, {p['discretization']} steps "
-            f"of {p['time_step']} s, axes {axes}); start: {started}")
+            f"of {p['time_step']} s, "
+            + (f'axes {axes}' if measurement is None else f"{measurement.describe()} in '{p['sensor_frame_id']}'")
+            + f'); start: {started}')
 
     def _make_endpoints(self) -> None:
         p = self._p

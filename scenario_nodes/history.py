@@ -23,7 +23,8 @@ from rclpy.qos import DurabilityPolicy
 from snn_estimator.loop.runner import History
 
 from . import qos
-from .codec import MessageError, read_input
+from .codec import MessageError, read_input, read_measurement
+from .conversions import MEASUREMENT_CLASSES
 from .qos import HISTORY_QOS
 
 #: Seconds a node that has just started gives discovery to show it the publishers there are.
@@ -95,23 +96,30 @@ def _take(node, readers: dict, samples: dict) -> int:
     return taken_now
 
 
-def collect_history(node, frame_id: str, axes, wait: float) -> History:
+def collect_history(node, frame_id: str, axes, wait: float, model=None, sensor_frame_id: str = '') -> History:
     """What the pipeline's topics hold for a joining estimator (an earlier estimator's
-    estimates, the sensor's measurements, the controller's controls), decoded and logged."""
-    raw = read_history(node, {qos.ESTIMATE: Odometry, qos.MEASUREMENT: PointStamped,
+    estimates, the sensor's measurements of ``model``, None: position; the controller's
+    controls), decoded and logged."""
+    measurement_type = PointStamped if model is None else MEASUREMENT_CLASSES[model.message_form]
+    raw = read_history(node, {qos.ESTIMATE: Odometry, qos.MEASUREMENT: measurement_type,
                               qos.CONTROL: AccelStamped}, wait)
     node.get_logger().info('history: ' + ', '.join(f"{len(raw[t])} on '{t}'" for t in raw))
-    return decode_history(raw, frame_id, axes)
+    return decode_history(raw, frame_id, axes, model, sensor_frame_id)
 
 
-def decode_history(raw: dict, frame_id: str, axes) -> History:
-    """The history's samples as the runner takes them; malformed ones or ones in another frame
-    are skipped (they are not inputs of this loop)."""
+def decode_history(raw: dict, frame_id: str, axes, model=None, sensor_frame_id: str = '') -> History:
+    """The history's samples as the runner takes them; malformed ones, ones in another frame
+    and "nothing measured" ones are skipped (they are not measurements of this loop)."""
     kinds = {qos.MEASUREMENT: 'measurement', qos.CONTROL: 'control', qos.ESTIMATE: 'state'}
     decoded = {topic: {} for topic in kinds}
     for topic, kind in kinds.items():
         for data in raw.get(topic, ()):
             try:
+                if kind == 'measurement' and model is not None:
+                    stamp_ns, value = read_measurement(model, data, sensor_frame_id)
+                    if value is not None:
+                        decoded[topic][stamp_ns] = value
+                    continue
                 record, value = read_input(kind, data, frame_id, axes)
             except MessageError:
                 continue

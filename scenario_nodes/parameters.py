@@ -134,6 +134,17 @@ BASILISK_PLANT = PLANT + (
          'their defaults under ~/.cache)'),
 )
 
+#: Where a sensor is and how it is turned: h(x) depends on these, so the sensor and the estimator
+#: that takes its measurements read the same values (docs/sensors.md, "Frames and angles").
+SENSOR_GEOMETRY = (
+    Spec('observer', 'chaser', 'Where the sensor is: on the chaser (sees the target at -position) or on '
+         'the target (sees the chaser); not for position', choices=OBSERVERS),
+    Spec('mounting_offset', [0.0, 0.0, 0.0], 'Sensor position on its spacecraft, LVLH axes, m'),
+    Spec('mounting_rotation', [0.0, 0.0, 0.0, 1.0], 'Sensor axes in LVLH axes as a unit quaternion '
+         '[x, y, z, w] (tf2 order; identity: sensor x = V-bar, z = R-bar)'),
+    Spec('sensor_frame_id', 'sensor', 'frame_id of the measurements of models other than position'),
+)
+
 SENSOR = MODEL + (
     Spec('measured_axes', [0, 1, 2], 'Position axes measured (0 x, 1 y, 2 z); the others are '
          'published as NaN'),
@@ -145,20 +156,18 @@ SENSOR = MODEL + (
     # the measurement model and its geometry (snn_estimator.measurements; docs/sensors.md)
     Spec('model', 'position', 'Measurement model; position publishes PointStamped in frame_id, the others '
          'their message in sensor_frame_id (docs/sensors.md)', choices=tuple(MEASUREMENT_MODELS)),
-    Spec('observer', 'chaser', 'Where the sensor is: on the chaser (sees the target at -position) or on '
-         'the target (sees the chaser); not for position', choices=OBSERVERS),
+) + SENSOR_GEOMETRY + (
     Spec('field_of_view', 2.0 * np.pi, 'Full cone angle about the sensor x axis, rad (2 pi: no limit); '
          'outside it no measurement (counted)', low=1e-9, high=2.0 * np.pi),
     Spec('min_range', 0.0, 'Shortest range measured, m (range 0 is never measured)', low=0.0),
     Spec('max_range', 0.0, 'Longest range measured, m (0: no limit)', low=0.0),
-    Spec('mounting_offset', [0.0, 0.0, 0.0], 'Sensor position on its spacecraft, LVLH axes, m'),
-    Spec('mounting_rotation', [0.0, 0.0, 0.0, 1.0], 'Sensor axes in LVLH axes as a unit quaternion '
-         '[x, y, z, w] (tf2 order; identity: sensor x = V-bar, z = R-bar)'),
-    Spec('sensor_frame_id', 'sensor', 'frame_id of the measurements of models other than position'),
     Spec('dropout_probability', 0.0, 'Probability that a sample is lost (own random stream 6)',
          low=0.0, high=1.0),
     Spec('measurement_period', 0.0, 'Simulated s between samples (0: every truth): a sample at the first '
          'truth at or after each multiple of it since the first; truths between are not measured', low=0.0),
+    Spec('publish_not_measured', True, 'Models with limits: publish a sample outside the field of view or '
+         'range as "nothing measured" (sensor_msgs/Range -inf/+inf as REP 117, a Vector3Stamped of NaN), '
+         'so that the estimator predicts over it at once instead of waiting dropout_wait for it'),
 )
 
 CONTROLLER = MODEL + (
@@ -202,7 +211,11 @@ ESTIMATOR = MODEL + (
     Spec('cw_model', 'standard', "CW matrix of the filter's model: standard, or Eq. 41 as printed",
          choices=('standard', 'as_published')),
     Spec('measured_axes', [0, 1, 2], 'Position axes in the measurement (must match the sensor)'),
-) + tuple(_from_schema(field) for field in schema.FIELDS) + (
+    Spec('model', 'position', "Measurement model of the `measurement` input (the sensor's; position: "
+         'PointStamped in frame_id, z = C x exactly as before; the others: their message in '
+         'sensor_frame_id, H(x_hat) each step; measurement_noise and boundary_layer in its units)',
+         choices=tuple(MEASUREMENT_MODELS)),
+) + SENSOR_GEOMETRY + tuple(_from_schema(field) for field in schema.FIELDS) + (
     Spec('silenced_fraction', 0.0, 'Fraction of neurons silenced, chosen at random with the seed '
          '(added to silenced_neurons)', read_only=False, low=0.0, high=1.0),
     Spec('publish_spikes', True, 'Publish per-neuron spike counts on `spikes` every step'),
@@ -441,6 +454,16 @@ def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
                              form=form, measured_axes=tuple(measured_axes))
 
 
+def measurement_model(values: dict, noise, **limits):
+    """The measurement model the parameters describe (snn_estimator.measurements): ``model`` with
+    R ``noise`` in its units, the sensor geometry, and ``limits`` (field of view, range) where
+    the caller has them."""
+    from snn_estimator.measurements import make_model
+    geometry = {spec.name: values[spec.name] for spec in SENSOR_GEOMETRY if spec.name != 'sensor_frame_id'}
+    return make_model(values['model'], noise, measured_axes=tuple(int(a) for a in values['measured_axes']),
+                      **geometry, **limits)
+
+
 # ---------------------------------------------------------------- generated files
 def _show(value) -> str:
     if value is None:
@@ -517,6 +540,38 @@ CONFIG_FILES = {
 }
 
 
+def sensor_suites() -> dict[str, dict[str, dict]]:
+    """Sensors that replace Table 6's position sensor: name -> node -> parameter values
+    (``make demo SENSOR=<name>``, config/sensor_<name>.yaml). The numbers are the core's
+    (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
+    sample, the mounting that looks back at the target, the minimum range, and the estimator's
+    R and boundary layer (one sensor sigma per component, as Table 6's delta = sigma)."""
+    suites = {}
+    for name, model, frame in (('lidar', 'range_azimuth_elevation', 'lidar'),):
+        noise = [float(v) for v in np.atleast_1d(D.SENSOR_NOISE[model])]
+        shared = {'model': model, 'measurement_noise': noise,
+                  'mounting_rotation': [float(v) for v in D.CLOSE_SENSOR_MOUNTING], 'sensor_frame_id': frame}
+        suites[name] = {'position_sensor': {**shared, 'min_range': float(D.CLOSE_SENSOR_MIN_RANGE)},
+                        'estimator': {**shared, 'boundary_layer': [float(np.sqrt(v)) for v in noise]}}
+    return suites
+
+
+def sensor_overlay(name: str) -> str:
+    """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml."""
+    out = [f'# snn_rendezvous: the {name} sensor suite instead of the position sensor (docs/sensors.md).',
+           '# Generated from scenario_nodes/parameters.py (sensor_suites). Load it after the scenario file:',
+           '#   --ros-args --params-file config/rendezvous.yaml --params-file config/sensor_' + name + '.yaml',
+           '']
+    for node, values in sensor_suites()[name].items():
+        out.extend([f'/**/{node}:', '  ros__parameters:'])
+        specs = {spec.name: spec for spec in NODES[node]}
+        for key, value in values.items():
+            out.extend(f'    # {line}' for line in textwrap.wrap(specs[key].description, 92))
+            out.append(f'    {key}: {_yaml_value(value)}')
+        out.append('')
+    return '\n'.join(out)
+
+
 def yaml_document(header: str, estimator_overrides: dict) -> str:
     """A parameter file for all nodes, every parameter commented (generated from the tables)."""
     out = [f'# snn_rendezvous: {header}',
@@ -575,6 +630,7 @@ that names the parameter and the fix.
 def generated_files() -> dict[Path, str]:
     """Every file generated from the tables, with its content."""
     files = {ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
+    files.update({ROOT / 'config' / f'sensor_{name}.yaml': sensor_overlay(name) for name in sensor_suites()})
     files[ROOT / 'docs' / 'parameters.md'] = PARAMETERS_DOC + markdown()
     for name in registry.executables():  # ros2 run entry points of a pip install (setup.py)
         files[ROOT / 'wrappers' / name] = registry.WRAPPER.format(name=name)

@@ -171,6 +171,32 @@ def subscription(node, events: QosEvents, message_type, topic: str, callback, pr
         qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
 
 
+class PublishedTypeSubscription:
+    """A pipeline subscription to ``topic`` in the type its publishers use, for a node that
+    reads only what every candidate type shares (the header): `measurement` is PointStamped,
+    Vector3Stamped or sensor_msgs/Range by the sensor's model (docs/sensors.md), and one
+    process (one DDS participant) cannot hold two types on one topic. Subscribes once the graph
+    shows a publisher (checked every ``period`` wall s)."""
+
+    def __init__(self, node, events: QosEvents, topic: str, callback, period: float = 0.1):
+        from rclpy.clock import Clock, ClockType
+        self._node, self._events, self._topic, self._callback = node, events, topic, callback
+        self.subscription = None
+        self.type_name = None
+        self._timer = node.create_timer(period, self._look, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _look(self) -> None:
+        import importlib
+        publishers = self._node.get_publishers_info_by_topic(self._node.resolve_topic_name(self._topic))
+        if not publishers:
+            return
+        self._timer.cancel()
+        self.type_name = publishers[0].topic_type
+        package, _, name = self.type_name.split('/')
+        message_type = getattr(importlib.import_module(f'{package}.msg'), name)
+        self.subscription = subscription(self._node, self._events, message_type, self._topic, self._callback)
+
+
 def liveliness_monitor(node, message_type, topic: str, lease: float, on_change):
     """A subscription that only watches which publishers of ``topic`` are alive: it requests
     a liveliness lease of ``lease`` wall s (Fast DDS times a writer out on the reader's lease),

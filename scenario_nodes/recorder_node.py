@@ -51,6 +51,11 @@ KNOWN_TYPES = {
     'clock': 'rosgraph_msgs/msg/Clock',
 }
 
+#: Topics whose type depends on the sensor (its measurement model: PointStamped, Vector3Stamped,
+#: Range): taken from the graph, as for any other topic; the known type is the bag's connection
+#: when no publisher ever showed up.
+TYPE_FROM_GRAPH = frozenset({qos.MEASUREMENT})
+
 _ZERO = QosTime(sec=0, nsec=0)
 _STAMP = struct.Struct('<iI')  # header.stamp after the 4-byte CDR encapsulation header
 #: Stamps remembered per backfilled topic (the newest; a history holds at most a few hundred).
@@ -123,34 +128,38 @@ class RecorderNode(ProcessHooks, Node):
         self.skipped: dict[str, str] = {}  # topic -> why it cannot be recorded
         self._waiting: dict[str, str] = {}  # fully qualified topic -> requested name
         self._live: dict[str, object] = {}  # recorded topic -> its live subscription
-        self._held: tuple | None = None  # ('truth' args) until the loop's publishers matched
+        self._held: tuple | None = None  # ('truth', subscribe) until the loop's publishers matched
         self._match_wait = p['match_wait']
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         for topic in p['topics']:
             name = self.resolve_topic_name(topic)
             base = name.rsplit('/', 1)[-1]
-            if topic in KNOWN_TYPES or base in KNOWN_TYPES:
+            if base in TYPE_FROM_GRAPH:
+                self._waiting[name] = topic
+            elif topic in KNOWN_TYPES or base in KNOWN_TYPES:
                 type_name = KNOWN_TYPES.get(topic, KNOWN_TYPES.get(base))
                 if base == 'clock':
                     self._record(name, type_name, qos.CLOCK_QOS, qos.CLOCK_QOS)
-                elif base == qos.TRUTH and self._match_wait > 0:
-                    self._held = (name, type_name, qos.RECORDER_QOS, qos.PUBLISHER_QOS)
+                elif base == qos.TRUTH and self._match_wait > 0:  # in the bag now, subscribed later
+                    self._record(name, type_name, qos.RECORDER_QOS, qos.PUBLISHER_QOS, hold=True)
                 else:
                     self._record(name, type_name, qos.RECORDER_QOS, qos.PUBLISHER_QOS)
             else:
                 self._waiting[name] = topic
         if self._waiting:
-            self._discovery = self.create_timer(0.5, self._discover, clock=steady)
+            self._discovery = self.create_timer(0.1, self._discover, clock=steady)
         if self._held:
             self._hold_started = time.monotonic()
             self._hold_timer = self.create_timer(0.02, self._release_truth, clock=steady)
         self.get_logger().info(f"recording {sorted(self.counts) + sorted(self._waiting)} to {self.path} "
                                f"({p['storage']})")
 
-    def _record(self, topic: str, type_name: str, profile: QoSProfile, offered: QoSProfile) -> bool:
-        """Subscribe with ``profile``; metadata.yaml states ``offered`` (the publishers' QoS),
-        which ``ros2 bag play`` republishes with. False, with an error logged, when the type
-        cannot be recorded: the bag needs its definition from the typestore."""
+    def _record(self, topic: str, type_name: str, profile: QoSProfile, offered: QoSProfile,
+                hold: bool = False) -> bool:
+        """Subscribe with ``profile`` (``hold``: later, :meth:`_release_truth`); metadata.yaml
+        states ``offered`` (the publishers' QoS), which ``ros2 bag play`` republishes with. False,
+        with an error logged, when the type cannot be recorded: the bag needs its definition
+        from the typestore."""
         try:
             message_type = message_class(type_name)
         except (ImportError, AttributeError) as error:
@@ -169,9 +178,15 @@ class RecorderNode(ProcessHooks, Node):
                 self._remember(seen, header_stamp(raw))
             self._write(connection, topic, raw)
 
-        self._live[topic] = self.create_subscription(message_type, topic, on_message, profile, raw=True)
-        if seen is not None:
-            self._backfill(topic, message_type, connection, seen)
+        def subscribe() -> None:
+            self._live[topic] = self.create_subscription(message_type, topic, on_message, profile, raw=True)
+            if seen is not None:
+                self._backfill(topic, message_type, connection, seen)
+
+        if hold:
+            self._held = (topic, subscribe)
+        else:
+            subscribe()
         return True
 
     def unmatched(self) -> list[str]:
@@ -179,6 +194,8 @@ class RecorderNode(ProcessHooks, Node):
         has not matched this recorder's subscription, or no publisher at all on a loop topic."""
         missing = [f'{name} (not in the graph yet)' for name in self._waiting]
         for topic, subscription in self._live.items():
+            if self._held and topic == self._held[0]:
+                continue
             publishers = len(self.get_publishers_info_by_topic(topic))
             if publishers and subscription.get_publisher_count() < publishers:
                 missing.append(f'{topic} ({subscription.get_publisher_count()} of {publishers} publishers matched)')
@@ -199,8 +216,8 @@ class RecorderNode(ProcessHooks, Node):
                                       'matching may be missing from the bag')
         else:
             self.get_logger().info(f"every publisher matched after {waited:.2f} s: recording '{self._held[0]}'")
-        held, self._held = self._held, None
-        self._record(*held)
+        (_, subscribe), self._held = self._held, None
+        subscribe()
 
     @property
     def recording_truth(self) -> bool:
@@ -283,6 +300,12 @@ class RecorderNode(ProcessHooks, Node):
             return
         self._closed = True
         started = time.monotonic()
+        for name in self._waiting:  # never published: the bag still lists the pipeline's topics
+            base = name.rsplit('/', 1)[-1]
+            if base in TYPE_FROM_GRAPH:
+                self._writer.add_connection(name, KNOWN_TYPES[base], typestore=self._typestore,
+                                            offered_qos_profiles=[bag_qos(qos.PUBLISHER_QOS)])
+                self.counts[name] = 0
         self._writer.close()
         total = sum(self.counts.values())
         backfilled = {topic: n for topic, n in sorted(self.backfilled.items()) if n}

@@ -13,35 +13,38 @@ from rclpy.node import Node
 
 from snn_estimator.loop.gates import NewestFirst
 from snn_estimator.loop.peers import PeerWatch
-from snn_estimator.measurements import REASONS, VALID, make_model
+from snn_estimator.measurements import REASONS, VALID
 from snn_estimator.offline.blocks import MeasurementSensor, SamplePeriod
 
 from . import qos
-from .codec import MessageError, encode_measurement, read_input
+from .codec import MessageError, encode_measurement, encode_no_measurement, read_input
 from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import SENSOR, declare
+from .parameters import SENSOR, declare, measurement_model
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 #: An angle variance (rad^2) from which the node warns: 0.1 rad (5.7 deg) of noise.
 ANGLE_VARIANCE_WARNING = 1e-2
+#: Reasons a sample is published as "nothing measured" (publish_not_measured; codec.encode_no_measurement):
+#: the sensor looked and saw nothing. A dropout is a lost message, a non-finite truth a broken input.
+SAYS_NOT_MEASURED = frozenset({'too_close', 'too_far', 'out_of_view', 'singular'})
 
 
 class SensorNode(ProcessHooks, Node):
     """Wraps :class:`snn_estimator.offline.blocks.MeasurementSensor`: one measurement per truth sample,
     stamped with the truth's time, in the message of the model (position: PointStamped with NaN
     on the axes it does not measure, PositionSensor's numbers). A sample outside the field of
-    view or the range limits, or dropped, is not published and is counted
-    (measurement_rejected.<reason>)."""
+    view or the range limits is published as "nothing measured" (publish_not_measured: REP 117's
+    +-inf range, a NaN vector), so that an estimator predicts over it at once; one dropped is not
+    published. Both are counted (measurement_rejected.<reason>)."""
 
     def __init__(self, **kwargs):
         super().__init__('position_sensor', **kwargs)
         p = declare(self, SENSOR)
         self._p = p
         self._axes = tuple(int(a) for a in p['measured_axes'])
-        model = make_model(p['model'], p['measurement_noise'], measured_axes=self._axes,
-                           **{name: p[name] for name in ('observer', 'field_of_view', 'min_range', 'max_range',
-                                                          'mounting_offset', 'mounting_rotation')})
+        model = measurement_model(p, p['measurement_noise'],
+                                  **{name: p[name] for name in ('field_of_view', 'min_range', 'max_range')})
         self._model = model
         self._frame = p['frame_id'] if model.message_form == 'point' else p['sensor_frame_id']
         self._sensor = MeasurementSensor(model, seeds=[p['seed']], dropout_probability=p['dropout_probability'])
@@ -112,12 +115,14 @@ class SensorNode(ProcessHooks, Node):
             if reason != REASONS[VALID]:
                 raise MessageError(reason, 'no measurement')
             data = encode_measurement(self._model, sample.z[0], stamp_ns, self._frame)
-        except MessageError as error:  # out of view or range, dropped, not finite: never published
+        except MessageError as error:  # out of view or range, dropped, not finite: no measurement
             self._not_measured[error.reason] += 1
-            self._unmeasured_ns = stamp_ns
-            if self._diagnostics.due(stamp_ns):
-                self._publish_diagnostics(stamp_ns)
-            return
+            if error.reason not in SAYS_NOT_MEASURED or not self._p['publish_not_measured']:
+                self._unmeasured_ns = stamp_ns
+                if self._diagnostics.due(stamp_ns):
+                    self._publish_diagnostics(stamp_ns)
+                return
+            data = encode_no_measurement(self._model, error.reason, stamp_ns, self._frame)
         self._pub.publish(data)
         self._answers.remember(stamp_ns, data)
         self._published += 1

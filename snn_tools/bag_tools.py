@@ -110,7 +110,10 @@ def _decode(run: RunData, series: dict, typestore, connection, name: str, raw: b
     if name in ('truth', 'estimate'):
         record = codec.decode_odometry(raw)
         series[name].append((record.stamp_ns, record.state, np.diag(record.covariance)))
-    elif name in ('measurement', 'control'):
+    elif name == 'measurement' and connection.msgtype == 'sensor_msgs/msg/Range':
+        record = codec.decode_range(raw)  # +-inf: nothing measured (REP 117)
+        series[name].append((record.stamp_ns, np.array([record.range, np.nan, np.nan])))
+    elif name in ('measurement', 'control'):  # PointStamped and Vector3Stamped: one layout
         record = codec.decode_point(raw) if name == 'measurement' else codec.decode_accel(raw)
         series[name].append((record.stamp_ns, record.vector))
     elif name == 'spike_count':

@@ -21,7 +21,7 @@ from pathlib import Path
 import yaml
 
 from scenario_nodes import registry
-from scenario_nodes.parameters import DEFAULT_FILTER
+from scenario_nodes.parameters import DEFAULT_FILTER, sensor_suites
 from snn_estimator.filters.estimators import FILTER_KINDS
 
 from .paths import config_file
@@ -140,7 +140,7 @@ class Pipeline:
         if overrides:
             self.overrides.setdefault(key, {}).update(overrides)
         document = {f'/**/{n}': {'ros__parameters': values} for n, values in self.overrides.items()}
-        self.overrides_file.write_text(yaml.safe_dump(document, sort_keys=True))
+        self.overrides_file.write_text(yaml.dump(document, Dumper=_NoAliases, sort_keys=True))
         log = open(self.run_dir / 'logs' / f'{log_name or key}.log', 'w')
         self.processes[key] = subprocess.Popen(
             self.command(name, module, node_name), env=self.env, stdout=log, stderr=subprocess.STDOUT,
@@ -206,17 +206,25 @@ def pipeline_env(domain_id: int | None = None) -> dict:
     return env
 
 
+class _NoAliases(yaml.SafeDumper):
+    """rcl's parameter-file parser refuses YAML aliases: a value shared by two nodes is written twice."""
+
+    def ignore_aliases(self, data) -> bool:
+        return True
+
+
 def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lockstep',
                  params_file: Path | None = None, duration: float | None = None,
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
                  scheduling: str = 'batch', plant: str = 'cw', live_view: bool = False,
-                 single_process: bool = False) -> dict:
+                 single_process: bool = False, sensor: str = 'position') -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
-    ``on_start(pipeline)``, if given, is called once the node processes are started."""
+    ``on_start(pipeline)``, if given, is called once the node processes are started.
+    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameters.sensor_suites."""
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
     plant_values = {'mode': mode, 'exit_when_done': True}
@@ -228,6 +236,12 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
         plant_values['cache_dir'] = str(run_dir / 'cache')  # nothing of the run outside its folder
     overrides = {PLANTS[plant][0]: plant_values, 'estimator': {'filter_type': estimator},
                  'recorder': {'output': str(run_dir / 'bag'), 'storage': storage}}
+    if sensor != 'position':
+        suites = sensor_suites()
+        if sensor not in suites:
+            raise ValueError(f"sensor must be position or one of {', '.join(suites)}; got {sensor!r}")
+        for name, values in suites[sensor].items():
+            overrides.setdefault(name, {}).update(values)
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
@@ -312,6 +326,8 @@ def main(argv=None) -> int:
     parser.add_argument('--mode', default='lockstep', choices=('lockstep', 'realtime'))
     parser.add_argument('--plant', default='cw', choices=tuple(PLANTS),
                         help='truth: cw (the model the filters use) or basilisk (J2, thrust limits)')
+    parser.add_argument('--sensor', default='position', choices=('position', *sensor_suites()),
+                        help="position (Table 6's partial position) or a sensor suite (docs/sensors.md)")
     parser.add_argument('--params-file', type=Path, help='parameter file (default: config/rendezvous.yaml)')
     parser.add_argument('--duration', type=float, help='simulated seconds (default: from the file, 360)')
     parser.add_argument('--real-time-factor', type=float, help='realtime mode speed-up (default 1)')
@@ -332,19 +348,20 @@ def main(argv=None) -> int:
                              'per node); same results, see docs/performance.md; experimental: crashed once '
                              'at shutdown in the recorder drain')
     args = parser.parse_args(argv)
-    name = args.name or f"{args.estimator}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    sensor = '' if args.sensor == 'position' else f'_{args.sensor}'
+    name = args.name or f"{args.estimator}{sensor}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     run_dir = (args.runs_dir / name).resolve()
     if run_dir.exists():
         parser.error(f'{run_dir} exists; choose another --name')
     params_file = config_file(str(args.params_file)) if args.params_file else None
-    print(f'snn_demo: {args.estimator} in {args.mode} mode -> {run_dir}')
+    print(f'snn_demo: {args.estimator} on {args.sensor} in {args.mode} mode -> {run_dir}')
     signal.signal(signal.SIGTERM, _raise_interrupt)  # so the nodes are stopped on SIGTERM too
     try:
         result = run_pipeline(run_dir, args.estimator, args.mode, params_file, args.duration,
                               args.real_time_factor, args.domain_id, storage=args.storage,
                               pin_cpus=args.cpu_affinity == 'auto', scheduling=args.scheduling,
                               plant=args.plant, live_view=args.live_view,
-                              single_process=args.single_process)
+                              single_process=args.single_process, sensor=args.sensor)
     except RuntimeError as error:
         print(f'snn_demo: {error}', file=sys.stderr)
         return 1

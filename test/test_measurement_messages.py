@@ -13,7 +13,14 @@ from rclpy.serialization import deserialize_message, serialize_message  # noqa: 
 from sensor_msgs.msg import Range  # noqa: E402
 from test_measurements import NOISE  # noqa: E402 (one noise per model, for every test)
 
-from scenario_nodes.codec import decode_range, decode_vector3, encode_range, encode_vector3  # noqa: E402
+from scenario_nodes.codec import (  # noqa: E402
+    decode_range,
+    decode_vector3,
+    encode_no_measurement,
+    encode_range,
+    encode_vector3,
+    read_measurement,
+)
 from scenario_nodes.conversions import (  # noqa: E402
     MessageError,
     measurement_to_message,
@@ -100,8 +107,32 @@ def test_a_sample_that_is_not_finite_never_leaves_and_bad_ranges_are_refused():
     assert error.value.reason == 'non_finite'
     ranger = make_model('range', 1e-4, min_range=1.0, max_range=100.0)
     msg = measurement_to_message(ranger, np.array([50.0]), 0, 'laser')
-    for value, reason in ((150.0, 'out_of_range'), (0.5, 'out_of_range'), (math.inf, 'non_finite')):
+    for value, reason in ((150.0, 'out_of_range'), (0.5, 'out_of_range'), (math.nan, 'non_finite')):
         msg.range = value
         with pytest.raises(MessageError) as error:
             message_to_measurement(ranger, msg)
         assert error.value.reason == reason
+
+
+@pytest.mark.parametrize('name', [name for name in MODELS if name != 'position'])
+def test_a_sample_the_sensor_could_not_measure_says_so_and_reads_as_none(name):
+    """Outside its limits a sensor publishes "nothing measured" (REP 117's -inf too close, +inf
+    no detection for sensor_msgs/Range; NaN in every component of a Vector3Stamped), which
+    reads as z None: the estimator predicts over that step at once (docs/sensors.md)."""
+    model = make_model(name, NOISE[name], min_range=1.0, max_range=100.0)
+    for reason in ('too_close', 'too_far', 'out_of_view', 'singular'):
+        data = encode_no_measurement(model, reason, 12_300_000_000, 'lidar')
+        msg = deserialize_message(data, TYPES[model.message_form])  # a message rclpy reads
+        assert message_to_measurement(model, msg) is None
+        assert read_measurement(model, data, 'lidar') == (12_300_000_000, None)
+        if name == 'range':
+            assert msg.range == (-math.inf if reason == 'too_close' else math.inf)
+    with pytest.raises(MessageError, match='wrong_frame'):
+        read_measurement(model, data, 'camera')
+    with pytest.raises(ValueError, match='no limits'):
+        encode_no_measurement(make_model('position', 1e-2), 'too_far', 0, 'lvlh')
+    partly = measurement_to_message(model, model.h(np.array([[50.0, 1.0, 2.0, 0.0, 0.0, 0.0]]))[0], 0, 'lidar')
+    if model.dim > 1 and name != 'range':  # one NaN among finite components is a broken sample
+        partly.vector.x = math.nan
+        with pytest.raises(MessageError, match='non_finite'):
+            message_to_measurement(model, partly)

@@ -154,6 +154,23 @@ def test_h_inverts_an_independent_spherical_construction():
         np.testing.assert_allclose(los_model.h(x), np.stack([az, el], axis=1), rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize('name', list(MODELS))
+def test_position_of_inverts_h_where_one_sample_determines_the_position(name):
+    """h(position_of(z)) = z for any mounting and observer (range and both angles, position on
+    every axis); None where one sample does not fix the position (a restart cannot use it)."""
+    rng = np.random.default_rng(11)
+    for geometry in (mountings(rng) if name != 'position' else [{}]):
+        model = make_model(name, NOISE[name], **geometry)
+        x = np.concatenate([rng.uniform(-80.0, 80.0, size=(20, 3)), rng.normal(size=(20, 3))], axis=1)
+        x = x[model.valid(x)]
+        p = model.position_of(model.h(x))
+        if name in ('position', 'range_azimuth_elevation'):
+            np.testing.assert_allclose(p, x[:, :3], rtol=0, atol=1e-9)
+        else:
+            assert p is None
+    assert make_model('position', 1e-2, measured_axes=(0, 2)).position_of(np.zeros(2)) is None
+
+
 def test_angle_conventions_in_the_lvlh_frame():
     """Identity mounting, sensor on the target: azimuth from +x (V-bar) toward +y (-H-bar),
     elevation positive toward +z (R-bar, toward Earth); on the chaser the target is seen at -p."""

@@ -28,14 +28,14 @@ from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
 from snn_estimator.offline.simulation import lqr_control, lqr_gain  # noqa: E402
 
 
-def run_lockstep(kind, steps, plant_class=PlantNode, **estimator_parameters):
+def run_lockstep(kind, steps, plant_class=PlantNode, sensor_parameters=None, **estimator_parameters):
     """The four nodes in one process; returns the estimates by stamp and the truths by stamp."""
     duration = steps * 0.1
     with ros_context() as (context, executor, nodes):
-        probe = Probe(context, executor, nodes)
+        probe = Probe(context, executor, nodes, skip=(qos.MEASUREMENT,) if sensor_parameters else ())
         make(ControllerNode, context, executor, nodes, 'lqr_controller')
         make(EstimatorNode, context, executor, nodes, 'estimator', filter_type=kind, **estimator_parameters)
-        make(SensorNode, context, executor, nodes, 'position_sensor')
+        make(SensorNode, context, executor, nodes, 'position_sensor', **(sensor_parameters or {}))
         plant = make(plant_class, context, executor, nodes, plant_class.NAME, duration=duration,
                      control_timeout=30.0)
         last = steps * 100_000_000
@@ -64,6 +64,21 @@ def test_lockstep_ros_run_equals_the_offline_simulation(kind, parameters):
         stamp = k * 100_000_000
         np.testing.assert_allclose(estimates[stamp], offline.estimate[0, k], rtol=0, atol=1e-9)
         np.testing.assert_allclose(truths[stamp], offline.truth[0, k], rtol=0, atol=1e-9)
+
+
+def test_lockstep_ros_run_on_a_lidar_equals_the_offline_simulation_on_it():
+    """The estimator on range, azimuth and elevation (config/sensor_lidar.yaml's values), its
+    H(x_hat) every step, equal to the offline loop on the same sensor."""
+    from scenario_nodes.parameters import sensor_suites
+    from snn_estimator.offline.simulation import sensor_rendezvous_scenario
+    steps, suite = 150, sensor_suites()['lidar']
+    estimates, truths = run_lockstep('snn_ekf', steps, sensor_parameters=suite['position_sensor'],
+                                     **suite['estimator'])
+    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
+    offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), 'snn_ekf')
+    for k in range(steps + 1):
+        np.testing.assert_allclose(estimates[k * 100_000_000], offline.estimate[0, k], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(truths[k * 100_000_000], offline.truth[0, k], rtol=0, atol=1e-9)
 
 
 def test_lockstep_ros_run_on_basilisk_truth_equals_the_offline_simulation():
@@ -220,6 +235,10 @@ def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_tr
     (EstimatorNode, 'estimator', {'filter_type': 'ukf'}, 'filter_type'),
     (EstimatorNode, 'estimator', {'measurement_noise_units': 'per_sample',
                                   'initial_covariance': [0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4]}, 'initial_covariance'),
+    (EstimatorNode, 'estimator', {'model': 'range_azimuth_elevation', 'measurement_noise': [1.0, 2.0]},
+     r'measurement_noise \(R of range_azimuth_elevation'),
+    (EstimatorNode, 'estimator', {'model': 'line_of_sight', 'mounting_rotation': [0.0, 0.0, 2.0, 0.0]},
+     'mounting_rotation'),
     (PlantNode, 'cw_plant', {'mode': 'fast'}, 'mode'),
     (PlantNode, 'cw_plant', {'start_time': 3e9}, 'start_time'),  # beyond a ROS stamp's int32 s
     (SensorNode, 'position_sensor', {'measurement_noise': [1.0, 2.0]}, 'measurement_noise'),

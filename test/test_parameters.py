@@ -19,6 +19,7 @@ from scenario_nodes.parameters import (  # noqa: E402
     RECORDER,  # noqa: E402
     SENSOR,
     estimator_config,
+    sensor_suites,
 )
 from snn_estimator import EstimatorConfig, make_estimator, rendezvous_scenario, schema  # noqa: E402
 from snn_estimator.filters.estimators import Estimator  # noqa: E402
@@ -138,12 +139,17 @@ def test_the_readme_ros2_run_lines_set_what_they_say():
     assert len(lines) >= 5
     checked = 0
     for executable, arguments in lines:
-        arguments = shlex.split(arguments.replace('$P', str(CONFIG / 'rendezvous.yaml')))
+        arguments = shlex.split(arguments.replace('$P', str(CONFIG / 'rendezvous.yaml'))
+                                .replace('$L', str(CONFIG / 'sensor_lidar.yaml')))
         context = rclpy.Context()
         rclpy.init(args=['readme', '--ros-args', *arguments], context=context)
         try:
             node = Node(executable, context=context)
             values = declare(node, NODES[executable])
+            if str(CONFIG / 'sensor_lidar.yaml') in arguments:  # the overlay's values won over the file's
+                for name, value in sensor_suites()['lidar'][executable].items():
+                    assert values[name] == value, (executable, name)
+                    checked += 1
             for flag, rule in zip(arguments, arguments[1:]):
                 if flag == '-p':
                     name, _, value = rule.partition(':=')

@@ -398,3 +398,57 @@ def test_a_grid_runner_names_measurement_timing_for_a_stamp_off_its_grid():
     runner.measurement(0, X0)
     assert runner.measurement(DT + 7, X0) == 'misaligned'
     assert 'measurement_timing: any' in logs[-1]
+
+
+def make_lidar_runner(kind='ekf'):
+    """A runner whose filter takes a LIDAR's range, azimuth and elevation (H(x_hat) each step)."""
+    from snn_estimator.offline.simulation import sensor_rendezvous_scenario
+    scenario = sensor_rendezvous_scenario()
+    estimator = make_estimator(kind, scenario.estimator, scenario.model, measurement=scenario.sensor)
+    published = []
+    runner = FilterRunner(estimator, RunnerSettings(time_step=0.1), scenario.sensor.noise,
+                          publish=lambda stamp: published.append(stamp), wall_clock=Clock())
+    return runner, published, scenario
+
+
+def test_a_sample_the_sensor_could_not_measure_is_predicted_over_at_once_and_answered_again():
+    """The LIDAR below its minimum range says "nothing measured" (docs/sensors.md): the filter
+    predicts over that step as soon as its control is here, with no dropout wait (the wall
+    clock never moves here), exactly as a step without a measurement; a resend of that sample
+    is recognised and a stale one rejected, outside the measurement counts."""
+    runner, published, scenario = make_lidar_runner()
+    twin = make_estimator('ekf', scenario.estimator, scenario.model, measurement=scenario.sensor)
+    x = np.array([[70.0, 30.0, -5.0, 0.0, 0.0, 0.0]])
+    z0 = scenario.sensor.h(x)[0]
+    runner.start('auto')
+    runner.measurement(0, z0)
+    runner.control(0, np.zeros(3))
+    twin.step(z0, np.zeros(3), 0.1)
+    assert runner.no_measurement(DT) is None and published == [0, DT]  # waits for u_1
+    runner.control(DT, np.zeros(3))
+    twin.step(None, np.zeros(3), 0.1)
+    assert published == [0, DT, 2 * DT] and runner.dropout_steps == 1 and runner.not_measured == 1
+    np.testing.assert_array_equal(runner.estimator.x_hat, twin.x_hat)
+    assert runner.has_measurement(DT)  # a resend: answered with the estimate it got
+    assert runner.no_measurement(DT) == 'stale' and runner.events['not_measured_rejected.stale'] == 1
+    values = runner.values()
+    assert values['measurements_received'] == 1 and values['not_measured'] == 2
+    assert values['measurements_rejected'] == 0 and values['measurements_pending'] == 0
+
+
+def test_a_nonlinear_sensor_restarts_from_the_position_its_sample_gives_and_never_fits_z_as_cx():
+    """No least-squares start or restart (those fit z = C x); a re-initialisation takes the
+    position the LIDAR sample determines (position_of), not C^+ z of (range, angles)."""
+    runner, _, scenario = make_lidar_runner()
+    x = np.array([70.0, 30.0, -5.0, 0.0, 0.0, 0.0])
+    model = scenario.model
+    measurements, truth = {}, x
+    for k in range(120):  # 12 s of history, more than initial_fit_window
+        measurements[k * DT] = scenario.sensor.h(truth[None])[0]
+        truth = model.transition(truth, np.zeros(3), 0.1)
+    assert runner.start('history', History(measurements, {}, {})) == 'parameters'
+    assert runner.events['history_starts'] == 0
+    z = scenario.sensor.h(truth[None])[0]
+    restart, _, source = runner.recovery.restart_state(120 * DT, z)
+    np.testing.assert_allclose(restart[:3], truth[:3], rtol=0, atol=1e-9)
+    assert source != 'least_squares'

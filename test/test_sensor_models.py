@@ -66,12 +66,17 @@ def test_range_azimuth_elevation_sensor_publishes_h_of_the_truth_and_counts_what
         for k, x in enumerate(truths):
             probe.truth.publish(state_to_odometry(x, None, (k + 1) * 100_000_000, 'lvlh', 'chaser'))
             assert spin_until(executor, lambda k=k: len(probe.statuses) >= k + 1)
-        assert spin_until(executor, lambda: len(received) == 3)
+        assert spin_until(executor, lambda: len(received) == 5)
         assert spin_until(executor, lambda: probe.diagnostics().get('measurement_rejected') == '2')
         values = probe.diagnostics()
         assert values['truth_rejected'] == '0'
         assert values['measurement_rejected.out_of_view'] == '1' and values['measurement_rejected.too_far'] == '1'
-        assert values['measurements_published'] == '3'
+        assert values['measurements_published'] == '5'  # 3 measured, 2 "nothing measured"
+
+    model = make_model(LIDAR['model'], LIDAR['measurement_noise'])
+    assert [stamp_to_ns(m.header.stamp) for m in received] == [k * 100_000_000 for k in range(1, 6)]
+    nothing = [received.pop(3), received.pop(2)]  # out of view, beyond range: said, not measured
+    assert all(message_to_measurement(model, msg) is None and msg.header.frame_id == 'lidar' for msg in nothing)
 
     model = make_model(LIDAR['model'], LIDAR['measurement_noise'], observer='chaser',
                        field_of_view=LIDAR['field_of_view'], max_range=200.0,
@@ -155,3 +160,20 @@ def test_measurement_period_samples_on_its_own_grid_of_the_truth_stamps():
         assert [stamp_to_ns(m.header.stamp) // 1_000_000 for m in probe.received] == [100, 400, 600, 900]
         values = probe.diagnostics()
         assert values['measurement_rejected'] == '0' and values['truth_rejected'] == '0'
+
+
+def test_with_publish_not_measured_false_a_sample_out_of_view_is_not_published():
+    """The older behaviour, kept as an option: only measurements leave the sensor."""
+    truths = [np.array([20.0, 60.0, 0.0, 0.0, 0.0, 0.0]), np.array([70.0, 10.0, -5.0, -0.5, 0.1, 0.0])]
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, Vector3Stamped)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP,
+             **dict(LIDAR, publish_not_measured=False))
+        assert spin_until(executor, probe.ready)
+        for k, x in enumerate(truths):
+            probe.truth.publish(state_to_odometry(x, None, (k + 1) * 100_000_000, 'lvlh', 'chaser'))
+            assert spin_until(executor, lambda k=k: len(probe.statuses) >= k + 1)
+        assert spin_until(executor, lambda: len(probe.received) == 1)
+        spin_until(executor, lambda: False, timeout=0.3)
+        assert [stamp_to_ns(m.header.stamp) for m in probe.received] == [200_000_000]
+        assert probe.diagnostics()['measurement_rejected.out_of_view'] == '1'

@@ -140,6 +140,12 @@ class MeasuredSteps:
     #: At most this many sub-steps per step.
     MAX_PARTS = 64
 
+    @property
+    def relinearises(self) -> bool:
+        """True with a nonlinear measurement model (H(x_hat) each step): no least-squares start
+        or restart from z = C x then."""
+        return self._linearize
+
     def innovation_nis(self, z, measurement_covariance) -> np.ndarray:
         """Normalised innovation squared nu^T (C P C^T + R)^-1 nu of ``z`` against the current
         estimate, per run (R per sample; P = 0 for the covariance-free filters). Infinite where

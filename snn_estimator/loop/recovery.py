@@ -84,15 +84,20 @@ class Recovery:
             x = np.array(est.x_hat, dtype=float)
             x = np.where(np.isfinite(x), x, est.settings.initial_state)
             covariance, source = est.settings.initial_covariance, 'measurement'
-        if z is not None:  # the measured states from the measurement, the others as above
-            c = est.model.measurement_matrix
+        if z is not None and est.relinearises:  # the position, when the sample determines it
+            position = est.measurement.position_of(z)
+            if position is not None and np.isfinite(position).all():
+                x[:3] = position
+        elif z is not None:  # the measured states from the measurement, the others as above
+            c = est.model.measurement_matrix if est.measurement is None else est.measurement.linear_matrix
             measured = np.flatnonzero(np.abs(c).sum(axis=0))
             x[measured] = np.linalg.pinv(c)[measured] @ z
         return x, covariance, source
 
     def _fit(self, stamp_ns: int, z: np.ndarray | None):
         rows = [(t, m, u) for t, m, u in self._data if m is not None and t < stamp_ns]
-        if len(rows) < MIN_FIT_MEASUREMENTS or not self.estimator.model.is_linear:
+        if (len(rows) < MIN_FIT_MEASUREMENTS or not self.estimator.model.is_linear
+                or self.estimator.relinearises):
             return None
         stamps = [t for t, _, _ in rows] + [stamp_ns]
         measurements = [m for _, m, _ in rows] + [z if z is not None else rows[-1][1]]  # the last is not fitted

@@ -117,6 +117,8 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         self.measurements_used = 0
         self.measurements_dropped = 0
         self.measurements_repeated = 0
+        self.not_measured = 0  # samples the sensor said it could not measure (no_measurement)
+        self._last_unmeasured_ns: int | None = None
         self.controls_missing = 0
         self.dropout_steps = 0
         self.step_seconds: list[float] = []
@@ -141,7 +143,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         (the same sample again: a resend, not new information)."""
         if stamp_ns in self._pending:
             return True
-        last = self._last_measurement_ns
+        last = max((t for t in (self._last_measurement_ns, self._last_unmeasured_ns) if t is not None), default=None)
         return last is not None and self.start_ns is not None and self.start_ns <= stamp_ns <= last
 
     def repeated(self) -> None:
@@ -179,6 +181,25 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
             self._begin(min(self._pending), publish=True)
             self.events['cold_starts'] += 1
             self._log('info', f'started from the parameters at t = {self.start_ns / NS:.3f} s')
+        self._process()
+        return None
+
+    def no_measurement(self, stamp_ns: int, now_ns: int = 0) -> str | None:
+        """The sensor sampled at ``stamp_ns`` and says it measured nothing (outside its field of
+        view or range: docs/sensors.md, "What is not measured"): the filter predicts over that
+        step as soon as its control is known, instead of waiting dropout_wait for a measurement
+        that will not come. Gated like a measurement; None if accepted, else the reason."""
+        self.not_measured += 1  # outside the measurement counts (received = rejected + used + ...)
+        reason = self._gate_measurement(stamp_ns, now_ns)
+        if reason is not None:
+            self.events[f'not_measured_rejected.{reason}'] += 1
+            return reason
+        if not self.started or not self.on_grid:
+            return None  # it starts at its first measurement; off the grid the next one ends a hold
+        self._newest_ns = max(self._newest_ns or stamp_ns, stamp_ns)
+        self._last_arrival = self._wall()
+        self._pending[stamp_ns] = None
+        self._last_unmeasured_ns = stamp_ns
         self._process()
         return None
 
@@ -231,6 +252,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         self.recovery.clear()
         self._reset_requested = None
         self.time_ns = self.start_ns = self._last_measurement_ns = self._newest_ns = None
+        self._last_unmeasured_ns = None
         self._held_z = None
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()

@@ -151,10 +151,11 @@ class StartUp:
         measurements (controls from the controls' history, the last one held where missing);
         the filter starts at the newest, which its next step uses."""
         window_ns = seconds_to_ns(self.settings.initial_fit_window)
-        if not self._pending:
+        measured = [t for t, z in self._pending.items() if z is not None]  # None: the sensor measured nothing
+        if not measured or self.estimator.relinearises:  # a fit of z = C x only
             return False
-        newest = max(self._pending)
-        stamps = sorted(t for t in self._pending if t >= newest - window_ns)
+        newest = max(measured)
+        stamps = sorted(t for t in measured if t >= newest - window_ns)
         if (newest - stamps[0]) < window_ns - self._dt_ns // 2:
             return False  # not a full window: the filter did not join a running loop
         known, validity_ns = [], seconds_to_ns(self.settings.control_validity)
@@ -218,7 +219,8 @@ class Reporting:
             'measurements_received': self.measurements_received,
             'measurements_used': self.measurements_used, 'measurements_dropped': self.measurements_dropped,
             'measurements_repeated': self.measurements_repeated,
-            'measurements_pending': len(self._pending),
+            'not_measured': self.not_measured,
+            'measurements_pending': sum(1 for z in self._pending.values() if z is not None),
             'spikes_total': est.total_spikes,
             'spike_fraction': (est.total_spikes / (steps * est.neuron_count)
                                if steps and est.neuron_count else 0.0),

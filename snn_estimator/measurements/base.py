@@ -148,6 +148,12 @@ class MeasurementModel(ABC):
     def valid(self, x) -> np.ndarray:
         return self.validity(x) == VALID
 
+    def position_of(self, z) -> np.ndarray | None:
+        """The LVLH position (x, y, z) of the state that ``z`` measures, shape ``(..., 3)``, when
+        one sample determines it (range and both angles); None otherwise (angles only, range,
+        range rate). A filter that must re-initialise mid-flight takes it from here."""
+        return None
+
     def describe(self) -> str:
         return (f"{self.name}: [{', '.join(self.component_names)}] in "
                 f"[{', '.join(self.units)}], R diagonal {np.diagonal(self.noise).tolist()}")

@@ -41,6 +41,15 @@ class Position(MeasurementModel):
         x = np.asarray(x, dtype=float)
         return np.broadcast_to(self.matrix, x.shape[:-1] + self.matrix.shape).copy()
 
+    def position_of(self, z) -> np.ndarray | None:
+        """The position when every axis is measured, else None."""
+        if sorted(self.measured_axes) != [0, 1, 2]:
+            return None
+        z = np.asarray(z, dtype=float)
+        out = np.empty(z.shape[:-1] + (3,))
+        out[..., list(self.measured_axes)] = z
+        return out
+
     def validity(self, x) -> np.ndarray:
         finite = np.isfinite(np.asarray(x, dtype=float)).all(axis=-1)
         return np.where(finite, VALID, NON_FINITE).astype(np.int8)

@@ -29,6 +29,15 @@ class RangeAzimuthElevation(RelativeGeometry):
         d_range, d_azimuth, d_elevation = angle_derivatives(self.line_of_sight(x))
         return self._position_block(np.stack([d_range, d_azimuth, d_elevation], axis=-2))
 
+    def position_of(self, z) -> np.ndarray:
+        """The inverse of h on the position: rho from (range, azimuth, elevation), then
+        p = sign (M^T rho + d) (base.py: rho = M (sign p - d), sign -1 for observer chaser)."""
+        z = np.asarray(z, dtype=float)
+        r, azimuth, elevation = z[..., 0], z[..., 1], z[..., 2]
+        rho = np.stack([r * np.cos(elevation) * np.cos(azimuth), r * np.cos(elevation) * np.sin(azimuth),
+                        r * np.sin(elevation)], axis=-1)
+        return self.sign * (rho @ self.rotation + self.offset)
+
 
 class LineOfSight(RelativeGeometry):
     name = 'line_of_sight'

@@ -1,0 +1,66 @@
+"""The closed loop over ROS on a LIDAR (range, azimuth, elevation) instead of Table 6's position
+sensor (issue 22; ``make demo SENSOR=lidar``): the estimator re-linearises H(x_hat) every step,
+the sensor says "nothing measured" below its minimum range, and the run equals the offline
+loop on the same sensor (docs/sensors.md)."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+
+from snn_estimator import simulate  # noqa: E402
+from snn_estimator.offline.simulation import sensor_rendezvous_scenario  # noqa: E402
+from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
+from snn_tools.demo import run_pipeline  # noqa: E402
+
+pytestmark = pytest.mark.slow
+#: The default estimator and the robust one the issue names.
+KINDS = ('snn_ekf', 'snn_emsif_weighted')
+
+
+@pytest.fixture(scope='module')
+def lidar_runs(tmp_path_factory):
+    results = {}
+    for kind in KINDS:
+        run_dir = tmp_path_factory.mktemp(f'lidar_{kind}')
+        run_pipeline(run_dir, estimator=kind, sensor='lidar', timeout=240.0)
+        data = read_bag(run_dir / 'bag')
+        results[kind] = (data, summarize(data))
+    return results
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_the_lidar_loop_over_ros_equals_the_offline_loop_on_the_same_sensor(lidar_runs, kind):
+    data, summary = lidar_runs[kind]
+    offline = simulate(sensor_rendezvous_scenario(initial_state_dispersion=True), kind)
+    stamps = np.round(data.estimate_t / 0.1).astype(int)
+    inside = stamps <= 3600
+    assert inside.sum() == 3601 and summary['recording_complete'], summary['messages']
+    np.testing.assert_allclose(data.estimate[inside], offline.estimate[0, stamps[inside]], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.truth, offline.truth[0], rtol=0, atol=1e-9)
+    assert summary['control_timeouts'] == 0 and summary['measurements_rejected'] == 0
+
+
+def test_the_default_estimator_docks_on_the_lidar_from_the_dispersed_start(lidar_runs):
+    _, summary = lidar_runs['snn_ekf']
+    assert summary['final_range_m'] < 0.1
+    assert all(summary['rmse_last_60s'][s] < 0.05 for s in ('x', 'y', 'z'))
+
+
+@pytest.mark.parametrize('kind', KINDS)
+def test_below_its_minimum_range_the_lidar_says_nothing_measured_and_the_filter_predicts(lidar_runs, kind):
+    """Every truth stamp has a measurement message: a LIDAR sample in range, or "nothing
+    measured" (NaN components) below 0.3 m, which the estimator counts and predicts over."""
+    data, _ = lidar_runs[kind]
+    assert data.types['/measurement'] == 'geometry_msgs/msg/Vector3Stamped'
+    np.testing.assert_allclose(data.measurement_t, data.truth_t, rtol=0, atol=1e-9)
+    empty = np.isnan(data.measurement).all(axis=1)
+    assert 0 < empty.sum() < empty.size and not np.isnan(data.measurement[~empty]).any()
+    true_range = np.linalg.norm(data.truth[:, :3], axis=1)
+    assert empty[true_range < 0.3].all()
+    assert not empty[true_range > 0.3 + 6 * 0.1].any()  # near it, a noisy range (sigma 0.1 m) below 0.3 m too
+    sensor, estimator = data.last_diagnostics('position_sensor'), data.last_diagnostics('estimator')
+    assert int(sensor['measurement_rejected.too_close']) == empty.sum()
+    assert int(estimator['not_measured']) == empty.sum()
+    assert int(estimator['dropout_steps']) >= empty.sum() - 1  # the last one needs no step
+    assert int(estimator['measurements_used']) == (~empty).sum()
