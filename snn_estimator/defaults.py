@@ -76,6 +76,10 @@ CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)
 #: once the range is comparable to its position error (h is far from linear over the error) and
 #: H grows as 1/range; without a limit the close approach diverges (docs/sensors.md).
 CLOSE_SENSOR_MIN_RANGE = 0.3
+#: The hand-over (camera far, LIDAR close; not in the paper): the LIDAR's maximum range, m, and
+#: the steps between two samples of each sensor (camera 10 Hz, LIDAR 5 Hz at dt = 0.1 s).
+HANDOVER_LIDAR_MAX_RANGE = 30.0
+HANDOVER_PERIODS = (1, 2)
 #: Angles-only far approach (open loop): the chaser 1 km behind the target and 50 m below its
 #: orbit (z toward Earth) drifts toward it under free CW motion (x' = 1.5 n z); a camera on the
 #: chaser looks forward (identity mounting: boresight LVLH +x). 1 s samples over 3000 s.

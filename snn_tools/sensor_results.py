@@ -3,6 +3,8 @@ results/sensors.json and results/sensors.md (the tables of docs/sensors.md and t
 
 * the close approach of Sec. 3.2 measured by a LIDAR (range_azimuth_elevation) instead of
   Table 6's position, closed loop from the dispersed start: final range and RMSE per filter;
+* the same approach on a camera (line_of_sight) and a LIDAR fused in one filter, the LIDAR
+  within 30 m (the hand-over from bearings only): final range and RMSE per filter;
 * angles-only navigation (line_of_sight) of a far approach under free CW drift, with and
   without a known radial burn: the range error along the way, and its filter sigma.
 
@@ -17,7 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from snn_estimator.offline.simulation import angles_only_scenario, sensor_rendezvous_scenario, simulate
+from snn_estimator.offline.simulation import (
+    angles_only_scenario,
+    handover_scenario,
+    sensor_rendezvous_scenario,
+    simulate,
+)
 from snn_tools.campaign_cells import code_version
 from snn_tools.paths import replace_between_markers
 
@@ -30,8 +37,9 @@ SENSORS_DOC = Path(__file__).resolve().parents[1] / 'docs' / 'sensors.md'
 BEGIN, END = '<!-- sensor tables: begin (make sensors) -->', '<!-- sensor tables: end -->'
 
 
-def lidar_rows(runs: int) -> list[dict]:
-    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
+def lidar_rows(runs: int, scenario=None) -> list[dict]:
+    """Per filter, the closed loop from the dispersed start on ``scenario`` (default: the LIDAR)."""
+    scenario = scenario or sensor_rendezvous_scenario(initial_state_dispersion=True)
     rows = []
     for kind in LIDAR_FILTERS:
         result = simulate(scenario, kind, runs=runs)
@@ -43,6 +51,28 @@ def lidar_rows(runs: int) -> list[dict]:
                      'unmeasured_run_steps': int(result.extra['unmeasured_steps'].sum()),
                      'goal_met': bool(final.max() < FINAL_RANGE_GOAL)})
     return rows
+
+
+def handover_rows(runs: int) -> list[dict]:
+    """The camera + LIDAR approach; ``camera_only_s``: how long the first run flew on bearings only."""
+    scenario = handover_scenario(initial_state_dispersion=True)
+    rows = lidar_rows(runs, scenario)
+    first = simulate(scenario, 'ekf', runs=1)
+    inside = np.flatnonzero(np.linalg.norm(first.truth[0, :, :3], axis=1) <= scenario.sensor.parts[1].max_range)
+    for row in rows:
+        row['camera_only_s'] = float(inside[0] * scenario.dt) if inside.size else None
+    return rows
+
+
+def _approach_table(title: str, rows: list[dict]) -> list[str]:
+    lines = [title, '', '| filter | final range max (m) | median (m) | RMSE x, y, z last 60 s (m) | spikes '
+             '| goal < 0.1 m |', '|---|---|---|---|---|---|']
+    for row in rows:
+        rmse = ', '.join(f'{v:.3f}' for v in row['rmse_last_60s'][:3])
+        spikes = '-' if row['spike_fraction'] is None else f"{100 * row['spike_fraction']:.2f} %"
+        lines.append(f"| {row['filter']} | {row['final_range_max_m']:.3f} | {row['final_range_median_m']:.3f} | "
+                     f"{rmse} | {spikes} | {'met' if row['goal_met'] else '**missed**'} |")
+    return lines
 
 
 def angles_rows() -> list[dict]:
@@ -67,15 +97,14 @@ def angles_rows() -> list[dict]:
 
 
 def markdown(results: dict) -> str:
-    lines = [f"Offline, commit {results['commit']} (`make sensors`, snn_tools/sensor_results.py).", '',
-             f"### LIDAR close approach (range_azimuth_elevation, dispersed start, {results['runs']} runs)", '',
-             '| filter | final range max (m) | median (m) | RMSE x, y, z last 60 s (m) | spikes | goal < 0.1 m |',
-             '|---|---|---|---|---|---|']
-    for row in results['lidar']:
-        rmse = ', '.join(f'{v:.3f}' for v in row['rmse_last_60s'][:3])
-        spikes = '-' if row['spike_fraction'] is None else f"{100 * row['spike_fraction']:.2f} %"
-        lines.append(f"| {row['filter']} | {row['final_range_max_m']:.3f} | {row['final_range_median_m']:.3f} | "
-                     f"{rmse} | {spikes} | {'met' if row['goal_met'] else '**missed**'} |")
+    lines = [f"Offline, commit {results['commit']} (`make sensors`, snn_tools/sensor_results.py).", '']
+    lines += _approach_table(f"### LIDAR close approach (range_azimuth_elevation, dispersed start, {results['runs']} "
+                             'runs)', results['lidar'])
+    camera_only = results['handover'][0].get('camera_only_s')
+    lines += [''] + _approach_table(
+        f"### Camera + LIDAR fused (line_of_sight 10 Hz, range_azimuth_elevation 5 Hz within 30 m; dispersed "
+        f"start, {results['runs']} runs; bearings only for the first {camera_only:.0f} s of run 0)",
+        results['handover'])
     times = ' | '.join(f't = {t:.0f} s' for t in ANGLES_TIMES)
     lines += ['', '### Angles only (line_of_sight, one seed): range error |r_hat - r|, m (% of range)', '',
               f'| filter, case | {times} | sigma_x at the end |', '|---|' + '---|' * (len(ANGLES_TIMES) + 1)]
@@ -97,7 +126,7 @@ def main(argv=None) -> int:
     if args.runs < 1:
         parser.error('--runs must be >= 1')
     results = {'commit': code_version(), 'runs': args.runs, 'lidar': lidar_rows(args.runs),
-               'angles_only': angles_rows()}
+               'handover': handover_rows(args.runs), 'angles_only': angles_rows()}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / 'sensors.json').write_text(json.dumps(results, indent=2) + '\n')
     tables = markdown(results)

@@ -320,4 +320,7 @@ def test_make_sensors_writes_the_tables_the_docs_and_the_readme_quote(tmp_path):
     angles = {(row['filter'], row['maneuver']): row['range_error_percent'][-1] for row in results['angles_only']}
     for kind in sensor_results.ANGLES_FILTERS:
         assert 1.5 < angles[(kind, False)] < 3.0 and angles[(kind, True)] < 1.0
-    assert '### LIDAR close approach' in (tmp_path / 'sensors.md').read_text()
+    handover = {row['filter']: row for row in results['handover']}
+    assert handover['ekf']['goal_met'] and handover['snn_ekf']['goal_met'] and handover['ekf']['camera_only_s'] > 0
+    text = (tmp_path / 'sensors.md').read_text()
+    assert '### LIDAR close approach' in text and '### Camera + LIDAR fused' in text

@@ -159,6 +159,9 @@ class MeasuredSteps:
             h = self.measurement.h(self._x_hat)
             nu = self.measurement.residual(z, h)
             c = self.measurement.jacobian(self._x_hat)
+            if self.measurement.partial:  # only the sensors present (R block-diagonal)
+                present = self.measurement.present(z)
+                nu, c = np.where(present, nu, 0.0), np.where(present[:, :, None], c, 0.0)
             s = (c @ self._p @ np.swapaxes(c, 1, 2) + r if self.has_covariance
                  else np.broadcast_to(r, c.shape[:1] + r.shape))
             try:
@@ -216,6 +219,10 @@ class MeasuredSteps:
         model, x_hat = self.measurement, self._x_hat
         jac = model.jacobian(x_hat)
         predicted = model.h(x_hat)
+        present = None if z is None or not model.partial else model.present(z)
+        if present is not None:  # an absent sensor: its rows of H zero, its innovation zero
+            jac = np.where(present[:, :, None], jac, 0.0)
+            predicted = np.where(present, predicted, 0.0)
         finite = np.isfinite(jac).all(axis=(1, 2)) & np.isfinite(predicted).all(axis=1)
         if finite.all():
             self._c[:] = jac
@@ -227,6 +234,7 @@ class MeasuredSteps:
             return None, measured
         measured = measured & finite
         z_eq = np.einsum('bij,bj->bi', self._c, x_hat)
-        z_eq[measured] += model.residual(z[measured], predicted[measured])
+        residual = model.residual(z[measured], predicted[measured])
+        z_eq[measured] += residual if present is None else np.where(present[measured], residual, 0.0)
         return np.ascontiguousarray(z_eq), np.ascontiguousarray(measured)
 

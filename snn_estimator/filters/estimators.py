@@ -422,7 +422,12 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
             raise ValueError(f'z must have {m} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
         if self._linearize:
-            if not np.isfinite(z[measured]).all():
+            if self.measurement.partial:  # NaN components: a sensor absent this step (Stacked)
+                present = self.measurement.present(z)
+                measured = np.ascontiguousarray(measured & present.any(axis=1))
+                if not np.isfinite(np.where(present, z, 0.0)[measured]).all():
+                    raise ValueError('z and u must be finite')
+            elif not np.isfinite(z[measured]).all():
                 raise ValueError('z and u must be finite')
             if dt != self._call_dt:
                 self.prepare(dt)

@@ -553,7 +553,8 @@ def entry_point(kernel, args: tuple):
     types (a non-contiguous or integer array would be read wrongly), so a caller must pass the
     same types on every call: :meth:`snn_estimator.filters.estimators.Estimator.step` builds
     them (C-contiguous float64 z and u, the Packed tuples, a float dt, a bool array per run)."""
-    compiled = kernel.overloads.get(tuple(numba.typeof(a) for a in args))
+    overloads = getattr(kernel, 'overloads', None)  # none under NUMBA_DISABLE_JIT=1 (debugging)
+    compiled = overloads.get(tuple(numba.typeof(a) for a in args)) if overloads is not None else None
     return compiled.entry_point if compiled is not None else kernel
 
 

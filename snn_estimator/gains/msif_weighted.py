@@ -1,5 +1,10 @@
 """MSIF with the covariance-weighted right inverse of C instead of C^+ (not in the paper):
-K = P C^T (C P C^T)^-1 diag(sat(diag(C P C^T + R_hat) / delta))."""
+K = P C^T (C P C^T)^-1 diag(sat(diag(C P C^T + R_hat) / delta)).
+
+(C P C^T)^-1 is taken as the pseudo-inverse (the inverse whenever C has full row rank, every
+single sensor): fused sensors that measure the same angles (a camera and a LIDAR,
+measurements.stacked) make the rows of C dependent, and a sensor absent this step makes its rows
+zero; the pseudo-inverse is then the weighted inverse on the rows that carry information."""
 
 import numpy as np
 
@@ -22,12 +27,12 @@ KINDS = {'emsif_weighted': ('EMSIF-W', 'EMSIF with the covariance-weighted inver
 def reference(p, c, innovation, density, r_hat, delta):
     p_zz = c @ p @ c.T + r_hat                                             # Eq. 9
     saturation = np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))           # Eq. 8
-    return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation
+    return p @ c.T @ np.linalg.pinv(c @ p @ c.T) @ saturation
 
 
 def steady_state(ss):
     saturation = np.diag(np.minimum(np.diag(ss.c @ ss.p @ ss.c.T + ss.r_hat) / ss.delta, 1.0))
-    return ss.p @ ss.c.T @ np.linalg.inv(ss.c @ ss.p @ ss.c.T) @ saturation
+    return ss.p @ ss.c.T @ np.linalg.pinv(ss.c @ ss.p @ ss.c.T) @ saturation
 
 
 def macs(n: int, m: int) -> int:
@@ -45,7 +50,7 @@ def gain(b, out, nu, pct, pctr, consts, scratch):
             for i in range(n):
                 acc += c[k, i] * pct[i, j]
             cpc[k, j] = acc
-    weighted = pct @ np.linalg.inv(cpc)
+    weighted = pct @ np.linalg.pinv(cpc)  # the inverse at full row rank (module docstring)
     for j in range(m):
         for i in range(n):
             out[b, i, j] = weighted[i, j] * sats[j]

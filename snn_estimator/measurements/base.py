@@ -101,6 +101,9 @@ class MeasurementModel(ABC):
     #: The constant C of a linear model (h(x) = C x, nothing wrapped), else None: a filter then
     #: uses C as it is and does not re-linearise (position: exactly the model's C).
     linear_matrix: np.ndarray | None = None
+    #: True for a model whose sample may lack some components (NaN: a sensor of a stacked
+    #: measurement that gave nothing this step); the filter then masks them.
+    partial: bool = False
 
     def __init__(self, noise, n_state: int = 6):
         self.n_state = int(n_state)

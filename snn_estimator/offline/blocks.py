@@ -192,6 +192,47 @@ class MeasurementSensor:
         return Measurement(z, reason)
 
 
+#: Sensor i of a stacked measurement draws run b's noise with seed b + i * FUSED_SEED_OFFSET (over
+#: ROS: the i-th sensor node's ``seed``), so two sensors never share noise draws.
+FUSED_SEED_OFFSET = 1000
+
+
+class FusedSensor:
+    """The sensors of a :class:`snn_estimator.measurements.stacked.Stacked` measurement, each a
+    :class:`MeasurementSensor` with its own limits, seeds (FUSED_SEED_OFFSET) and ``periods``
+    (steps between two samples; 1: every step): ``z`` their samples side by side, NaN for a
+    sensor that gave nothing this step; a run is valid when any sensor measured it. The
+    reason of a run no sensor measured is the first sensor's."""
+
+    def __init__(self, model, seeds: Sequence[int] = (0,), periods: Sequence[int] | None = None):
+        self.model = model
+        self.sensors = [MeasurementSensor(part, [int(s) + i * FUSED_SEED_OFFSET for s in seeds])
+                        for i, part in enumerate(model.parts)]
+        self.periods = [1] * len(self.sensors) if periods is None else [int(p) for p in periods]
+        if len(self.periods) != len(self.sensors) or min(self.periods) < 1:
+            raise ValueError(f'periods: one whole number of steps >= 1 per sensor, got {periods!r}')
+        self.r = model.noise
+        self.calls = 0
+        self.counts = [np.zeros(len(seeds), dtype=np.int64) for _ in self.sensors]  # samples used, per sensor
+
+    def measure(self, x) -> Measurement:
+        x = np.asarray(x, dtype=float)
+        z = np.full(x.shape[:-1] + (self.model.dim,), np.nan)
+        reasons = []
+        for i, (sensor, part, period) in enumerate(zip(self.sensors, self.model.slices, self.periods)):
+            if self.calls % period:
+                reasons.append(np.full(x.shape[:-1], DROPOUT, dtype=np.int8))
+                continue
+            sample = sensor.measure(x)
+            z[..., part] = sample.z
+            self.counts[i] += sample.valid
+            reasons.append(sample.reason)
+        self.calls += 1
+        codes = np.stack(reasons, axis=-1)
+        reason = np.where((codes == VALID).any(axis=-1), VALID, codes[..., 0]).astype(np.int8)
+        return Measurement(z, reason)
+
+
 class SamplePeriod:
     """A sensor's rate on a stream of truth stamps (ns): :meth:`due` is true for the first stamp
     at or after each multiple of ``period`` (s) counted from the first sample, so the average rate

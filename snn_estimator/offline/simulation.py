@@ -26,6 +26,7 @@ from snn_estimator.models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateS
 from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the loop)
     PLANT_STREAM,
     SENSOR_STREAM,
+    FusedSensor,
     GaussianStream,
     MeasurementSensor,
     Plant,
@@ -67,6 +68,8 @@ class Scenario:
     sensor: object | None = None
     #: Open loop (no LQR weights): the known control of each step, (steps, m_u) (None: u = 0).
     control_schedule: np.ndarray | None = None
+    #: With a stacked ``sensor``: steps between two samples of each of its sensors (None: every step).
+    sensor_periods: tuple | None = None
 
     @property
     def steps(self) -> int:
@@ -164,6 +167,32 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
         config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
     return replace(base, name=f'rendezvous_{sensor}', sensor=model, estimator=config,
                    measurement_noise=model.noise)
+
+
+def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOVER_LIDAR_MAX_RANGE,
+                      periods=D.HANDOVER_PERIODS, **estimator_changes) -> Scenario:
+    """Sec. 3.2 flown on two sensors fused in one filter (issue 22; not in the paper): a camera
+    (line_of_sight, every ``periods[0]`` steps) for the whole approach and a LIDAR
+    (range_azimuth_elevation, every ``periods[1]`` steps) within ``lidar_max_range``; both on the
+    chaser looking back at the target, no closer than defaults.CLOSE_SENSOR_MIN_RANGE. Far, the
+    filter has the bearings only (the LQR's known burns make the range observable); once the
+    LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta one
+    sensor sigma per component, as in :func:`sensor_rendezvous_scenario`."""
+    from snn_estimator.measurements import make_model
+    from snn_estimator.measurements.stacked import Stacked
+    base = rendezvous_scenario(preset, **estimator_changes)
+    geometry = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE}
+    camera = make_model('line_of_sight', D.SENSOR_NOISE['line_of_sight'], **geometry)
+    lidar = make_model('range_azimuth_elevation', D.SENSOR_NOISE['range_azimuth_elevation'],
+                       max_range=lidar_max_range, **geometry)
+    model = Stacked([camera, lidar])
+    config = base.estimator
+    if 'measurement_noise' not in estimator_changes:
+        config = config.replace(measurement_noise=model.noise)
+    if 'boundary_layer' not in estimator_changes:
+        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
+    return replace(base, name='rendezvous_camera_lidar', sensor=model, estimator=config,
+                   measurement_noise=model.noise, sensor_periods=tuple(periods))
 
 
 def angles_only_scenario(maneuver: bool = False, noise=None, **estimator_changes) -> Scenario:
@@ -345,8 +374,12 @@ class _Sensing:
     def __init__(self, scenario: Scenario, estimator, seeds):
         truth_model = scenario.truth_model or scenario.model
         self.with_limits = scenario.sensor is not None
-        self.sensor = (MeasurementSensor(scenario.sensor, seeds) if self.with_limits
-                       else PositionSensor(truth_model, scenario.measurement_noise, seeds))
+        if getattr(scenario.sensor, 'partial', False):  # several sensors fused (measurements.stacked)
+            self.sensor = FusedSensor(scenario.sensor, seeds, scenario.sensor_periods)
+        elif self.with_limits:
+            self.sensor = MeasurementSensor(scenario.sensor, seeds)
+        else:
+            self.sensor = PositionSensor(truth_model, scenario.measurement_noise, seeds)
         self.c, self.r_hat = scenario.model.measurement_matrix, estimator.settings.r_hat
         self.unmeasured = np.zeros(len(seeds), dtype=np.int64)
 

@@ -1,0 +1,99 @@
+"""Several sensors in one filter (issue 22, measurements.stacked): the stacked model is its
+parts side by side, an absent sensor drops out of every gain law exactly, the fused offline
+sensor keeps each part's own noise and rate, and the camera -> LIDAR hand-over docks."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from test_measurements import central_differences
+
+from snn_estimator import FILTER_KINDS, make_estimator, simulate
+from snn_estimator.measurements import make_model
+from snn_estimator.measurements.stacked import Stacked
+from snn_estimator.offline.blocks import FUSED_SEED_OFFSET, FusedSensor, MeasurementSensor
+from snn_estimator.offline.simulation import handover_scenario, sensor_rendezvous_scenario
+
+MOUNTING = (0.0, 0.0, 1.0, 0.0)
+LIDAR_NOISE, CAMERA_NOISE = [1e-2, 1e-6, 1e-6], [1e-6, 1e-6]
+
+
+def camera_and_lidar():
+    camera = make_model('line_of_sight', CAMERA_NOISE, mounting_rotation=MOUNTING)
+    lidar = make_model('range_azimuth_elevation', LIDAR_NOISE, mounting_rotation=MOUNTING, min_range=0.3)
+    return camera, lidar
+
+
+def test_a_stacked_measurement_is_its_sensors_side_by_side():
+    camera, lidar = camera_and_lidar()
+    stacked = Stacked([camera, lidar])
+    rng = np.random.default_rng(3)
+    x = np.concatenate([rng.uniform(10.0, 80.0, size=(8, 3)), rng.normal(size=(8, 3))], axis=1)
+    assert stacked.dim == 5 and stacked.angle_components == (0, 1, 3, 4)
+    np.testing.assert_array_equal(stacked.h(x), np.concatenate([camera.h(x), lidar.h(x)], axis=1))
+    np.testing.assert_array_equal(stacked.noise[:2, :2], camera.noise)
+    np.testing.assert_array_equal(stacked.noise[2:, 2:], lidar.noise)
+    assert not stacked.noise[:2, 2:].any()
+    steps = np.full(x.shape, 1e-5)  # ranges 10-80 m, far from every singular direction
+    numeric = central_differences(stacked, x, steps)
+    np.testing.assert_allclose(stacked.jacobian(x), numeric, rtol=0, atol=1e-6 * np.abs(numeric).max())
+    z = stacked.h(x)
+    z[:4, 2:] = np.nan  # the LIDAR absent in four runs
+    np.testing.assert_array_equal(stacked.present(z)[:, 2:].any(axis=1), [False] * 4 + [True] * 4)
+    assert stacked.position_of(z[:4]) is None  # bearings alone give no position
+    np.testing.assert_allclose(stacked.position_of(z[4:]), x[4:, :3], atol=1e-9)
+    with pytest.raises(ValueError, match='stacked'):
+        Stacked([stacked, lidar])
+
+
+@pytest.mark.parametrize('kind', list(FILTER_KINDS))
+def test_a_sensor_absent_every_step_leaves_exactly_the_filter_of_the_other(kind):
+    """LIDAR and camera stacked, the camera never present: every filter kind gives the
+    LIDAR-only filter's estimates (its rows of H zero, its innovation zero, R block-diagonal)."""
+    camera, lidar = camera_and_lidar()
+    base = dataclasses.replace(sensor_rendezvous_scenario(initial_state_dispersion=True), duration=8.0)
+    stacked = Stacked([lidar, camera])
+    config = base.estimator.replace(measurement_noise=stacked.noise,
+                                    boundary_layer=tuple(np.sqrt(np.diag(stacked.noise))))
+    alone = make_estimator(kind, base.estimator, base.model, measurement=base.sensor)
+    fused = make_estimator(kind, config, base.model, measurement=stacked)
+    meter = MeasurementSensor(base.sensor, [0])
+    x = np.array([[70.0, 30.0, -5.0, -0.5, -0.2, 0.05]])
+    for _ in range(80):
+        z = meter.measure(x).z[0]
+        alone.step(z, np.zeros(3), 0.1)
+        fused.step(np.concatenate([z, [np.nan, np.nan]]), np.zeros(3), 0.1)
+        np.testing.assert_allclose(fused.x_hat, alone.x_hat, rtol=0, atol=1e-9)
+        x = base.model.transition(x[0], np.zeros(3), 0.1)[None]
+    if alone.has_covariance:
+        np.testing.assert_allclose(fused.P, alone.P, rtol=0, atol=1e-12)
+    assert fused.total_spikes == alone.total_spikes
+
+
+def test_the_fused_sensor_keeps_each_sensors_noise_stream_and_rate():
+    camera, lidar = camera_and_lidar()
+    stacked = Stacked([camera, lidar])
+    fused = FusedSensor(stacked, seeds=[4, 5], periods=(1, 3))
+    alone = [MeasurementSensor(camera, [4, 5]),
+             MeasurementSensor(lidar, [4 + FUSED_SEED_OFFSET, 5 + FUSED_SEED_OFFSET])]
+    x = np.array([[50.0, 10.0, -3.0, 0, 0, 0], [40.0, -5.0, 2.0, 0, 0, 0]])
+    for k in range(7):
+        sample = fused.measure(x)
+        np.testing.assert_array_equal(sample.z[:, :2], alone[0].measure(x).z)
+        if k % 3:
+            assert np.isnan(sample.z[:, 2:]).all()
+        else:
+            np.testing.assert_array_equal(sample.z[:, 2:], alone[1].measure(x).z)
+        assert sample.valid.all()
+    np.testing.assert_array_equal(fused.counts[1], [3, 3])
+
+
+def test_the_camera_to_lidar_hand_over_docks_from_the_dispersed_start():
+    """Bearings only beyond 30 m (the LQR's known burns make the range observable), then the
+    LIDAR: the default filter docks (4 dispersed runs)."""
+    scenario = handover_scenario(initial_state_dispersion=True)
+    result = simulate(scenario, 'snn_ekf', runs=4)
+    final_range = np.linalg.norm(result.truth[:, -1, :3], axis=1)
+    assert final_range.max() < 0.1, final_range
+    ranges = np.linalg.norm(result.truth[0, :, :3], axis=1)
+    assert ranges[0] > 30.0 and ranges[-1] < 30.0  # a camera-only phase, then the hand-over
