@@ -97,3 +97,21 @@ def test_the_camera_to_lidar_hand_over_docks_from_the_dispersed_start():
     assert final_range.max() < 0.1, final_range
     ranges = np.linalg.norm(result.truth[0, :, :3], axis=1)
     assert ranges[0] > 30.0 and ranges[-1] < 30.0  # a camera-only phase, then the hand-over
+
+
+def test_the_weighted_inverse_switches_to_the_pseudo_inverse_only_where_c_p_ct_is_singular():
+    """EMSIF-W's (C P C^T)^-1: the inverse for one sensor (its numbers unchanged to the bit),
+    the pseudo-inverse for dependent or zero rows; the compiled piece uses the same threshold."""
+    import inspect
+
+    from snn_estimator.gains import msif_weighted
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(3, 3))
+    full = a @ a.T + np.eye(3)
+    np.testing.assert_array_equal(msif_weighted._inverse(full), np.linalg.inv(full))
+    c = np.vstack([rng.normal(size=(2, 6)), np.zeros((1, 6))])  # a zero row: an absent sensor
+    dependent = np.vstack([c[:2], c[:1]])  # the same angle twice: a camera and a LIDAR
+    p = np.eye(6)
+    for rows in (c, dependent):
+        np.testing.assert_allclose(msif_weighted._inverse(rows @ p @ rows.T), np.linalg.pinv(rows @ p @ rows.T))
+    assert f'<= {msif_weighted.SINGULAR_CORRELATION!r} * diagonal' in inspect.getsource(msif_weighted.gain)

@@ -1,10 +1,11 @@
 """MSIF with the covariance-weighted right inverse of C instead of C^+ (not in the paper):
 K = P C^T (C P C^T)^-1 diag(sat(diag(C P C^T + R_hat) / delta)).
 
-(C P C^T)^-1 is taken as the pseudo-inverse (the inverse whenever C has full row rank, every
-single sensor): fused sensors that measure the same angles (a camera and a LIDAR,
-measurements.stacked) make the rows of C dependent, and a sensor absent this step makes its rows
-zero; the pseudo-inverse is then the weighted inverse on the rows that carry information."""
+(C P C^T)^-1 is the inverse, or the pseudo-inverse where C P C^T is singular (the determinant
+of its correlation matrix below SINGULAR_CORRELATION): fused sensors that measure the same angles
+(a camera and a LIDAR, measurements.stacked) make rows of C dependent, and a sensor absent this
+step makes its rows zero; the pseudo-inverse is then the weighted inverse on the rows that carry
+information. One sensor always takes the inverse (its numbers unchanged to the bit)."""
 
 import numpy as np
 
@@ -24,15 +25,28 @@ KINDS = {'emsif_weighted': ('EMSIF-W', 'EMSIF with the covariance-weighted inver
          'snn_emsif_weighted': ('SNN-EMSIF-W', 'spiking twin of emsif_weighted')}
 
 
+#: det(C P C^T) / prod(diag(C P C^T)) (the determinant of its correlation matrix, 1 for
+#: independent rows, 0 for dependent ones) at or below which the pseudo-inverse is taken.
+SINGULAR_CORRELATION = 1e-12
+
+
+def _inverse(cpc):
+    """The inverse of C P C^T, or its pseudo-inverse where it is singular (module docstring)."""
+    diagonal = np.prod(np.diag(cpc))
+    if diagonal <= 0.0 or abs(np.linalg.det(cpc)) <= SINGULAR_CORRELATION * diagonal:
+        return np.linalg.pinv(cpc)
+    return np.linalg.inv(cpc)
+
+
 def reference(p, c, innovation, density, r_hat, delta):
     p_zz = c @ p @ c.T + r_hat                                             # Eq. 9
     saturation = np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))           # Eq. 8
-    return p @ c.T @ np.linalg.pinv(c @ p @ c.T) @ saturation
+    return p @ c.T @ _inverse(c @ p @ c.T) @ saturation
 
 
 def steady_state(ss):
     saturation = np.diag(np.minimum(np.diag(ss.c @ ss.p @ ss.c.T + ss.r_hat) / ss.delta, 1.0))
-    return ss.p @ ss.c.T @ np.linalg.pinv(ss.c @ ss.p @ ss.c.T) @ saturation
+    return ss.p @ ss.c.T @ _inverse(ss.c @ ss.p @ ss.c.T) @ saturation
 
 
 def macs(n: int, m: int) -> int:
@@ -50,7 +64,13 @@ def gain(b, out, nu, pct, pctr, consts, scratch):
             for i in range(n):
                 acc += c[k, i] * pct[i, j]
             cpc[k, j] = acc
-    weighted = pct @ np.linalg.pinv(cpc)  # the inverse at full row rank (module docstring)
+    diagonal = 1.0  # the inverse, or the pseudo-inverse where C P C^T is singular (_inverse)
+    for k in range(m):
+        diagonal *= cpc[k, k]
+    if diagonal <= 0.0 or abs(np.linalg.det(cpc)) <= 1e-12 * diagonal:  # SINGULAR_CORRELATION
+        weighted = pct @ np.linalg.pinv(cpc)
+    else:
+        weighted = pct @ np.linalg.inv(cpc)
     for j in range(m):
         for i in range(n):
             out[b, i, j] = weighted[i, j] * sats[j]
