@@ -53,7 +53,7 @@ test: lint
 	$(BIN)/python -m pytest -q -m slow test
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
+	$(BIN)/python -m pytest -q -n 2 -m "not slow and not exhaustive" test
 
 demo: $(STAMP)
 	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) $(if $(SENSOR),--sensor $(SENSOR)) \

@@ -48,15 +48,67 @@ def double_integrator():
     return DoubleIntegrator()
 
 
+#: Tests repeated over every filter kind, coding or model: ``make test-fast`` runs the first case
+#: of each (one per function still fails when its subject breaks), ``make test`` every case.
+#: These were the slowest of the fast tier (pytest --durations): together ~60 % of its time.
+EXHAUSTIVE = frozenset({
+    'test_the_position_model_gives_the_models_c_results_exactly',
+    'test_compiled_network_equals_the_dense_paper_network',
+    'test_deviation_coding_equals_the_network_written_out_from_its_equations',
+    'test_compiled_direct_filters_equal_the_written_out_equations',
+    'test_lockstep_ros_run_equals_the_offline_simulation',
+    'test_the_ekf_agrees_with_filterpys_extended_kalman_filter',
+    'test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol',
+    'test_the_papers_coding_is_the_default_and_bit_identical_to_before',
+    'test_the_papers_coding_leaves_every_potential_and_rate_bit_identical_to_before',
+    'test_van_der_pol_network_integrates_the_drive_it_is_set_to',
+    'test_float_chip_network_with_one_set_is_the_float_kernels_network_spike_for_spike',
+    'test_a_filter_steps_measurements_at_jittered_stamps_as_the_written_out_filter',
+    'test_a_sensor_absent_every_step_leaves_exactly_the_filter_of_the_other',
+    'test_every_direct_filter_relinearises_as_the_written_out_filter',
+    'test_every_network_rebuilds_its_weights_from_h_of_x_hat_as_the_dense_network',
+    'test_estimate_is_the_decoded_filtered_spike_train',
+    'test_snn_lqr_closes_the_loop_offline_beside_the_lqr',
+})
+
+
+#: Single tests of 3 s or more whose subject a quicker fast test also touches (a browser, an
+#: in-process ROS loop, a filterpy run): ``make test`` runs them, ``make test-fast`` does not.
+LONG = frozenset({
+    'test_a_standby_and_an_active_estimator_started_together_never_publish_together_and_the_standby_takes_over',
+    'test_the_ekf_on_table_1_agrees_with_filterpys_and_is_far_above_the_papers_figure',
+    'test_chromium_screenshot_shows_coloured_plots',
+    'test_chromium_renders_the_plots_and_the_table_filters_to_the_cell_in_the_url',
+    'test_lockstep_ros_run_on_basilisk_truth_equals_the_offline_simulation',
+    'test_lockstep_ros_run_on_a_lidar_equals_the_offline_simulation_on_it',
+    'test_the_camera_to_lidar_hand_over_docks_from_the_dispersed_start',
+    'test_a_rerun_computes_only_the_missing_cells',
+    'test_nothing_is_written_to_the_home_cache_when_a_run_folder_is_given',
+    'test_a_campaign_writes_one_row_per_cell_equal_to_the_cell_runner',
+    'test_a_bag_with_two_estimators_a_restarted_plant_and_a_gap_is_reported_per_stamp',
+    'test_spike_arrays_of_different_lengths_are_padded_with_zeros_and_reported',
+    'test_a_late_volatile_subscriber_gets_the_present_and_a_late_history_reader_the_recent_past',
+})
+
+
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of modules that need rclpy with ``ros`` (``-m "not ros"``: the core alone)."""
+    """Mark the tests of modules that need rclpy with ``ros`` (``-m "not ros"``: the core alone),
+    and every case but the first of the EXHAUSTIVE tests, and the LONG ones, with ``exhaustive``."""
     needs_ros = {}
+    first_case = set()
     for item in items:
         path = item.path
         if path not in needs_ros:
             needs_ros[path] = "importorskip('rclpy')" in path.read_text()
         if needs_ros[path]:
             item.add_marker(pytest.mark.ros)
+        name = getattr(item, 'originalname', item.name)
+        if name in LONG:
+            item.add_marker(pytest.mark.exhaustive)
+        elif name in EXHAUSTIVE:
+            if (path, name) in first_case:
+                item.add_marker(pytest.mark.exhaustive)
+            first_case.add((path, name))
 
 
 # ---------------------------------------------------------------- no silent skips under CI

@@ -171,3 +171,12 @@ def test_the_fire_kernel_takes_the_step_kernels_network_tuple():
 
     network = make_estimator('snn_ekf')._network
     assert [id(a) for a in network.kernel_tuple()] == [id(network.arrays[name]) for name, _ in kernels.NETWORK]
+
+
+def test_the_tests_the_fast_tier_skips_exist_under_their_names():
+    """conftest's EXHAUSTIVE and LONG name test functions; a renamed test would silently move
+    back into make test-fast."""
+    import conftest
+    sources = ''.join(path.read_text() for path in Path(__file__).parent.glob('test_*.py'))
+    missing = [name for name in conftest.EXHAUSTIVE | conftest.LONG if f'def {name}(' not in sources]
+    assert not missing, missing
