@@ -61,6 +61,7 @@ from .parameters import (
     silenced_set,
 )
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
+from .sensor_inputs import FusedInputs, declare_sensors
 
 #: Parameters applied between steps through the parameter services (the tables' read_only=False).
 RUNTIME = ESTIMATOR_RUNTIME
@@ -82,15 +83,23 @@ class Inputs:
     logged (throttled) and reported, never a crash. A measurement that comes again (a lockstep
     resend) is answered with the estimate it got before."""
 
-    def __init__(self, node, runner: FilterRunner, outputs: 'Outputs', p: dict, report):
+    def __init__(self, node, runner: FilterRunner, outputs: 'Outputs', p: dict, report, sensors=None):
         self._node, self._runner, self._out, self._report = node, runner, outputs, report
         self._frame, self._axes = p['frame_id'], tuple(int(a) for a in p['measured_axes'])
         self._model = runner.estimator.measurement  # None: position, z = C x (read_input)
         self._sensor_frame = p['sensor_frame_id']
-        measurement_type = PointStamped if self._model is None else MEASUREMENT_CLASSES[self._model.message_form]
         events = node.events
-        self.subscriptions = [
-            qos.subscription(node, events, measurement_type, qos.MEASUREMENT, self.on_measurement, qos.INPUT_QOS),
+        #: several sensors (`sensors`): their own subscriptions, assembled per stamp
+        self.fused = (FusedInputs(node, runner, outputs, sensors, report, runner.settings.dropout_wait)
+                      if sensors else None)
+        if self.fused is None:
+            measurement_type = (PointStamped if self._model is None
+                                else MEASUREMENT_CLASSES[self._model.message_form])
+            measurements = [qos.subscription(node, events, measurement_type, qos.MEASUREMENT, self.on_measurement,
+                                             qos.INPUT_QOS)]
+        else:
+            measurements = self.fused.subscriptions
+        self.subscriptions = measurements + [
             qos.subscription(node, events, AccelStamped, qos.CONTROL, self.on_control, qos.INPUT_QOS),
             qos.subscription(node, events, AccelStamped, qos.APPLIED_CONTROL, self.on_applied, qos.INPUT_QOS),
             qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
@@ -302,8 +311,14 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         check_choices(p, ESTIMATOR)
         axes = tuple(int(a) for a in p['measured_axes'])
         config = estimator_config(p)
-        # position: z = C x of the model, exactly as before; any other model: H(x_hat) each step
-        measurement = None if p['model'] == 'position' else measurement_model(p, config.measurement_noise)
+        # position: z = C x of the model, exactly as before; any other model: H(x_hat) each step;
+        # several sensors: one stacked measurement of their models (sensor_inputs)
+        self._sensors = None
+        if p['sensors']:
+            self._sensors, measurement, deltas = declare_sensors(self, list(p['sensors']))
+            config = config.replace(measurement_noise=measurement.noise, boundary_layer=deltas)
+        else:
+            measurement = None if p['model'] == 'position' else measurement_model(p, config.measurement_noise)
         estimator = make_estimator(p['filter_type'], config, cw_model(p, form=p['cw_model'], measured_axes=axes),
                                    measurement=measurement)
         estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
@@ -312,7 +327,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         history = (collect_history(self, p['frame_id'], axes, p['history_wait'], measurement, p['sensor_frame_id'])
                    if p['initialization'] != 'parameters' else None)
         self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log)
-        self.peers = PeerWatch([qos.MEASUREMENT, qos.CONTROL, 'clock'], p['peer_timeout'], log=self.log)
+        measured = [s.topic for s in self._sensors] if self._sensors else [qos.MEASUREMENT]
+        self.peers = PeerWatch([*measured, qos.CONTROL, 'clock'], p['peer_timeout'], log=self.log)
         self._last_clock_ns = 0
         self._out = Outputs(self, self.events, p, CostModel.of(estimator) if estimator.spiking else None)
         self._make_endpoints()
@@ -325,7 +341,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
 
     def _make_endpoints(self) -> None:
         p = self._p
-        self._owned_subscriptions = Inputs(self, self._runner, self._out, p, self._publish_diagnostics).subscriptions
+        self._inputs = Inputs(self, self._runner, self._out, p, self._publish_diagnostics, self._sensors)
+        self._owned_subscriptions = self._inputs.subscriptions
         self._watchdog = self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         # who else publishes estimates, by their liveliness (a standby waits for them to go, an
         # active estimator yields to another by the rule of snn_estimator.loop.runner.Standby)
@@ -383,6 +400,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     def _on_watchdog(self) -> None:
         runner = self._runner
         now = clock_ns(self)
+        if self._inputs.fused is not None:
+            self._inputs.fused.expire()
         runner.watchdog(now)
         if now != self._last_clock_ns and self._last_clock_ns > 0:
             self.peers.saw('clock')
@@ -438,7 +457,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         """Everything the diagnostics report: the runner's counters, the outputs, the state."""
         if self._runner is None:
             return {'active': False, 'standby': self._p['standby']}
-        return {**self._runner.values(), **self._out.values(self._runner.estimator),
+        fused = self._inputs.fused.values() if self._inputs.fused is not None else {}
+        return {**self._runner.values(), **self._out.values(self._runner.estimator), **fused,
                 'active': self._active, 'standby': self._p['standby']}
 
     def _publish_diagnostics(self, stamp_ns: int | None = None) -> None:

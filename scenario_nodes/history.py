@@ -100,9 +100,10 @@ def collect_history(node, frame_id: str, axes, wait: float, model=None, sensor_f
     """What the pipeline's topics hold for a joining estimator (an earlier estimator's
     estimates, the sensor's measurements of ``model``, None: position; the controller's
     controls), decoded and logged."""
-    measurement_type = PointStamped if model is None else MEASUREMENT_CLASSES[model.message_form]
-    raw = read_history(node, {qos.ESTIMATE: Odometry, qos.MEASUREMENT: measurement_type,
-                              qos.CONTROL: AccelStamped}, wait)
+    topics = {qos.ESTIMATE: Odometry, qos.CONTROL: AccelStamped}
+    if model is None or model.message_form in MEASUREMENT_CLASSES:  # several sensors: no `measurement`
+        topics[qos.MEASUREMENT] = PointStamped if model is None else MEASUREMENT_CLASSES[model.message_form]
+    raw = read_history(node, topics, wait)
     node.get_logger().info('history: ' + ', '.join(f"{len(raw[t])} on '{t}'" for t in raw))
     return decode_history(raw, frame_id, axes, model, sensor_frame_id)
 

@@ -24,13 +24,14 @@ from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMI
 from snn_estimator.config import EstimatorConfig, silenced_neurons
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
+from snn_estimator.offline.blocks import FUSED_SEED_OFFSET
 
 from . import registry
 from .topics import PIPELINE_TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
-DOUBLE_ARRAY, INTEGER_ARRAY = 'double_array', 'integer_array'
+DOUBLE_ARRAY, INTEGER_ARRAY, STRING_ARRAY = 'double_array', 'integer_array', 'string_array'
 
 
 @dataclass(frozen=True)
@@ -110,6 +111,8 @@ PLANT = MODEL + (
          "'estimate' and 'control' each with a publisher and a subscriber; says what it waits for"),
     Spec('min_truth_subscribers', 1, "Subscriptions 'truth' needs before the start (the sensor; the "
          'demo: 2 with the recorder)', low=0),
+    Spec('measurement_topics', ['measurement'], "The sensors' topics the loop check looks for (a sensor "
+         'publishing one, an estimator subscribing to every one): an estimator with `sensors`'),
     Spec('start_delay', 0.3, 'Wall-clock s to wait once the loop is there, so that every pair of '
          'endpoints has matched before the first sample', low=0.0),
     Spec('exit_when_done', False, 'Exit the process after the last step (the demo and a lockstep '
@@ -166,8 +169,9 @@ SENSOR = MODEL + (
     Spec('measurement_period', 0.0, 'Simulated s between samples (0: every truth): a sample at the first '
          'truth at or after each multiple of it since the first; truths between are not measured', low=0.0),
     Spec('publish_not_measured', True, 'Models with limits: publish a sample outside the field of view or '
-         'range as "nothing measured" (sensor_msgs/Range -inf/+inf as REP 117, a Vector3Stamped of NaN), '
-         'so that the estimator predicts over it at once instead of waiting dropout_wait for it'),
+         'range, and every truth between two samples (measurement_period), as "nothing measured" '
+         '(sensor_msgs/Range -inf/+inf as REP 117, a Vector3Stamped of NaN), so that the estimator '
+         'predicts over it at once instead of waiting dropout_wait for it'),
 )
 
 CONTROLLER = MODEL + (
@@ -194,6 +198,31 @@ CONTROLLER = MODEL + (
     Spec('snn_lqr_leak', 0.001, 'lambda, leak of the snn_lqr membranes and trains, 1/s', low=0.0),
 )
 
+#: One sensor of an estimator with `sensors`: declared as <name>.<parameter> at configure.
+SENSOR_INPUT = (
+    Spec('topic', '', "The sensor's topic (empty: its name)"),
+    Spec('model', 'range_azimuth_elevation', 'Its measurement model (docs/sensors.md)',
+         choices=tuple(MEASUREMENT_MODELS)),
+    Spec('measured_axes', [0, 1, 2], 'model position: the axes measured'),
+    Spec('measurement_noise', [D.RENDEZVOUS_MEASUREMENT_NOISE], "R of the sensor's sample, in its model's units "
+         '(1 value: times I; m: the diagonal; m*m: the matrix)'),
+) + tuple(spec for spec in SENSOR_GEOMETRY if spec.name != 'sensor_frame_id') + (
+    Spec('sensor_frame_id', '', 'frame_id of its messages (empty: its name)'),
+    Spec('boundary_layer', [D.RENDEZVOUS_BOUNDARY_LAYER], 'delta of the (M)SIF gains per component of its '
+         'sample (1 value: all)'),
+    Spec('gate', 0.0, 'Mahalanobis gate: a sample whose normalised innovation squared exceeds it is dropped '
+         '(counted as gated.<name>; 0: no gate; chi-square, e.g. 16.3 for 3 components at p = 0.001)', low=0.0),
+)
+
+
+def sensor_input_specs(name: str) -> tuple:
+    """The SENSOR_INPUT parameters of the estimator's sensor ``name``."""
+    if not name or not name.replace('_', '').isalnum():
+        raise ValueError(f'sensors: {name!r} is not a name (letters, digits, _)')
+    return tuple(Spec(f'{name}.{spec.name}', spec.default, spec.description, choices=spec.choices,
+                      low=spec.low, kind=spec.kind) for spec in SENSOR_INPUT)
+
+
 def _from_schema(field) -> Spec:
     """The ROS parameter of a core estimator field (snn_estimator.schema): same name, default,
     meaning, range; read-only unless the core may change it between steps."""
@@ -215,7 +244,12 @@ ESTIMATOR = MODEL + (
          'PointStamped in frame_id, z = C x exactly as before; the others: their message in '
          'sensor_frame_id, H(x_hat) each step; measurement_noise and boundary_layer in its units)',
          choices=tuple(MEASUREMENT_MODELS)),
-) + SENSOR_GEOMETRY + tuple(_from_schema(field) for field in schema.FIELDS) + (
+) + SENSOR_GEOMETRY + (
+    Spec('sensors', None, 'Several sensors fused in one filter (unset: the one `measurement` input above): '
+         'their names; each has the <name>.* parameters of the sensor-input table (its topic, model, R, '
+         'geometry, boundary layer, gate) and replaces model, measurement_noise and boundary_layer '
+         '(docs/sensors.md)', kind=STRING_ARRAY),
+) + tuple(_from_schema(field) for field in schema.FIELDS) + (
     Spec('silenced_fraction', 0.0, 'Fraction of neurons silenced, chosen at random with the seed '
          '(added to silenced_neurons)', read_only=False, low=0.0, high=1.0),
     Spec('publish_spikes', True, 'Publish per-neuron spike counts on `spikes` every step'),
@@ -300,7 +334,8 @@ def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
     from rclpy.exceptions import ParameterUninitializedException
     from rclpy.parameter import Parameter
 
-    kinds = {DOUBLE_ARRAY: Parameter.Type.DOUBLE_ARRAY, INTEGER_ARRAY: Parameter.Type.INTEGER_ARRAY}
+    kinds = {DOUBLE_ARRAY: Parameter.Type.DOUBLE_ARRAY, INTEGER_ARRAY: Parameter.Type.INTEGER_ARRAY,
+             STRING_ARRAY: Parameter.Type.STRING_ARRAY}
     if node not in _TAKING_INTEGERS:  # runtime sets too (`ros2 param set ... 10`), once per node
         node.add_pre_set_parameters_callback(lambda parameters: integers_as_doubles(node, parameters))
         _TAKING_INTEGERS.add(node)
@@ -491,6 +526,9 @@ def markdown() -> str:
                 continue
             lines.append(_row(spec))
         lines.append('')
+    lines += ['**estimator, each sensor of `sensors`** (declared as `<name>.<parameter>`, e.g. `lidar.model`)', '',
+              '| parameter | default | meaning |', '|---|---|---|']
+    lines += [_row(spec) for spec in SENSOR_INPUT] + ['']
     return '\n'.join(lines)
 
 
@@ -546,14 +584,35 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
     (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
     sample, the mounting that looks back at the target, the minimum range, and the estimator's
     R and boundary layer (one sensor sigma per component, as Table 6's delta = sigma)."""
-    suites = {}
-    for name, model, frame in (('lidar', 'range_azimuth_elevation', 'lidar'),):
+    def sensor(model: str, frame: str) -> tuple[dict, list]:
         noise = [float(v) for v in np.atleast_1d(D.SENSOR_NOISE[model])]
-        shared = {'model': model, 'measurement_noise': noise,
-                  'mounting_rotation': [float(v) for v in D.CLOSE_SENSOR_MOUNTING], 'sensor_frame_id': frame}
-        suites[name] = {'position_sensor': {**shared, 'min_range': float(D.CLOSE_SENSOR_MIN_RANGE)},
-                        'estimator': {**shared, 'boundary_layer': [float(np.sqrt(v)) for v in noise]}}
+        return {'model': model, 'measurement_noise': noise,
+                'mounting_rotation': [float(v) for v in D.CLOSE_SENSOR_MOUNTING], 'sensor_frame_id': frame}, noise
+
+    lidar, lidar_noise = sensor('range_azimuth_elevation', 'lidar')
+    camera, camera_noise = sensor('line_of_sight', 'camera')
+    close = {'min_range': float(D.CLOSE_SENSOR_MIN_RANGE)}
+    suites = {'lidar': {'position_sensor': {**lidar, **close},
+                        'estimator': {**lidar, 'boundary_layer': [float(np.sqrt(v)) for v in lidar_noise]}}}
+    # camera + LIDAR (offline: handover_scenario): two sensor nodes on their own topics, fused
+    fused = {'sensors': ['camera', 'lidar']}
+    for name, values, noise in (('camera', camera, camera_noise), ('lidar', lidar, lidar_noise)):
+        fused.update({f'{name}.{key}': value for key, value in values.items() if key != 'sensor_frame_id'})
+        fused[f'{name}.boundary_layer'] = [float(np.sqrt(v)) for v in noise]
+    period = D.HANDOVER_PERIODS[1] * D.RENDEZVOUS_TIME_STEP
+    topics = [t for t in PIPELINE_TOPICS if t != 'measurement'] + ['camera', 'lidar']
+    suites['camera+lidar'] = {
+        'camera': {**camera, **close, 'seed': 0},
+        'lidar': {**lidar, **close, 'max_range': float(D.HANDOVER_LIDAR_MAX_RANGE),
+                  'measurement_period': float(period), 'seed': FUSED_SEED_OFFSET},
+        'estimator': fused, 'cw_plant': {'measurement_topics': ['camera', 'lidar']},
+        'recorder': {'topics': topics}}
     return suites
+
+
+#: The sensor nodes of each suite: position_sensor renamed (and its `measurement` remapped to its
+#: name) when it is not the one sensor on `measurement`.
+SUITE_SENSOR_NODES = {'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar')}
 
 
 def sensor_overlay(name: str) -> str:
@@ -564,9 +623,10 @@ def sensor_overlay(name: str) -> str:
            '']
     for node, values in sensor_suites()[name].items():
         out.extend([f'/**/{node}:', '  ros__parameters:'])
-        specs = {spec.name: spec for spec in NODES[node]}
+        specs = {spec.name: spec for spec in NODES.get(node, SENSOR)}  # a renamed sensor: SENSOR's
         for key, value in values.items():
-            out.extend(f'    # {line}' for line in textwrap.wrap(specs[key].description, 92))
+            spec = specs.get(key) or {s.name: s for s in sensor_input_specs(key.rpartition('.')[0])}[key]
+            out.extend(f'    # {line}' for line in textwrap.wrap(spec.description, 92))
             out.append(f'    {key}: {_yaml_value(value)}')
         out.append('')
     return '\n'.join(out)

@@ -31,11 +31,13 @@ from .runtime import ProcessHooks, ThrottledLog, run_node
 STARTUP_NOTICE_PERIOD = 5.0
 
 
-def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole_loop: bool) -> list[str]:
+def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole_loop: bool,
+                 measurement_topics=(qos.MEASUREMENT,)) -> list[str]:
     """What the loop still lacks before the plant may start (empty: ready), from the graph:
     matched subscriptions on 'truth' and, with ``whole_loop``, a node in each role of the loop,
     recognised by what it subscribes and publishes (a recorder or ``ros2 topic echo`` on a
-    topic does not stand in for the controller)."""
+    topic does not stand in for the controller): a sensor on each of ``measurement_topics``, an
+    estimator subscribing to all of them."""
     missing = []
     if truth_subscribers < min_truth_subscribers:
         missing.append(f"{min_truth_subscribers - truth_subscribers} subscription(s) on '{qos.TRUTH}'")
@@ -51,9 +53,12 @@ def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole
     def subscribing(topic):
         return nodes(node.get_subscriptions_info_by_topic(node.resolve_topic_name(topic)))
 
-    roles = (('a sensor (truth -> measurement)', subscribing(qos.TRUTH) & publishing(qos.MEASUREMENT)),
-             ('an estimator (measurement, control -> estimate)',
-              subscribing(qos.MEASUREMENT) & subscribing(qos.CONTROL) & publishing(qos.ESTIMATE)),
+    estimator = subscribing(qos.CONTROL) & publishing(qos.ESTIMATE)
+    sensors = []
+    for topic in measurement_topics:
+        sensors.append((f'a sensor (truth -> {topic})', subscribing(qos.TRUTH) & publishing(topic)))
+        estimator &= subscribing(topic)
+    roles = (*sensors, (f"an estimator ({', '.join(measurement_topics)}, control -> estimate)", estimator),
              ('a controller (estimate -> control)', subscribing(qos.ESTIMATE) & publishing(qos.CONTROL)))
     return missing + [role for role, present in roles if not present]
 
@@ -104,7 +109,7 @@ class PlantNode(ProcessHooks, Node):
         start_delay has passed."""
         p = self._p
         missing = loop_missing(self, self._truth_pub.get_subscription_count(), p['min_truth_subscribers'],
-                               p['wait_for_loop'])
+                               p['wait_for_loop'], p['measurement_topics'])
         if self._runner.started or not self._gate.check(missing):
             return
         self.destroy_timer(self._readiness)

@@ -60,7 +60,7 @@ class SensorNode(ProcessHooks, Node):
         self._events = qos.QosEvents(self)
         self._pub = qos.HistoryPublisher(self, self._events, MEASUREMENT_CLASSES[model.message_form], qos.MEASUREMENT)
         self._peers = PeerWatch([qos.TRUTH], p['peer_timeout'], log=ThrottledLog(self.get_logger()))
-        self._diagnostics = DiagnosticsPublisher(self, 'position_sensor', p['diagnostics_period'], self._events,
+        self._diagnostics = DiagnosticsPublisher(self, self.get_name(), p['diagnostics_period'], self._events,
                                                  peers=self._peers)
         self.create_timer(0.1, self._on_peer_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
@@ -106,8 +106,14 @@ class SensorNode(ProcessHooks, Node):
             self._time_jumps += 1
             self._answers.clear()
             self._period.reset()
-        if not self._period.due(stamp_ns):  # between two samples (measurement_period)
-            self._unmeasured_ns = stamp_ns
+        if not self._period.due(stamp_ns):  # between two samples (measurement_period): said, with limits
+            if self._p['publish_not_measured'] and self._model.has_limits:
+                data = encode_no_measurement(self._model, 'between_samples', stamp_ns, self._frame)
+                self._pub.publish(data)
+                self._answers.remember(stamp_ns, data)
+                self._published += 1
+            else:
+                self._unmeasured_ns = stamp_ns
             return
         sample = self._sensor.measure(x[None])
         reason = REASONS[int(sample.reason[0])]

@@ -226,6 +226,11 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         # none with publish_spikes false; estimators older than the key published one per estimate
         'spikes': int(_number(estimator, 'spikes_published', estimates)),
     }
+    sensors = [name for name in str(estimator.get('sensors', '')).split(',') if name]
+    if sensors:  # several sensors, each on its topic (its name) with its own diagnostics
+        del published['measurement']
+        published.update({name: int(_number(run.last_diagnostics(name), 'measurements_published'))
+                          for name in sensors})
     recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
     completeness = _completeness(run, estimator, published, recorded)
     return {

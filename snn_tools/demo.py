@@ -21,7 +21,7 @@ from pathlib import Path
 import yaml
 
 from scenario_nodes import registry
-from scenario_nodes.parameters import DEFAULT_FILTER, sensor_suites
+from scenario_nodes.parameters import DEFAULT_FILTER, SUITE_SENSOR_NODES, sensor_suites
 from snn_estimator.filters.estimators import FILTER_KINDS
 
 from .paths import config_file
@@ -76,7 +76,7 @@ class Pipeline:
 
     def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
                  namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw',
-                 live_view: bool = False, single_process: bool = False):
+                 live_view: bool = False, single_process: bool = False, sensor_nodes=('position_sensor',)):
         if scheduling not in SCHEDULING:
             raise ValueError(f'scheduling {scheduling!r}: expected one of {SCHEDULING}')
         if plant not in PLANTS:
@@ -99,11 +99,17 @@ class Pipeline:
                       if record or name != 'recorder']
         if live_view:
             self.nodes.insert(0, LIVE_VIEW)
-        if record:  # the first state waits until the sensor and the recorder match 'truth'
-            overrides.setdefault(self.plant, {}).setdefault('min_truth_subscribers', 2)
+        #: The sensor processes: position_sensor, or sensor nodes of that kind on their own topics
+        #: (a suite of several sensors, scenario_nodes.parameters.SUITE_SENSOR_NODES).
+        self.sensor_nodes = tuple(sensor_nodes)
+        if single_process and self.sensor_nodes != ('position_sensor',):
+            raise ValueError('the single-process mode runs one position_sensor: not with several sensors')
+        truth_subscribers = len(self.sensor_nodes) + record
+        if truth_subscribers > 1:  # the first state waits until the sensors and the recorder match 'truth'
+            overrides.setdefault(self.plant, {}).setdefault('min_truth_subscribers', truth_subscribers)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
-    def command(self, name: str, module: str, node_name: str | None = None) -> list[str]:
+    def command(self, name: str, module: str, node_name: str | None = None, remaps=()) -> list[str]:
         # Run-specific values go in a second parameter file: node-specific entries of the first
         # file would win over '-p' arguments, which rcl files under the /** wildcard.
         own = []
@@ -116,6 +122,8 @@ class Pipeline:
             command += ['-r', f'__ns:={self.namespace}']
         if node_name:
             command += ['-r', f'__node:={node_name}']
+        for remap in remaps:
+            command += ['-r', remap]
         return command
 
     @property
@@ -129,10 +137,14 @@ class Pipeline:
                 self.start_node(*LIVE_VIEW)
             return
         for name, module in self.nodes:
+            if name == 'position_sensor' and self.sensor_nodes != ('position_sensor',):
+                for sensor in self.sensor_nodes:  # each on its own topic, named after it
+                    self.start_node(name, module, node_name=sensor, remaps=[f'measurement:={sensor}'])
+                continue
             self.start_node(name, module)
 
     def start_node(self, name: str, module: str, overrides: dict | None = None, log_name: str | None = None,
-                   node_name: str | None = None):
+                   node_name: str | None = None, remaps=()):
         """Start (or restart, e.g. a hot swap) one node; ``overrides`` update its parameters.
         ``node_name`` runs a second node of the same kind under another name (a standby
         estimator: the parameters of ``name`` with the overrides for ``node_name``)."""
@@ -143,7 +155,7 @@ class Pipeline:
         self.overrides_file.write_text(yaml.dump(document, Dumper=_NoAliases, sort_keys=True))
         log = open(self.run_dir / 'logs' / f'{log_name or key}.log', 'w')
         self.processes[key] = subprocess.Popen(
-            self.command(name, module, node_name), env=self.env, stdout=log, stderr=subprocess.STDOUT,
+            self.command(name, module, node_name, remaps), env=self.env, stdout=log, stderr=subprocess.STDOUT,
             start_new_session=True,
             preexec_fn=_child_setup(self.cpus.get(name), name in ('recorder', LIVE_VIEW[0]), self.batch))
         if self.batch and running_policy(self.processes[key].pid) not in (BATCH, None):
@@ -236,17 +248,19 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
         plant_values['cache_dir'] = str(run_dir / 'cache')  # nothing of the run outside its folder
     overrides = {PLANTS[plant][0]: plant_values, 'estimator': {'filter_type': estimator},
                  'recorder': {'output': str(run_dir / 'bag'), 'storage': storage}}
+    sensor_nodes = ('position_sensor',)
     if sensor != 'position':
         suites = sensor_suites()
         if sensor not in suites:
             raise ValueError(f"sensor must be position or one of {', '.join(suites)}; got {sensor!r}")
         for name, values in suites[sensor].items():
-            overrides.setdefault(name, {}).update(values)
+            overrides.setdefault(PLANTS[plant][0] if name == 'cw_plant' else name, {}).update(values)
+        sensor_nodes = SUITE_SENSOR_NODES[sensor]
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
                         pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view,
-                        single_process=single_process)
+                        single_process=single_process, sensor_nodes=sensor_nodes)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)

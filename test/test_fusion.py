@@ -115,3 +115,50 @@ def test_the_weighted_inverse_switches_to_the_pseudo_inverse_only_where_c_p_ct_i
     for rows in (c, dependent):
         np.testing.assert_allclose(msif_weighted._inverse(rows @ p @ rows.T), np.linalg.pinv(rows @ p @ rows.T))
     assert f'<= {msif_weighted.SINGULAR_CORRELATION!r} * diagonal' in inspect.getsource(msif_weighted.gain)
+
+
+def test_the_assembler_hands_a_stamp_on_once_every_sensor_reported_it():
+    """Complete stamps in order, a lost report completed by the next stamp or by the wait, a
+    repeat recognised, NaN for a sensor that measured nothing, None when none did."""
+    from snn_estimator.loop.assembly import SampleAssembler
+    camera, lidar = camera_and_lidar()
+    stacked = Stacked([camera, lidar])
+    wall = [0.0]
+    assembler = SampleAssembler(stacked, wait=0.25, wall_clock=lambda: wall[0])
+    a, b = np.array([0.1, 0.2]), np.array([50.0, 0.1, 0.2])
+    assert assembler.offer(1, 0, b) == ('new', [])
+    kind, ready = assembler.offer(0, 0, None)
+    assert kind == 'new' and ready[0][0] == 0
+    np.testing.assert_array_equal(ready[0][1], [np.nan, np.nan, 50.0, 0.1, 0.2])
+    assert assembler.offer(0, 0, a) == ('repeat', [])  # a lockstep resend of a stamp handed on
+    assert assembler.offer(0, 100, None)[1] == [] and assembler.offer(1, 100, None)[1] == [(100, None)]
+    assert assembler.offer(0, 200, a)[1] == []  # the LIDAR's report of 200 is lost
+    assert assembler.offer(0, 300, a)[1] == []
+    ready = assembler.offer(1, 300, b)[1]
+    assert [stamp for stamp, _ in ready] == [200, 300] and assembler.incomplete == 1
+    np.testing.assert_array_equal(ready[0][1][:2], a)
+    assert np.isnan(ready[0][1][2:]).all()
+    assembler.offer(1, 400, b)
+    wall[0] = 0.2
+    assert assembler.expired() == []
+    wall[0] = 0.3
+    assert [stamp for stamp, _ in assembler.expired()] == [400] and assembler.pending == 0
+
+
+def test_a_sensors_mahalanobis_gate_drops_only_its_own_wild_sample():
+    from snn_estimator.loop.assembly import gate
+    camera, lidar = camera_and_lidar()
+    stacked = Stacked([camera, lidar])
+    base = sensor_rendezvous_scenario()
+    config = base.estimator.replace(measurement_noise=stacked.noise,
+                                    boundary_layer=tuple(np.sqrt(np.diag(stacked.noise))))
+    estimator = make_estimator('ekf', config, base.model, measurement=stacked)
+    x = np.asarray(estimator.x_hat, dtype=float)
+    z = stacked.h(x[None])[0]
+    wild = z.copy()
+    wild[2] += 20.0  # the LIDAR's range 20 m off: 200 sigma
+    kept, gated = gate(estimator, stacked, wild, estimator.settings.r_hat, [25.0, 25.0])
+    assert gated == [1] and np.isnan(kept[2:]).all()
+    np.testing.assert_array_equal(kept[:2], z[:2])
+    assert gate(estimator, stacked, z, estimator.settings.r_hat, [25.0, 25.0])[1] == []
+    assert gate(estimator, stacked, wild, estimator.settings.r_hat, [25.0, 0.0])[1] == []  # 0: no gate

@@ -239,6 +239,11 @@ def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_tr
      r'measurement_noise \(R of range_azimuth_elevation'),
     (EstimatorNode, 'estimator', {'model': 'line_of_sight', 'mounting_rotation': [0.0, 0.0, 2.0, 0.0]},
      'mounting_rotation'),
+    (EstimatorNode, 'estimator', {'sensors': ['lidar', 'lidar']}, 'every name once'),
+    (EstimatorNode, 'estimator', {'sensors': ['li dar']}, 'is not a name'),
+    (EstimatorNode, 'estimator', {'sensors': ['lidar'], 'lidar.boundary_layer': [0.1, 0.1]}, 'lidar.boundary_layer'),
+    (EstimatorNode, 'estimator', {'sensors': ['camera'], 'camera.model': 'line_of_sight',
+                                  'camera.measurement_noise': [1.0, 2.0, 3.0]}, r'camera: measurement_noise'),
     (PlantNode, 'cw_plant', {'mode': 'fast'}, 'mode'),
     (PlantNode, 'cw_plant', {'start_time': 3e9}, 'start_time'),  # beyond a ROS stamp's int32 s
     (SensorNode, 'position_sensor', {'measurement_noise': [1.0, 2.0]}, 'measurement_noise'),

@@ -64,3 +64,32 @@ def test_below_its_minimum_range_the_lidar_says_nothing_measured_and_the_filter_
     assert int(estimator['not_measured']) == empty.sum()
     assert int(estimator['dropout_steps']) >= empty.sum() - 1  # the last one needs no step
     assert int(estimator['measurements_used']) == (~empty).sum()
+
+
+@pytest.fixture(scope='module')
+def fused_run(tmp_path_factory):
+    """``make demo SENSOR=camera+lidar``: two sensor processes on their own topics, one estimator."""
+    run_dir = tmp_path_factory.mktemp('camera_lidar')
+    run_pipeline(run_dir, estimator='snn_ekf', sensor='camera+lidar', timeout=240.0)
+    data = read_bag(run_dir / 'bag')
+    return data, summarize(data)
+
+
+def test_the_camera_and_lidar_fused_over_ros_equal_the_offline_hand_over_and_dock(fused_run):
+    """Camera 10 Hz, LIDAR 5 Hz within 30 m, each its own node and topic: the estimator assembles
+    each stamp from both and the run equals handover_scenario() offline to 1e-9; it docks."""
+    from snn_estimator.offline.simulation import handover_scenario
+    data, summary = fused_run
+    offline = simulate(handover_scenario(initial_state_dispersion=True), 'snn_ekf')
+    stamps = np.round(data.estimate_t / 0.1).astype(int)
+    inside = stamps <= 3600
+    assert inside.sum() == 3601 and summary['recording_complete'], summary['messages']
+    np.testing.assert_allclose(data.estimate[inside], offline.estimate[0, stamps[inside]], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(data.truth, offline.truth[0], rtol=0, atol=1e-9)
+    assert summary['final_range_m'] < 0.1 and summary['control_timeouts'] == 0
+    assert set(summary['messages']) >= {'camera', 'lidar'} and 'measurement' not in summary['messages']
+    estimator = data.last_diagnostics('estimator')
+    assert estimator['sensors'] == 'camera,lidar' and estimator['assembled_incomplete'] == '0'
+    lidar = data.last_diagnostics('lidar')
+    assert int(lidar['measurement_rejected.too_far']) > 0  # beyond 30 m at the start: bearings only
+    assert data.types['/camera'] == data.types['/lidar'] == 'geometry_msgs/msg/Vector3Stamped'
