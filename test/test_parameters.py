@@ -19,6 +19,7 @@ from scenario_nodes.parameters import (  # noqa: E402
     RECORDER,  # noqa: E402
     SENSOR,
     estimator_config,
+    sensor_input_specs,
     sensor_suites,
 )
 from snn_estimator import EstimatorConfig, make_estimator, rendezvous_scenario, schema  # noqa: E402
@@ -139,15 +140,23 @@ def test_the_readme_ros2_run_lines_set_what_they_say():
     assert len(lines) >= 5
     checked = 0
     for executable, arguments in lines:
-        arguments = shlex.split(arguments.replace('$P', str(CONFIG / 'rendezvous.yaml'))
-                                .replace('$L', str(CONFIG / 'sensor_lidar.yaml')))
+        overlays = {'$L': 'lidar', '$F': 'camera+lidar'}
+        arguments = arguments.replace('$P', str(CONFIG / 'rendezvous.yaml'))
+        for variable, suite in overlays.items():
+            arguments = arguments.replace(variable, str(CONFIG / f'sensor_{suite}.yaml'))
+        arguments = shlex.split(arguments)
         context = rclpy.Context()
         rclpy.init(args=['readme', '--ros-args', *arguments], context=context)
         try:
             node = Node(executable, context=context)
             values = declare(node, NODES[executable])
-            if str(CONFIG / 'sensor_lidar.yaml') in arguments:  # the overlay's values won over the file's
-                for name, value in sensor_suites()['lidar'][executable].items():
+            for suite in overlays.values():
+                if str(CONFIG / f'sensor_{suite}.yaml') not in arguments:
+                    continue
+                for name in values.get('sensors') or ():  # an estimator's sensors, declared at configure
+                    values.update(declare(node, sensor_input_specs(name)))
+                # the overlay's values won over the file's, a renamed sensor node's too
+                for name, value in sensor_suites()[suite][node.get_name()].items():
                     assert values[name] == value, (executable, name)
                     checked += 1
             for flag, rule in zip(arguments, arguments[1:]):
