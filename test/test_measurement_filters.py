@@ -313,7 +313,7 @@ def test_make_sensors_writes_the_tables_the_docs_and_the_readme_quote(tmp_path):
     import json
 
     from snn_tools import sensor_results
-    assert sensor_results.main(['--runs', '1', '--out', str(tmp_path), '--no-doc']) == 0
+    assert sensor_results.main(['--runs', '1', '--suite-runs', '1', '--out', str(tmp_path), '--no-doc']) == 0
     results = json.loads((tmp_path / 'sensors.json').read_text())
     lidar = {row['filter']: row for row in results['lidar']}
     assert lidar['ekf']['goal_met'] and lidar['snn_ekf']['goal_met']
@@ -324,3 +324,7 @@ def test_make_sensors_writes_the_tables_the_docs_and_the_readme_quote(tmp_path):
     assert handover['ekf']['goal_met'] and handover['snn_ekf']['goal_met'] and handover['ekf']['camera_only_s'] > 0
     text = (tmp_path / 'sensors.md').read_text()
     assert '### LIDAR close approach' in text and '### Camera + LIDAR fused' in text
+    suites = {(row['suite'], row['filter']): row for row in results['suites']}
+    assert len(suites) == 2 * (len(FILTER_KINDS) + 1)  # every kind, and the deviation coding, on both suites
+    assert suites[('camera+lidar', 'ekf')]['final_range_max_m'] < 0.1
+    assert suites[('lidar', 'snn_emsif_weighted')]['twin_ratio'] is not None

@@ -396,9 +396,12 @@ class _Sensing:
         self.unmeasured += ~valid
         if covariance is not None:
             record.nis[:, k] = np.nan
+            if getattr(self.sensor.model, 'partial', False):  # NIS of one dof: every sensor present
+                valid = valid & np.isfinite(sample.z).all(axis=1)
             if valid.any():
                 record.nis[valid, k] = estimator.innovation_nis(np.where(valid[:, None], sample.z, 0.0),
                                                                 r_hat)[valid]
+            valid = sample.valid
         estimator.step(sample.z, u, dt, valid=valid)
 
 
