@@ -65,6 +65,7 @@ class FusedInputs:
         self._model = runner.estimator.measurement
         self.assembler = SampleAssembler(self._model, wait)
         self.gated = Counter()
+        self.late = Counter()  # reports of a stamp already handed on that were not a resend
         self.subscriptions = [
             qos.subscription(node, node.events, MEASUREMENT_CLASSES[s.model.message_form], s.topic,
                              partial(self.on_sample, i), qos.INPUT_QOS)
@@ -81,9 +82,14 @@ class FusedInputs:
             self._node.log('warning', f"rejected {sensor.name}'s sample: {error}")
             return self._report()
         kind, ready = self.assembler.offer(index, stamp_ns, z)
-        if kind == 'repeat':
+        if kind == 'repeat':  # a lockstep resend: the same answer
             if self._node.active and runner.has_measurement(stamp_ns) and self._out.resend(stamp_ns):
                 runner.repeated()
+            return
+        if kind == 'late':
+            self.late[sensor.name] += 1
+            self._node.log('warning', f"{sensor.name}'s sample at {stamp_ns * 1e-9:.3f} s came after that "
+                           'stamp was fused without it: not used')
             return
         self._deliver(ready)
 
@@ -111,4 +117,5 @@ class FusedInputs:
         values = {'sensors': ','.join(s.name for s in self.sensors),
                   'assembled_incomplete': self.assembler.incomplete}
         values.update({f'gated.{name}': n for name, n in sorted(self.gated.items())})
+        values.update({f'late.{name}': n for name, n in sorted(self.late.items())})
         return values

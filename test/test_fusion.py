@@ -136,6 +136,8 @@ def test_the_assembler_hands_a_stamp_on_once_every_sensor_reported_it():
     assert assembler.offer(0, 300, a)[1] == []
     ready = assembler.offer(1, 300, b)[1]
     assert [stamp for stamp, _ in ready] == [200, 300] and assembler.incomplete == 1
+    assert assembler.offer(1, 200, b) == ('late', [])  # its stamp went on without it
+    assert assembler.offer(0, 200, a) == ('repeat', [])
     np.testing.assert_array_equal(ready[0][1][:2], a)
     assert np.isnan(ready[0][1][2:]).all()
     assembler.offer(1, 400, b)

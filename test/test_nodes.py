@@ -352,3 +352,59 @@ def test_the_throttled_log_keeps_one_message_per_kind_not_per_first_words():
     log('warning', 'rejected measurement at 1.5 s does not fall on the estimate time 1.0 s plus steps of 0.1 s')
     log('info', 'started')
     assert len(logger.lines) == 3 and 'does not fall' in logger.lines[1]
+
+
+def test_an_estimator_with_two_sensors_fuses_a_stamp_once_both_reported_and_counts_a_late_one():
+    """`sensors: [camera, lidar]` (config/sensor_camera+lidar.yaml): a stamp waits for both
+    topics; "nothing measured" counts as a report; a stamp whose LIDAR report was lost goes on
+    with the next complete one, and the report coming after it is counted late, not fused."""
+    from geometry_msgs.msg import AccelStamped, Vector3Stamped
+    from rclpy.node import Node
+
+    from scenario_nodes.codec import encode_accel, encode_measurement, encode_no_measurement
+    from scenario_nodes.parameters import sensor_suites
+    from snn_estimator.measurements import make_model
+    suite = sensor_suites()['camera+lidar']['estimator']
+    models = {name: make_model(suite[f'{name}.model'], suite[f'{name}.measurement_noise'],
+                               mounting_rotation=suite[f'{name}.mounting_rotation']) for name in ('camera', 'lidar')}
+    x = np.array([[70.0, 30.0, -5.0, 0.0, 0.0, 0.0]])
+    step = 100_000_000
+    with ros_context() as (context, executor, nodes):
+        probe = Node('fused_probe', context=context)
+        executor.add_node(probe)
+        nodes.append(probe)
+        estimates = []
+        probe.create_subscription(Odometry, qos.ESTIMATE, estimates.append, qos.LISTENER_QOS)
+        topics = {name: probe.create_publisher(Vector3Stamped, name, qos.PUBLISHER_QOS) for name in models}
+        control = probe.create_publisher(AccelStamped, qos.CONTROL, qos.PUBLISHER_QOS)
+        estimator = make(EstimatorNode, context, executor, nodes, 'estimator', history_wait=0.0,
+                         diagnostics_period=0.0, initial_state_dispersion=False, **suite)
+        assert spin_until(executor, lambda: all(t.get_subscription_count() for t in topics.values()))
+
+        def send(name, stamp, measured=True):
+            model = models[name]
+            topics[name].publish(encode_measurement(model, model.h(x)[0], stamp, name) if measured
+                                 else encode_no_measurement(model, 'too_far', stamp, name))
+
+        def stamps():
+            return [stamp_to_ns(m.header.stamp) for m in estimates]
+
+        send('camera', 0)
+        spin_until(executor, lambda: False, timeout=0.1)  # within dropout_wait (0.25 s)
+        assert stamps() == []  # waits for the LIDAR's report of t = 0
+        send('lidar', 0, measured=False)
+        assert spin_until(executor, lambda: stamps() == [0])
+        control.publish(encode_accel(np.zeros(3), 0, 'lvlh'))
+        assert spin_until(executor, lambda: stamps() == [0, step])
+        send('camera', step)
+        send('camera', 2 * step)  # the LIDAR's report of t = 0.1 s is lost
+        send('lidar', 2 * step)
+        control.publish(encode_accel(np.zeros(3), step, 'lvlh'))
+        control.publish(encode_accel(np.zeros(3), 2 * step, 'lvlh'))
+        assert spin_until(executor, lambda: stamps()[-1:] == [3 * step])
+        send('lidar', step)  # late: t = 0.1 s went on without it
+        spin_until(executor, lambda: estimator.values().get('late.lidar') == 1, timeout=2.0)
+        values = estimator.values()
+    assert values['sensors'] == 'camera,lidar' and values['assembled_incomplete'] == 1
+    # three stamps fused (the LIDAR's "nothing measured" at 0 leaves the camera's sample); none empty
+    assert values['late.lidar'] == 1 and values['not_measured'] == 0 and values['measurements_used'] == 3

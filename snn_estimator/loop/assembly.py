@@ -20,6 +20,10 @@ from typing import Callable, Sequence
 import numpy as np
 
 
+#: Stamps handed on whose reporters are remembered (a resend comes within a few steps).
+REMEMBERED = 64
+
+
 class SampleAssembler:
     """Per-stamp assembly of the parts of a stacked measurement (module docstring)."""
 
@@ -31,12 +35,14 @@ class SampleAssembler:
         self._first_seen: dict[int, float] = {}
         self.newest_handed: int | None = None
         self.incomplete = 0  # stamps handed on without every sensor's report
+        self._reported: dict[int, frozenset] = {}  # recent stamps handed on -> the sensors that reported
 
     def offer(self, sensor: int, stamp_ns: int, z: np.ndarray | None) -> tuple[str, list]:
         """Sensor ``sensor``'s report for ``stamp_ns`` (z None: nothing measured). Returns
-        (what it was: 'new' | 'repeat', the stamps now ready as (stamp, z or None), in order)."""
-        if self.newest_handed is not None and stamp_ns <= self.newest_handed:
-            return 'repeat', []
+        (what it was: 'new' | 'repeat' (it came before) | 'late' (its stamp went on without it),
+        the stamps now ready as (stamp, z or None), in order)."""
+        if self.newest_handed is not None and stamp_ns <= self.newest_handed and stamp_ns not in self._parts:
+            return ('repeat' if sensor in self._reported.get(stamp_ns, ()) else 'late'), []
         parts = self._parts.setdefault(stamp_ns, {})
         self._first_seen.setdefault(stamp_ns, self._wall())
         if sensor in parts:
@@ -64,11 +70,15 @@ class SampleAssembler:
         """Forget everything (the time base restarted)."""
         self._parts.clear()
         self._first_seen.clear()
+        self._reported.clear()
         self.newest_handed = None
 
     def _hand_on(self, stamp_ns: int) -> tuple[int, np.ndarray | None]:
         parts = self._parts.pop(stamp_ns)
         del self._first_seen[stamp_ns]
+        self._reported[stamp_ns] = frozenset(parts)
+        if len(self._reported) > REMEMBERED:
+            del self._reported[min(self._reported)]
         if len(parts) < len(self.model.parts):
             self.incomplete += 1
         self.newest_handed = stamp_ns if self.newest_handed is None else max(self.newest_handed, stamp_ns)
