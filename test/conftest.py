@@ -88,6 +88,10 @@ LONG = frozenset({
     'test_a_bag_with_two_estimators_a_restarted_plant_and_a_gap_is_reported_per_stamp',
     'test_spike_arrays_of_different_lengths_are_padded_with_zeros_and_reported',
     'test_a_late_volatile_subscriber_gets_the_present_and_a_late_history_reader_the_recent_past',
+    'test_the_measurement_bench_times_every_model',
+    'test_an_interrupt_leaves_a_table_of_the_finished_cells',
+    'test_the_shipped_specs_are_valid',
+    'test_brian2_from_the_nir_file_matches_the_integer_network',
 })
 
 

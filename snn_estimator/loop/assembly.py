@@ -19,7 +19,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-
 #: Stamps handed on whose reporters are remembered (a resend comes within a few steps).
 REMEMBERED = 64
 
