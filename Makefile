@@ -2,7 +2,7 @@
 #   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk] [LIVE=1]   closed-loop demo
 #                             over ROS 2 (LIVE=1: live view, Foxglove at ws://localhost:8765)
 #   make test                 all tests and the linter (what CI runs)
-#   make test-fast            the tests that start no ROS process (~2.5 min)
+#   make test-fast            the quick loop: no ROS process, the first case of every-kind tests (~1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
