@@ -171,6 +171,13 @@ def subscription(node, events: QosEvents, message_type, topic: str, callback, pr
         qos_overriding_options=QoSOverridingOptions(_OVERRIDABLE))
 
 
+def message_class(type_name: str):
+    """'pkg/msg/Type' (as the graph names a topic's type) -> the Python message class."""
+    import importlib
+    package, _, name = type_name.split('/')
+    return getattr(importlib.import_module(f'{package}.msg'), name)
+
+
 class PublishedTypeSubscription:
     """A pipeline subscription to ``topic`` in the type its publishers use, for a node that
     reads only what every candidate type shares (the header): `measurement` is PointStamped,
@@ -186,15 +193,13 @@ class PublishedTypeSubscription:
         self._timer = node.create_timer(period, self._look, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _look(self) -> None:
-        import importlib
         publishers = self._node.get_publishers_info_by_topic(self._node.resolve_topic_name(self._topic))
         if not publishers:
             return
         self._timer.cancel()
         self.type_name = publishers[0].topic_type
-        package, _, name = self.type_name.split('/')
-        message_type = getattr(importlib.import_module(f'{package}.msg'), name)
-        self.subscription = subscription(self._node, self._events, message_type, self._topic, self._callback)
+        self.subscription = subscription(self._node, self._events, message_class(self.type_name), self._topic,
+                                         self._callback)
 
 
 def liveliness_monitor(node, message_type, topic: str, lease: float, on_change):

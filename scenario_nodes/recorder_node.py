@@ -23,7 +23,6 @@ plant cannot see (estimator <-> recorder, under load once 0.5 s late and 114 est
 
 from __future__ import annotations
 
-import importlib
 import struct
 import time
 from datetime import datetime
@@ -38,6 +37,7 @@ from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from . import qos
 from .parameters import RECORDER, declare
+from .qos import message_class
 from .runtime import ProcessHooks, clock_ns, run_node
 
 KNOWN_TYPES = {
@@ -73,12 +73,6 @@ def header_stamp(raw: bytes) -> int | None:
         return None
     sec, nanosec = _STAMP.unpack_from(raw, 4)
     return sec * 1_000_000_000 + nanosec
-
-
-def message_class(type_name: str):
-    """'pkg/msg/Type' -> the Python message class."""
-    package, _, name = type_name.split('/')
-    return getattr(importlib.import_module(f'{package}.msg'), name)
 
 
 def bag_qos(profile: QoSProfile) -> Qos:
@@ -194,8 +188,6 @@ class RecorderNode(ProcessHooks, Node):
         has not matched this recorder's subscription, or no publisher at all on a loop topic."""
         missing = [f'{name} (not in the graph yet)' for name in self._waiting]
         for topic, subscription in self._live.items():
-            if self._held and topic == self._held[0]:
-                continue
             publishers = len(self.get_publishers_info_by_topic(topic))
             if publishers and subscription.get_publisher_count() < publishers:
                 missing.append(f'{topic} ({subscription.get_publisher_count()} of {publishers} publishers matched)')

@@ -108,10 +108,7 @@ class SensorNode(ProcessHooks, Node):
             self._period.reset()
         if not self._period.due(stamp_ns):  # between two samples (measurement_period): said, with limits
             if self._p['publish_not_measured'] and self._model.has_limits:
-                data = encode_no_measurement(self._model, 'between_samples', stamp_ns, self._frame)
-                self._pub.publish(data)
-                self._answers.remember(stamp_ns, data)
-                self._published += 1
+                self._send(stamp_ns, encode_no_measurement(self._model, 'between_samples', stamp_ns, self._frame))
             else:
                 self._unmeasured_ns = stamp_ns
             return
@@ -129,11 +126,15 @@ class SensorNode(ProcessHooks, Node):
                     self._publish_diagnostics(stamp_ns)
                 return
             data = encode_no_measurement(self._model, error.reason, stamp_ns, self._frame)
+        self._send(stamp_ns, data)
+        if self._diagnostics.due(stamp_ns):
+            self._publish_diagnostics(stamp_ns)
+
+    def _send(self, stamp_ns: int, data: bytes) -> None:
+        """Publish one message at ``stamp_ns``, kept to answer a resend of that truth."""
         self._pub.publish(data)
         self._answers.remember(stamp_ns, data)
         self._published += 1
-        if self._diagnostics.due(stamp_ns):
-            self._publish_diagnostics(stamp_ns)
 
     def _on_time_jump(self, seconds: float) -> None:
         self.get_logger().warning(f'the clock jumped back by {seconds:.3f} s: starting over')
