@@ -90,7 +90,7 @@ class Inputs:
         self._sensor_frame = p['sensor_frame_id']
         events = node.events
         #: several sensors (`sensors`): their own subscriptions, assembled per stamp
-        self.fused = (FusedInputs(node, runner, outputs, sensors, report, runner.settings.dropout_wait)
+        self.fused = (FusedInputs(node, runner, outputs, sensors, report, runner.settings.dropout_wait, self._refuse)
                       if sensors else None)
         if self.fused is None:
             measurement_type = (PointStamped if self._model is None

@@ -59,8 +59,9 @@ class FusedInputs:
     """One subscription per sensor; a stamp goes to the runner once every sensor reported it
     (a sample or "nothing measured"), its parts gated; a repeat is answered again."""
 
-    def __init__(self, node, runner, outputs, sensors: list[SensorInput], report, wait: float):
+    def __init__(self, node, runner, outputs, sensors: list[SensorInput], report, wait: float, refuse):
         self._node, self._runner, self._out, self._report = node, runner, outputs, report
+        self._refuse = refuse  # Inputs._refuse: count, log, report
         self.sensors = sensors
         self._model = runner.estimator.measurement
         self.assembler = SampleAssembler(self._model, wait)
@@ -78,9 +79,7 @@ class FusedInputs:
             stamp_ns, z = read_measurement(sensor.model, data, sensor.frame_id)
         except MessageError as error:
             runner.measurements_received += 1
-            runner.rejected[error.reason] += 1
-            self._node.log('warning', f"rejected {sensor.name}'s sample: {error}")
-            return self._report()
+            return self._refuse(runner.rejected, f"{sensor.name}'s sample", error)
         kind, ready = self.assembler.offer(index, stamp_ns, z)
         if kind == 'repeat':  # a lockstep resend: the same answer
             if self._node.active and runner.has_measurement(stamp_ns) and self._out.resend(stamp_ns):

@@ -173,10 +173,8 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         if reason is not None:
             self.rejected[reason] += 1
             return reason
-        self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
-        self._last_arrival = self._wall()
         self._check_time_base(stamp_ns, now_ns)
-        self._pending[stamp_ns] = np.asarray(z, dtype=float)
+        self._queue(stamp_ns, np.asarray(z, dtype=float))
         if self._awaiting_start and not self.started:
             self._begin(min(self._pending), publish=True)
             self.events['cold_starts'] += 1
@@ -196,12 +194,16 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
             return reason
         if not self.started or not self.on_grid:
             return None  # it starts at its first measurement; off the grid the next one ends a hold
-        self._newest_ns = max(self._newest_ns or stamp_ns, stamp_ns)
-        self._last_arrival = self._wall()
-        self._pending[stamp_ns] = None
+        self._queue(stamp_ns, None)
         self._last_unmeasured_ns = stamp_ns
         self._process()
         return None
+
+    def _queue(self, stamp_ns: int, z: np.ndarray | None) -> None:
+        """Hold an accepted input (z None: nothing measured) until its step."""
+        self._newest_ns = stamp_ns if self._newest_ns is None else max(self._newest_ns, stamp_ns)
+        self._last_arrival = self._wall()
+        self._pending[stamp_ns] = z
 
     def _say(self, reason: str, detail: str) -> str:
         self._log('warning', f'rejected {detail}')
