@@ -336,7 +336,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self.get_logger().info(
             f"{p['filter_type']} configured ({estimator.neuron_count} neurons, {p['discretization']} steps "
             f"of {p['time_step']} s, "
-            + (f'axes {axes}' if measurement is None else f"{measurement.describe()} in '{p['sensor_frame_id']}'")
+            + (f'axes {axes}' if measurement is None else measurement.describe()
+               + ('' if self._sensors else f" in '{p['sensor_frame_id']}'"))
             + f'); start: {started}')
 
     def _make_endpoints(self) -> None:
