@@ -40,9 +40,11 @@ $(STAMP): setup.py pyproject.toml
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
 	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic,live]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
-	# compile the spiking and Basilisk-step kernels once, into numba's cache: no node compiles at start-up
+	# compile the spiking, Basilisk-step and closed-loop kernels once, into numba's cache: no node or
+	# Monte Carlo compiles at start-up
 	$(BIN)/python -c "from snn_estimator.filters.kernels import warm_up; warm_up()"
 	$(BIN)/python -c "from snn_estimator.offline.basilisk_truth import warm_up; warm_up()"
+	$(BIN)/python -c "from snn_estimator.offline.compiled_loop import warm_up; warm_up()"
 	touch $(STAMP)
 
 lint: $(STAMP)

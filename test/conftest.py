@@ -69,6 +69,9 @@ EXHAUSTIVE = frozenset({
     'test_every_network_rebuilds_its_weights_from_h_of_x_hat_as_the_dense_network',
     'test_estimate_is_the_decoded_filtered_spike_train',
     'test_snn_lqr_closes_the_loop_offline_beside_the_lqr',
+    'test_the_compiled_loop_equals_the_python_loop_for_every_filter_kind',
+    'test_the_compiled_loop_on_basilisk_truth_equals_the_python_loop',
+    'test_the_compiled_loop_equals_the_python_loop_with_network_options',
 })
 
 

@@ -370,9 +370,19 @@ def test_the_table_is_the_same_with_1_or_2_workers_or_an_external_cluster(tmp_pa
     assert table(tmp_path / 'external') == expected
 
 
+@pytest.fixture(scope='module')
+def longer(tmp_path_factory):
+    """MEDIUM over the whole 360 s approach: a cell takes long enough (~0.2 s with the compiled
+    loop) that a Ctrl-C after two cells finds most of them still to do."""
+    folder = tmp_path_factory.mktemp('longer')
+    path = folder / 'longer.yaml'
+    path.write_text(yaml.safe_dump({**MEDIUM, 'settings': {'duration': 360.0, 'metric_window': 10.0}}))
+    return path, reference(load_spec(path))
+
+
 @pytest.mark.slow
-def test_ctrl_c_keeps_the_finished_cells_and_the_same_command_finishes_the_rest(tmp_path, medium):
-    path, expected = medium
+def test_ctrl_c_keeps_the_finished_cells_and_the_same_command_finishes_the_rest(tmp_path, longer):
+    path, expected = longer
     out = tmp_path / 'out'
     command = _campaign_command(path, out, '--workers', '1')
     campaign = _start(command, tmp_path / 'first.log')

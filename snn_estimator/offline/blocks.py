@@ -50,12 +50,28 @@ class GaussianStream:
     def draw(self) -> np.ndarray:
         """One row per run, shape (runs, width)."""
         if self._next >= self._buffer.shape[1]:
-            self._buffer = np.stack([g.standard_normal((self._block, self._width))
-                                     for g in self._rngs])
-            self._next = 0
+            self._refill()
         row = self._buffer[:, self._next, :]
         self._next += 1
         return row
+
+    def _refill(self) -> None:
+        self._buffer = np.stack([g.standard_normal((self._block, self._width)) for g in self._rngs])
+        self._next = 0
+
+    def take(self, count: int) -> np.ndarray:
+        """The next ``count`` rows per run, shape (runs, count, width), C-contiguous: exactly
+        what ``count`` calls of :meth:`draw` would give (the compiled loop's noise)."""
+        out = np.empty((len(self._rngs), count, self._width))
+        filled = 0
+        while filled < count:
+            if self._next >= self._buffer.shape[1]:
+                self._refill()
+            rows = min(count - filled, self._buffer.shape[1] - self._next)
+            out[:, filled:filled + rows] = self._buffer[:, self._next:self._next + rows]
+            self._next += rows
+            filled += rows
+        return out
 
 
 class Plant:

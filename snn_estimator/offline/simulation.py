@@ -23,6 +23,7 @@ from snn_estimator.config import EstimatorConfig
 from snn_estimator.filters.estimators import TWIN_OF, make_estimator
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
 
+from . import compiled_loop
 from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the loop)
     PLANT_STREAM,
     SENSOR_STREAM,
@@ -35,6 +36,7 @@ from .blocks import (  # noqa: F401 (re-exported: the loop's blocks beside the l
     lqr_gain,
     matrix_sqrt,
 )
+from .sums import ChunkSink, LoopSums
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,8 @@ class Scenario:
 
 
 PRESETS = ('default', 'as_published')
+#: How simulate() steps its loop (see simulate).
+ENGINES = ('auto', 'compiled', 'reference')
 
 
 def _apply_preset(config: EstimatorConfig, preset: str, changes: dict) -> EstimatorConfig:
@@ -262,9 +266,29 @@ class SimulationResult:
     #: nu^T (C P C^T + R_hat)^-1 nu of each measurement against the prior estimate, (runs,
     #: steps); None without a covariance.
     nis: np.ndarray | None = None
+    #: The readings without the trajectories (simulate(..., trajectories=False); then truth,
+    #: estimate, covariance_diag, control, NEES, NIS and the raster are None): sums.LoopSums.
+    kept_sums: LoopSums | None = None
+
+    @property
+    def sums(self) -> LoopSums:
+        """What the tables read, summed over runs and the metric window (sums.LoopSums): kept
+        as such, or summed from the trajectories."""
+        return self.kept_sums if self.truth is None else LoopSums.of_trajectories(self)
+
+    def _without_trajectories(self, what: str, seconds: float | None = None) -> bool:
+        """True when only the sums were kept (then ``seconds`` must be the metric window)."""
+        if self.truth is not None:
+            return False
+        if seconds is not None and abs(seconds - self.scenario.metric_window) > 1e-9:
+            raise ValueError(f'{what} over {seconds} s needs the trajectories (kept: the metric window of '
+                             f'{self.scenario.metric_window} s): simulate(..., trajectories=True)')
+        return True
 
     @property
     def error(self) -> np.ndarray:
+        if self.truth is None:
+            raise ValueError('this run kept no trajectories: simulate(..., trajectories=True)')
         return self.truth - self.estimate
 
     def window(self, seconds: float | None = None) -> slice:
@@ -274,11 +298,15 @@ class SimulationResult:
 
     def rmse(self, seconds: float | None = None) -> np.ndarray:
         """Ordinary RMSE per state over the final window: sqrt(mean over runs and time of e^2)."""
+        if self._without_trajectories('rmse', seconds):
+            return self.kept_sums.rmse()
         e = self.error[:, self.window(seconds)]
         return np.sqrt(np.mean(e * e, axis=(0, 1)))
 
     def mean_error(self, seconds: float | None = None) -> np.ndarray:
         """Time average over the final window of |mean over runs of e(t)| per state."""
+        if self._without_trajectories('mean_error', seconds):
+            return self.kept_sums.mean_error()
         e = self.error[:, self.window(seconds)]
         return np.mean(np.abs(e.mean(axis=0)), axis=0)
 
@@ -289,6 +317,9 @@ class SimulationResult:
     @property
     def spike_fraction(self) -> float | None:
         """Spikes emitted / (N x steps), averaged over runs (Fig. 7: 17%)."""
+        if self.truth is None and self.neuron_count:
+            sums = self.kept_sums
+            return float(sums.spikes.sum() / (sums.runs * sums.steps * self.neuron_count))
         if self.spikes_per_step is None:
             return None
         steps = self.spikes_per_step.shape[1]
@@ -298,27 +329,37 @@ class SimulationResult:
         """Distance of the chaser from where the controller steers it (the target, or the
         scenario's setpoint) at the end, per run, m."""
         aim = np.zeros(3) if self.scenario.setpoint is None else self.scenario.setpoint[:3]
-        return np.linalg.norm(self.truth[:, -1, :3] - aim, axis=1)
+        final = self.kept_sums.final_state if self.truth is None else self.truth[:, -1]
+        return np.linalg.norm(final[:, :3] - aim, axis=1)
 
     def delta_v(self) -> np.ndarray:
         """Velocity change the thrusters delivered, per run, m/s: sum over steps of
         |u_x| + |u_y| + |u_z| times dt (one thruster pair per axis: propellant goes as this)."""
+        if self.control is None:
+            return self.kept_sums.delta_v()
         return np.abs(self.control).sum(axis=(1, 2)) * self.scenario.dt
 
     def consistency(self, seconds: float | None = None) -> dict:
         """Average NEES and NIS over the final window against their 95 % chi-square bounds
         (:func:`consistency_check`); empty for a filter without a covariance."""
+        sensor = self.scenario.sensor
+        dof = self.scenario.model.n_meas if sensor is None else sensor.dim
+        if self._without_trajectories('consistency', seconds):
+            sums = self.kept_sums
+            if not sums.covariance:
+                return {}
+            nis = sums.nis_sum[np.isfinite(sums.nis_sum)]
+            return {'nees': consistency_check(sums.nees_sum / sums.runs, sums.runs, sums.sum_sq.size),
+                    'nis': consistency_check(nis / sums.runs, sums.runs, dof)}
         if self.nees is None:
             return {}
         window = self.window(seconds)
         runs = self.nees.shape[0]
-        sensor = self.scenario.sensor
         nis = self.nis[:, window.start - 1:window.stop - 1]
         if sensor is not None:  # steps without a measurement have no NIS (NaN): average the others
             nis = nis[:, np.isfinite(nis).all(axis=0)]
         return {'nees': consistency_check(self.nees[:, window].mean(axis=0), runs, self.truth.shape[2]),
-                'nis': consistency_check(nis.mean(axis=0), runs,
-                                         self.scenario.model.n_meas if sensor is None else sensor.dim)}
+                'nis': consistency_check(nis.mean(axis=0), runs, dof)}
 
 
 def consistency_check(per_step: np.ndarray, runs: int, dof: int) -> dict:
@@ -408,14 +449,23 @@ class _Sensing:
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
              config: EstimatorConfig | None = None, on_step: Callable[[int], None] | None = None,
              events: dict[int, Callable] | None = None, controller: str = 'lqr',
-             controller_options: dict | None = None) -> SimulationResult:
+             controller_options: dict | None = None, engine: str = 'auto',
+             trajectories: bool = True) -> SimulationResult:
     """Run the closed loop of ``scenario`` with filter ``kind`` for ``runs`` seeds seed..seed+runs-1.
 
     ``events`` maps a step index to ``fn(estimator)`` called before that step (fault injection,
-    e.g. silencing neurons). ``on_step(k)`` is called after each step (progress bars).
-    ``controller``: lqr (u = -K (x_hat - setpoint)) or snn_lqr (the same law computed by a
-    spike-coding network, snn_estimator.spiking.lqr; ``controller_options``: its neurons, leak).
+    e.g. silencing neurons). ``on_step(k)`` is called after each step (progress bars; per chunk
+    of steps with the compiled engine). ``controller``: lqr (u = -K (x_hat - setpoint)) or
+    snn_lqr (the same law computed by a spike-coding network, snn_estimator.spiking.lqr;
+    ``controller_options``: its neurons, leak). ``engine``: compiled (the loop in numba,
+    :mod:`.compiled_loop`: the same numbers, several times faster), reference (the loop in
+    Python, :func:`_python_loop`), or auto (compiled where it applies: a linear model and the
+    position sensor, the float64 network, the LQR). ``trajectories=False`` keeps only the
+    readings of the metric window (``result.sums``, :mod:`.sums`): with the compiled engine a
+    run then holds a few kB instead of its trajectories (~0.7 MB for the 360 s rendezvous).
     """
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
     seeds = [seed + b for b in range(runs)]
     config = scenario.estimator if config is None else config
     estimator = make_estimator(kind, config.replace(seed=seed), scenario.model, runs=runs, seeds=seeds,
@@ -423,12 +473,69 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     plant = truth_plant(scenario, seeds)
     sensing = _Sensing(scenario, estimator, seeds)
     control = _Control(scenario, seeds, controller, controller_options)
+    why_not = compiled_loop.unsupported(scenario, estimator, controller)
+    if engine == 'compiled' and why_not:
+        raise ValueError(f'engine compiled does not run {why_not}: use engine auto or reference')
+    compiled = engine != 'reference' and not why_not
     steps, dt = scenario.steps, scenario.dt
-    x_hat = estimator.batch_x_hat  # (runs, n) view, updated in place by the estimator
-    record = _Record(estimator, runs, steps)
-    record.sample(0, plant, x_hat, estimator.batch_P)
+    record = sums = None
+    if compiled and not trajectories:
+        sums = _first_sums(scenario, estimator, plant)
+    else:
+        record = _Record(estimator, runs, steps)
+        record.sample(0, plant, estimator.batch_x_hat, estimator.batch_P)
     started = time.perf_counter()
-    for k in range(steps):
+    if compiled:
+        loop = compiled_loop.CompiledLoop(estimator, plant, sensing.sensor, control, dt, sensing.c, sensing.r_hat)
+        sink = (compiled_loop.FullRecord(record, runs, scenario.model.n_state, estimator._network.r.shape[1])
+                if record is not None else
+                ChunkSink(sums, compiled_loop.CHUNK, scenario.model.n_input, estimator.spiking))
+        loop.run(sink, steps, events, on_step)
+    else:
+        _python_loop(scenario, estimator, plant, sensing, control, record, events, on_step)
+    return _result(kind, scenario, estimator, plant, sensing, control, record, sums, time.perf_counter() - started,
+                   trajectories)
+
+
+def _result(kind, scenario, estimator, plant, sensing, control, record, sums, wall: float,
+            trajectories: bool) -> SimulationResult:
+    """simulate's result: the trajectories of ``record``, or the ``sums`` (summed from ``record``
+    when the reference engine ran without trajectories)."""
+    result = SimulationResult(
+        kind=kind, scenario=scenario, time=scenario.dt * np.arange(scenario.steps + 1), truth=None,
+        estimate=None, covariance_diag=None, control=None, spikes_per_step=None, raster=None,
+        neuron_count=estimator.neuron_count, wall_time=wall, capped_steps=estimator.capped_steps, kept_sums=sums,
+        extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': sensing.unmeasured,
+               'controller_spikes': (None if control.spiking_lqr is None
+                                     else control.spiking_lqr.total_spikes.copy())})
+    if record is None:
+        return result
+    result = replace(result, truth=record.truth, estimate=record.estimate, covariance_diag=record.cov,
+                     control=record.controls, spikes_per_step=record.spikes, raster=record.raster,
+                     nees=record.nees, nis=record.nis)
+    if trajectories:
+        return result
+    return replace(result, truth=None, estimate=None, covariance_diag=None, control=None, spikes_per_step=None,
+                   raster=None, nees=None, nis=None, kept_sums=result.sums)
+
+
+def _first_sums(scenario: Scenario, estimator, plant) -> LoopSums:
+    """The sums of a run that keeps no trajectory, with sample 0 (the start) in them."""
+    runs, n = estimator.runs, scenario.model.n_state
+    window_start = scenario.steps + 1 - int(round(scenario.metric_window / scenario.dt))
+    sums = LoopSums(runs, n, scenario.steps, window_start, scenario.dt, estimator.has_covariance)
+    x, x_hat = np.array(plant.x), estimator.batch_x_hat
+    nees = normalised_squares(x - x_hat, estimator.batch_P)[:, None] if estimator.has_covariance else None
+    sums.add_samples(0, x[:, None], x_hat[:, None], nees)
+    return sums
+
+
+def _python_loop(scenario: Scenario, estimator, plant, sensing, control, record, events, on_step) -> None:
+    """The loop in Python (engine reference), step by step:
+    ``u_k = -K x_hat_k``; ``z_k = C x_k + v_k``; ``x_hat_{k+1} = estimator.step(z_k, u_k, dt)``;
+    ``x_{k+1} = plant.step(u_k, dt)``; the samples of k + 1."""
+    x_hat, dt = estimator.batch_x_hat, scenario.dt  # (runs, n) view, updated in place by the estimator
+    for k in range(scenario.steps):
         if events and k in events:
             events[k](estimator)
         u = control(k, x_hat, dt)
@@ -442,15 +549,6 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
             record.raster[k] = step_spikes[0]
         if on_step is not None:
             on_step(k)
-    wall = time.perf_counter() - started
-    return SimulationResult(
-        kind=kind, scenario=scenario, time=dt * np.arange(steps + 1), truth=record.truth,
-        estimate=record.estimate, covariance_diag=record.cov, control=record.controls,
-        spikes_per_step=record.spikes, raster=record.raster, neuron_count=estimator.neuron_count,
-        wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
-        extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': sensing.unmeasured,
-               'controller_spikes': (None if control.spiking_lqr is None
-                                     else control.spiking_lqr.total_spikes.copy())})
 
 
 class _Record:

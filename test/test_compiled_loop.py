@@ -1,0 +1,161 @@
+"""The compiled closed loop (snn_estimator.offline.compiled_loop) against simulate's Python loop,
+which stays the reference: the same numbers for every filter kind, truth and option."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from snn_estimator import rendezvous_scenario, simulate
+from snn_estimator.filters.estimators import FILTER_KINDS
+from snn_estimator.offline.blocks import GaussianStream
+from snn_estimator.offline.simulation import angles_only_scenario, far_range_scenario, van_der_pol_scenario
+
+#: 60 s: the compiled loop's chunks (512 steps) end inside the run
+SHORT = 60.0
+TRAJECTORIES = ('truth', 'estimate', 'covariance_diag', 'control', 'spikes_per_step', 'raster', 'nees', 'nis')
+
+
+def short(scenario, duration=SHORT):
+    return dataclasses.replace(scenario, duration=duration, metric_window=min(scenario.metric_window, duration))
+
+
+def assert_same_run(compiled, reference, rtol=1e-9):
+    """Every trajectory equal to rtol of its own scale (NEES of the literal EMSIF reaches 1e5)."""
+    for name in TRAJECTORIES:
+        ours, theirs = getattr(compiled, name), getattr(reference, name)
+        assert (ours is None) == (theirs is None), name
+        if theirs is None:
+            continue
+        assert ours.shape == theirs.shape, name
+        scale = max(float(np.max(np.abs(theirs))), 1e-300)
+        np.testing.assert_allclose(ours, theirs, rtol=rtol, atol=rtol * scale, err_msg=name)
+    np.testing.assert_array_equal(compiled.extra['saturated_steps'], reference.extra['saturated_steps'])
+    assert compiled.capped_steps == reference.capped_steps
+
+
+@pytest.mark.parametrize('kind', list(FILTER_KINDS))
+def test_the_compiled_loop_equals_the_python_loop_for_every_filter_kind(kind):
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True))
+    assert_same_run(simulate(scenario, kind, runs=3, engine='compiled'),
+                    simulate(scenario, kind, runs=3, engine='reference'))
+
+
+@pytest.mark.parametrize('kind', list(FILTER_KINDS))
+def test_the_compiled_loop_on_basilisk_truth_equals_the_python_loop(kind):
+    """Basilisk steps the truth between two compiled calls (J2, the thrust limit)."""
+    pytest.importorskip('Basilisk')
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True, plant='basilisk'), 20.0)
+    assert_same_run(simulate(scenario, kind, runs=2, engine='compiled'),
+                    simulate(scenario, kind, runs=2, engine='reference'))
+
+
+@pytest.mark.parametrize('kind, changes', [
+    ('snn_emsif', {'membrane_noise': 0.05}),
+    ('snn_ekf', {'gain_schedule': 'steady_state'}),
+    ('snn_emsif_weighted', {'network_coding': 'deviation'}),
+    ('snn_emsif', {'spike_rule': 'all_above'}),
+    ('snn_ekf', {'spike_rule': 'one_per_step', 'neuron_count': 60}),
+])
+def test_the_compiled_loop_equals_the_python_loop_with_network_options(kind, changes):
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True, **changes))
+    assert_same_run(simulate(scenario, kind, runs=2, engine='compiled'),
+                    simulate(scenario, kind, runs=2, engine='reference'))
+
+
+def test_the_compiled_loop_equals_the_python_loop_with_events_setpoint_and_held_noise():
+    """An event between two chunk ends (silencing neurons at step 300), the far-range hold point
+    (setpoint) on the CW truth, and the held-sample reading of the truth's noise."""
+    silence = {300: lambda estimator: estimator.silence(range(0, 200, 3))}
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True))
+    assert_same_run(simulate(scenario, 'snn_emsif_weighted', runs=2, events=silence, engine='compiled'),
+                    simulate(scenario, 'snn_emsif_weighted', runs=2, events=silence, engine='reference'))
+    far = short(far_range_scenario(plant='cw'), 600.0)
+    assert_same_run(simulate(far, 'snn_ekf', runs=2, engine='compiled'),
+                    simulate(far, 'snn_ekf', runs=2, engine='reference'))
+    held = dataclasses.replace(scenario, truth_noise='held_sample')
+    assert_same_run(simulate(held, 'ekf', runs=2, engine='compiled'),
+                    simulate(held, 'ekf', runs=2, engine='reference'))
+
+
+def test_an_open_loop_schedule_is_flown_as_the_python_loop_flies_it():
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True))
+    schedule = np.zeros((scenario.steps, 3))
+    schedule[100:150] = [1e-3, 0.0, -2e-3]
+    open_loop = dataclasses.replace(scenario, lqr_state_weight=None, lqr_input_weight=None, control_schedule=schedule)
+    compiled = simulate(open_loop, 'ekf', runs=2, engine='compiled')
+    assert_same_run(compiled, simulate(open_loop, 'ekf', runs=2, engine='reference'))
+    np.testing.assert_array_equal(compiled.control[0], schedule)
+
+
+def test_one_run_alone_is_run_zero_of_a_batch():
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True))
+    alone = simulate(scenario, 'snn_emsif', runs=1, seed=4, engine='compiled')
+    batch = simulate(scenario, 'snn_emsif', runs=5, seed=4, engine='compiled')
+    np.testing.assert_array_equal(alone.truth[0], batch.truth[0])
+    np.testing.assert_array_equal(alone.estimate[0], batch.estimate[0])
+    np.testing.assert_array_equal(alone.spikes_per_step[0], batch.spikes_per_step[0])
+
+
+def test_auto_compiles_what_it_can_and_runs_the_rest_in_python():
+    """A measurement model, a nonlinear model and the spiking LQR run the reference loop under
+    engine auto; asked for by name, the compiled engine says why it cannot."""
+    with pytest.raises(ValueError, match='measurement model'):
+        simulate(short(angles_only_scenario(), 10.0), 'ekf', engine='compiled')
+    with pytest.raises(ValueError, match='nonlinear model'):
+        simulate(van_der_pol_scenario(), 'ekf', engine='compiled')
+    with pytest.raises(ValueError, match='controller snn_lqr'):
+        simulate(short(rendezvous_scenario(), 1.0), 'ekf', controller='snn_lqr', engine='compiled')
+    with pytest.raises(ValueError, match='engine must be one of'):
+        simulate(short(rendezvous_scenario(), 1.0), 'ekf', engine='fast')
+    scenario = short(van_der_pol_scenario(), 1.0)
+    assert_same_run(simulate(scenario, 'ekf', engine='auto'), simulate(scenario, 'ekf', engine='reference'))
+
+
+def test_a_bad_input_raises_at_the_same_step_as_the_python_loop():
+    """A control that is not finite: Estimator.step refuses it (ValueError) before anything moves."""
+    scenario = short(rendezvous_scenario(), 10.0)
+    schedule = np.zeros((scenario.steps, 3))
+    schedule[37] = np.nan
+    open_loop = dataclasses.replace(scenario, lqr_state_weight=None, lqr_input_weight=None, control_schedule=schedule)
+    steps = {}
+    for engine in ('compiled', 'reference'):
+        seen = []
+        with pytest.raises(ValueError, match='must be finite'):
+            simulate(open_loop, 'ekf', engine=engine, on_step=seen.append)
+        steps[engine] = len(seen)
+    assert steps['reference'] == 37
+    assert steps['compiled'] == 0  # progress is reported per chunk: none finished
+
+
+def test_taking_rows_in_blocks_gives_the_rows_of_single_draws():
+    one_by_one, taken = GaussianStream([3, 9], 2, 4, block=7), GaussianStream([3, 9], 2, 4, block=7)
+    rows = np.stack([one_by_one.draw().copy() for _ in range(23)], axis=1)
+    parts = [taken.take(5), taken.take(1), taken.take(17)]  # across the block ends
+    np.testing.assert_array_equal(np.concatenate(parts, axis=1), rows)
+    assert all(part.flags.c_contiguous for part in parts)
+
+
+@pytest.mark.parametrize('kind', ['ekf', 'esif', 'snn_emsif', 'snn_emsif_star'])
+@pytest.mark.parametrize('engine', ['compiled', 'reference'])
+def test_without_trajectories_a_run_reads_as_the_run_that_kept_them(kind, engine):
+    """trajectories=False keeps the window's sums and per-run totals only: every reading a table
+    takes equals the full run's (a filter with and without P, with and without spikes)."""
+    scenario = dataclasses.replace(short(rendezvous_scenario(initial_state_dispersion=True), 120.0), metric_window=50.0)
+    full = simulate(scenario, kind, runs=3, engine='reference')
+    lean = simulate(scenario, kind, runs=3, engine=engine, trajectories=False)
+    assert lean.truth is None and lean.estimate is None and lean.control is None and lean.nees is None
+    np.testing.assert_allclose(lean.rmse(), full.rmse(), rtol=1e-9)
+    np.testing.assert_allclose(lean.mean_error(), full.mean_error(), rtol=1e-9)
+    np.testing.assert_allclose(lean.final_range(), full.final_range(), rtol=1e-9)
+    np.testing.assert_allclose(lean.delta_v(), full.delta_v(), rtol=1e-9)
+    assert lean.spike_fraction == full.spike_fraction
+    ours, theirs = lean.consistency(), full.consistency()
+    assert ours.keys() == theirs.keys()
+    for name in ours:
+        assert ours[name]['average'] == pytest.approx(theirs[name]['average'], rel=1e-9)
+        assert ours[name]['verdict'] == theirs[name]['verdict']
+    with pytest.raises(ValueError, match='trajectories=True'):
+        lean.rmse(10.0)
+    with pytest.raises(ValueError, match='trajectories=True'):
+        lean.rmse_history()
