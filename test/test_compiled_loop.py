@@ -131,7 +131,8 @@ def test_a_bad_input_raises_at_the_same_step_as_the_python_loop():
 def test_taking_rows_in_blocks_gives_the_rows_of_single_draws():
     one_by_one, taken = GaussianStream([3, 9], 2, 4, block=7), GaussianStream([3, 9], 2, 4, block=7)
     rows = np.stack([one_by_one.draw().copy() for _ in range(23)], axis=1)
-    parts = [taken.take(5), taken.take(1), taken.take(17)]  # across the block ends
+    parts = [taken.take(5), taken.take(1), taken.draw()[:, None].copy(), taken.take(9), taken.draw()[:, None].copy(),
+             taken.take(6)]  # across the block ends, and a draw after rows taken past a block
     np.testing.assert_array_equal(np.concatenate(parts, axis=1), rows)
     assert all(part.flags.c_contiguous for part in parts)
 
@@ -159,3 +160,19 @@ def test_without_trajectories_a_run_reads_as_the_run_that_kept_them(kind, engine
         lean.rmse(10.0)
     with pytest.raises(ValueError, match='trajectories=True'):
         lean.rmse_history()
+
+
+def test_a_run_without_trajectories_holds_memory_for_its_chunk_not_its_duration():
+    """simulate(trajectories=False): the peak memory of a 360 s EKF batch is a small fraction of
+    the trajectories' (issue 25: a run keeps its trajectories only when asked)."""
+    import tracemalloc
+    scenario = rendezvous_scenario(initial_state_dispersion=True)
+    simulate(short(scenario, 1.0), 'ekf', runs=2)
+    peaks = {}
+    for trajectories in (True, False):
+        tracemalloc.start()
+        simulate(scenario, 'ekf', runs=50, trajectories=trajectories)
+        peaks[trajectories] = tracemalloc.get_traced_memory()[1] / 50
+        tracemalloc.stop()
+    assert peaks[True] > 500e3  # ~0.65 MB of trajectories per run
+    assert peaks[False] < 0.1 * peaks[True], peaks

@@ -63,14 +63,12 @@ class GaussianStream:
         """The next ``count`` rows per run, shape (runs, count, width), C-contiguous: exactly
         what ``count`` calls of :meth:`draw` would give (the compiled loop's noise)."""
         out = np.empty((len(self._rngs), count, self._width))
-        filled = 0
-        while filled < count:
-            if self._next >= self._buffer.shape[1]:
-                self._refill()
-            rows = min(count - filled, self._buffer.shape[1] - self._next)
-            out[:, filled:filled + rows] = self._buffer[:, self._next:self._next + rows]
-            self._next += rows
-            filled += rows
+        filled = min(count, self._buffer.shape[1] - self._next)  # what is left of the block
+        out[:, :filled] = self._buffer[:, self._next:self._next + filled]
+        self._next += filled
+        if filled < count:  # the rest straight from the generators: no block held
+            for b, generator in enumerate(self._rngs):
+                out[b, filled:] = generator.standard_normal((count - filled, self._width))
         return out
 
 

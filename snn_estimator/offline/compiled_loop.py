@@ -296,6 +296,7 @@ class FullRecord:
     trajectories), step k's at index k (samples at k + 1)."""
 
     metrics_from = 0
+    chunk = CHUNK
 
     def __init__(self, record, runs: int, n: int, neurons: int):
         self.outputs = (record.truth, record.estimate,
@@ -362,7 +363,7 @@ class CompiledLoop:
         while k < steps:
             if events and k in events:
                 events[k](self.estimator)
-            end = min(k + CHUNK, next(b for b in boundaries if b > k))
+            end = min(k + sink.chunk, next(b for b in boundaries if b > k))
             self._chunk(sink, k, end - k)
             if on_step is not None:
                 for step in range(k, end):

@@ -462,7 +462,8 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     Python, :func:`_python_loop`), or auto (compiled where it applies: a linear model and the
     position sensor, the float64 network, the LQR). ``trajectories=False`` keeps only the
     readings of the metric window (``result.sums``, :mod:`.sums`): with the compiled engine a
-    run then holds a few kB instead of its trajectories (~0.7 MB for the 360 s rendezvous).
+    run then holds ~12 kB of buffers besides its filter, instead of its trajectories (~0.7 MB
+    for the 360 s rendezvous).
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
@@ -489,7 +490,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         loop = compiled_loop.CompiledLoop(estimator, plant, sensing.sensor, control, dt, sensing.c, sensing.r_hat)
         sink = (compiled_loop.FullRecord(record, runs, scenario.model.n_state, estimator._network.r.shape[1])
                 if record is not None else
-                ChunkSink(sums, compiled_loop.CHUNK, scenario.model.n_input, estimator.spiking))
+                ChunkSink(sums, scenario.model.n_input, estimator.spiking))
         loop.run(sink, steps, events, on_step)
     else:
         _python_loop(scenario, estimator, plant, sensing, control, record, events, on_step)

@@ -83,12 +83,13 @@ class LoopSums:
 
 
 class ChunkSink:
-    """Where the compiled loop writes when no trajectory is kept: buffers of one chunk, folded
-    into :class:`LoopSums` after each (the kernel computes NEES and NIS only in the window)."""
+    """Where the compiled loop writes when no trajectory is kept: buffers of ``chunk`` steps
+    (~12 kB per run for the rendezvous at the default 64), folded into :class:`LoopSums` after
+    each (the kernel computes NEES and NIS only in the window)."""
 
-    def __init__(self, sums: LoopSums, chunk: int, n_u: int, spiking: bool):
+    def __init__(self, sums: LoopSums, n_u: int, spiking: bool, chunk: int = 64):
         runs, n, covariance = sums.runs, sums.sum_sq.size, sums.covariance
-        chunk = min(chunk, sums.steps)
+        chunk = self.chunk = max(1, min(chunk, sums.steps))
         self.sums, self.metrics_from = sums, sums.window_start
         self._covariance, self._spiking = covariance, spiking
         self.outputs = (np.zeros((runs, chunk, n)), np.zeros((runs, chunk, n)),
