@@ -11,7 +11,15 @@ the plant has flown the scenario it exits and the launch shuts the others down (
 closes its bag on the way), unless keep_alive:=true.
 """
 
-from launch.actions import DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler
+import os
+
+from launch.actions import (
+    DeclareLaunchArgument,
+    EmitEvent,
+    OpaqueFunction,
+    RegisterEventHandler,
+    SetEnvironmentVariable,
+)
 from launch.conditions import IfCondition
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
@@ -25,6 +33,7 @@ from scenario_nodes import registry
 from snn_estimator.catalog import FILTER_KINDS
 
 PACKAGE = 'snn_rendezvous'
+DDS_PROFILE_VARIABLE = 'FASTRTPS_DEFAULT_PROFILES_FILE'
 FILTERS = ' | '.join(FILTER_KINDS)
 PLANTS = registry.PLANTS
 
@@ -96,6 +105,9 @@ def _nodes(context):
                'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}
     actions = [node(entry.name, extra.get(entry.name), **options.get(entry.name, {}))
                for entry in registry.LOOP + registry.OPTIONAL]
+    if DDS_PROFILE_VARIABLE not in os.environ:  # the package's Fast DDS profile (docs/decisions.md, 36)
+        actions.insert(0, SetEnvironmentVariable(DDS_PROFILE_VARIABLE, PathJoinSubstitution(
+            [FindPackageShare(PACKAGE), 'config', 'fastdds.xml'])))
     actions.append(plant)  # the registry's start order: consumers first, the plant last
     if end_with_plant:
         actions.append(RegisterEventHandler(OnProcessExit(

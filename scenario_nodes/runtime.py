@@ -131,10 +131,12 @@ def flush(node, timeout: float = 5.0) -> None:
     """Wait until every subscriber acknowledged what the node published: a reliable sample
     still unacknowledged when the process exits would be lost (e.g. to a lagging recorder).
 
-    The timeout outlasts Fast DDS's 3 s heartbeat period: when a lagging reader's shared-memory
-    queue was full, the dropped samples are repaired from the writer's history, but the last
-    ones of a sparse topic (nothing newer shows the gap) only after the next heartbeat. With
-    2 s, a hot-swap test once lost the plant's final 22 diagnostics to a lagging recorder."""
+    The timeout outlasts Fast DDS's default 3 s heartbeat period: when a lagging reader's
+    shared-memory queue was full, the dropped samples are repaired from the writer's history, but
+    the last ones of a sparse topic (nothing newer shows the gap) only after the next heartbeat.
+    With 2 s, a hot-swap test once lost the plant's final 22 diagnostics to a lagging recorder.
+    The package's Fast DDS profile (config/fastdds.xml) heartbeats every 100 ms, so the wait is
+    usually that short (docs/decisions.md, 36)."""
     deadline = time.monotonic() + timeout
     for publisher in node.publishers:
         remaining = deadline - time.monotonic()

@@ -24,7 +24,7 @@ from scenario_nodes import registry
 from scenario_nodes.parameters import DEFAULT_FILTER, SUITE_SENSOR_NODES, sensor_suites
 from snn_estimator.filters.estimators import FILTER_KINDS
 
-from .paths import config_file
+from .paths import DDS_PROFILE, DDS_PROFILE_VARIABLE, config_file
 
 #: The loop's nodes in start order (consumers first, the plant, which starts the clock, last):
 #: (node name, module), from the registry; the CW plant stands for the plant chosen.
@@ -215,6 +215,7 @@ def pipeline_env(domain_id: int | None = None) -> dict:
     elif 'ROS_DOMAIN_ID' not in env:
         env['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
     env.setdefault('PYTHONUNBUFFERED', '1')
+    env.setdefault(DDS_PROFILE_VARIABLE, str(config_file(DDS_PROFILE)))  # docs/decisions.md, 36
     return env
 
 

@@ -81,7 +81,8 @@ def test_pip_install_puts_ros2_run_wrappers_index_marker_and_share_files(pip_pre
     assert (pip_prefix / 'share/ament_index/resource_index/packages' / PACKAGE).is_file()
     share = pip_prefix / 'share' / PACKAGE
     for name in ('package.xml', 'launch/rendezvous.launch.py', 'config/rendezvous.yaml',
-                 'config/rendezvous_as_published.yaml', 'config/rendezvous.rviz', 'config/foxglove_layout.json'):
+                 'config/rendezvous_as_published.yaml', 'config/rendezvous.rviz', 'config/foxglove_layout.json',
+                 'config/fastdds.xml'):
         assert (share / name).is_file(), name
     env = prefix_env(pip_prefix, site)
     for executable in EXECUTABLES:
@@ -164,7 +165,8 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         'launch': {'LaunchDescription': lambda actions: actions},
         'launch.actions': {'DeclareLaunchArgument': recorder('argument'),
                            'OpaqueFunction': recorder('opaque'), 'EmitEvent': recorder('emit'),
-                           'RegisterEventHandler': recorder('handler')},
+                           'RegisterEventHandler': recorder('handler'),
+                           'SetEnvironmentVariable': recorder('environment')},
         'launch.conditions': {'IfCondition': recorder('condition')},
         'launch.event_handlers': {'OnProcessExit': recorder('on_exit')},
         'launch.events': {'Shutdown': recorder('shutdown')},
@@ -216,9 +218,41 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         assert on_exit.kwargs['target_action'] is next(n for n in created['node']
                                                       if n.kwargs['executable'] == 'cw_plant')
         assert handler in actions
+    # the package's Fast DDS profile unless the user points Fast DDS elsewhere (decisions.md, 36)
+    monkeypatch.delenv('FASTRTPS_DEFAULT_PROFILES_FILE', raising=False)
+    created['environment'] = []
+    actions = make_nodes(dict(base, scheduling='normal'))
+    (environment,) = created['environment']
+    assert actions[0] is environment
+    profile = ('join', (('share', PACKAGE), 'config', 'fastdds.xml'))
+    assert environment.args == ('FASTRTPS_DEFAULT_PROFILES_FILE', profile)
+    monkeypatch.setenv('FASTRTPS_DEFAULT_PROFILES_FILE', '/my/profile.xml')
+    created['environment'] = []
+    make_nodes(dict(base, scheduling='normal'))
+    assert created['environment'] == []
     created['node'], created['handler'] = [], []
     make_nodes(dict(base, scheduling='normal', keep_alive='true', estimator='snn_emsif_weighted',
                     plant='basilisk'))
     nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
     assert created['handler'] == [] and nodes['basilisk_plant']['parameters'][1]['exit_when_done'] is False
     assert nodes['estimator']['parameters'][1] == {'filter_type': 'snn_emsif_weighted'}
+
+
+def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
+    """config/fastdds.xml: a default data-writer profile whose heartbeat period is 100 ms
+    (docs/decisions.md, 36), set by snn_demo's environment unless the user set another."""
+    import xml.etree.ElementTree as ElementTree
+
+    from snn_tools.demo import pipeline_env
+    namespace = {'dds': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    writer = ElementTree.parse(ROOT / 'config' / 'fastdds.xml').getroot().find('dds:data_writer', namespace)
+    assert writer.get('is_default_profile') == 'true'
+    period = writer.find('dds:times/dds:heartbeatPeriod', namespace)
+    seconds, nanoseconds = (int(period.find(f'dds:{unit}', namespace).text) for unit in ('sec', 'nanosec'))
+    assert (seconds, nanoseconds) == (0, 10 ** 8)
+    assert pipeline_env()['FASTRTPS_DEFAULT_PROFILES_FILE'] == os.environ['FASTRTPS_DEFAULT_PROFILES_FILE']
+    saved = os.environ.pop('FASTRTPS_DEFAULT_PROFILES_FILE')
+    try:
+        assert pipeline_env()['FASTRTPS_DEFAULT_PROFILES_FILE'] == str(ROOT / 'config' / 'fastdds.xml')
+    finally:
+        os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = saved
