@@ -64,8 +64,9 @@ def test_the_compiled_loop_equals_the_python_loop_with_network_options(kind, cha
 
 
 def test_the_compiled_loop_equals_the_python_loop_with_events_setpoint_and_held_noise():
-    """An event between two chunk ends (silencing neurons at step 300), the far-range hold point
-    (setpoint) on the CW truth, and the held-sample reading of the truth's noise."""
+    """Events between two chunk ends (silencing neurons at step 300; retuning the filter at 250),
+    the far-range hold point (setpoint) on the CW truth, and the held-sample reading of the
+    truth's noise."""
     silence = {300: lambda estimator: estimator.silence(range(0, 200, 3))}
     scenario = short(rendezvous_scenario(initial_state_dispersion=True))
     assert_same_run(simulate(scenario, 'snn_emsif_weighted', runs=2, events=silence, engine='compiled'),
@@ -73,6 +74,9 @@ def test_the_compiled_loop_equals_the_python_loop_with_events_setpoint_and_held_
     far = short(far_range_scenario(plant='cw'), 600.0)
     assert_same_run(simulate(far, 'snn_ekf', runs=2, engine='compiled'),
                     simulate(far, 'snn_ekf', runs=2, engine='reference'))
+    retune = {250: lambda estimator: estimator.retune(boundary_layer=0.02, process_noise_scale=10.0)}
+    assert_same_run(simulate(scenario, 'snn_emsif', runs=2, events=retune, engine='compiled'),
+                    simulate(scenario, 'snn_emsif', runs=2, events=retune, engine='reference'))
     held = dataclasses.replace(scenario, truth_noise='held_sample')
     assert_same_run(simulate(held, 'ekf', runs=2, engine='compiled'),
                     simulate(held, 'ekf', runs=2, engine='reference'))

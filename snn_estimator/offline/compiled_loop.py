@@ -328,9 +328,8 @@ class CompiledLoop:
         dynamics, drift = estimator._dynamics(estimator._x_hat, np.zeros((runs, n_u)), dt)
         m = sensor.model.measurement_matrix.shape[0]
         self._z, self._u = np.zeros((runs, m)), np.zeros((runs, n_u))
-        packed, network = estimator._packed, estimator._network
-        self._step_args = (packed.constants, packed.state, packed.network, estimator._all_measured, self.dt,
-                           dynamics, drift, self._z, self._u, network.zero_noise)
+        network = estimator._network
+        self._dynamics, self._drift = dynamics, drift
         self._loop = loop_kernel(estimator._kernel)
         self.truth_inside = hasattr(plant, 'step_noise_covariance')  # blocks.Plant; Basilisk steps itself
         self._x = np.ascontiguousarray(plant.x, dtype=float).copy()
@@ -378,6 +377,9 @@ class CompiledLoop:
                               for g in self.estimator._network.noise_rngs], axis=1)
                     if self._sigma > 0.0 else np.zeros((0, runs, self._neurons)))
         sample_at, step_at = sink.offsets(first)
+        packed = self.estimator._packed  # read each chunk: an event may have retuned the constants
+        self._step_args = (packed.constants, packed.state, packed.network, self.estimator._all_measured, self.dt,
+                           self._dynamics, self._drift, self._z, self._u, self.estimator._network.zero_noise)
         if self.truth_inside:
             truth = (True, self._phi, self._gamma, self._plant_root, self.plant._noise.take(count), self._x,
                      self._applied)
