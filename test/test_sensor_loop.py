@@ -93,3 +93,9 @@ def test_the_camera_and_lidar_fused_over_ros_equal_the_offline_hand_over_and_doc
     lidar = data.last_diagnostics('lidar')
     assert int(lidar['measurement_rejected.too_far']) > 0  # beyond 30 m at the start: bearings only
     assert data.types['/camera'] == data.types['/lidar'] == 'geometry_msgs/msg/Vector3Stamped'
+    # the controller watched both sensors, not `measurement`, and never lost them while flying (at
+    # the end every peer goes quiet: the nodes are stopped one by one)
+    flying = [values for t, values in data.diagnostics['lqr_controller'] if t < data.truth_t[-1]]
+    assert flying and all(v['peer.camera'] == v['peer.lidar'] == 'OK' and 'peer.measurement' not in v
+                          for v in flying)
+    assert data.last_diagnostics('lqr_controller')['safe_mode_steps'] == '0'
