@@ -359,8 +359,7 @@ def main(argv=None) -> int:
                         help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
     parser.add_argument('--single-process', action='store_true',
                         help='every node in one process and one executor (default: one process '
-                             'per node); same results, see docs/performance.md; experimental: crashed once '
-                             'at shutdown in the recorder drain')
+                             'per node); same results, see docs/performance.md')
     args = parser.parse_args(argv)
     sensor = '' if args.sensor == 'position' else f'_{args.sensor}'
     name = args.name or f"{args.estimator}{sensor}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
