@@ -412,6 +412,20 @@ def decode_measurement(model, data: bytes) -> tuple[int, str, np.ndarray | None]
     raise ValueError(f"message_form must be one of {', '.join(MEASUREMENT_TYPES)}; got {form!r}")
 
 
+def sensor_report(type_name: str, data: bytes) -> tuple[int, bool]:
+    """(stamp in ns, measured) of any sensor's message, without knowing its model: False for
+    "nothing measured" (:func:`encode_no_measurement`: a Range of -inf or +inf, REP 117; a
+    Vector3Stamped, or PointStamped, of NaN only). For reading recorded runs."""
+    if type_name == RANGE:
+        record = decode_range(data)
+        return record.stamp_ns, not math.isinf(record.range)
+    if type_name not in (POINT_STAMPED, VECTOR3_STAMPED):
+        raise ValueError(f"a sensor report is one of {', '.join(sorted(MEASUREMENT_TYPES.values()))}; "
+                         f'got {type_name!r}')
+    record = decode_point(data)  # PointStamped and Vector3Stamped: one layout
+    return record.stamp_ns, not np.isnan(record.vector).all()
+
+
 def encode_clock(stamp_ns: int) -> bytes:
     """CDR of a rosgraph_msgs/Clock (what the plant publishes on /clock every step)."""
     return CDR_LE + _STAMP.pack(*split_stamp(stamp_ns))

@@ -1,9 +1,9 @@
 """lqr_controller: u = -K x_hat (Eq. 42) from each state estimate, stamped with the estimate's time.
 
 Safe mode: zero thrust at every simulated step, said once and reported, while the estimator is
-down (no usable estimate for ``estimate_timeout`` simulated seconds), the sensor is down (no
-measurement for as long: the estimates are predictions) or the clock stopped (``peer_timeout``
-wall seconds: the plant is gone); it ends when the cause does.
+down (no usable estimate for ``estimate_timeout`` simulated seconds), the sensors are down (no
+message on any of ``measurement_topics`` for as long: the estimates are predictions) or the
+clock stopped (``peer_timeout`` wall seconds: the plant is gone); it ends when the cause does.
 """
 
 from __future__ import annotations
@@ -29,6 +29,15 @@ from .parameters import CONTROLLER, cw_model, declare
 from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
+
+
+def sensor_topics(topics) -> list[str]:
+    """The ``measurement_topics`` parameter checked: at least one, each named once."""
+    topics = [str(topic) for topic in topics]
+    if not topics or not all(topics) or len(set(topics)) != len(topics):
+        raise ValueError(f'measurement_topics {topics}: give each sensor topic once (e.g. [camera, lidar], '
+                         f'the topics of the estimator\'s sensors), at least one')
+    return topics
 
 
 def design_gain(values: dict) -> np.ndarray:
@@ -60,7 +69,8 @@ class ControllerNode(ProcessHooks, Node):
         self._last_estimate_ns = None  # simulated time of the newest usable estimate
         self._last_measurement_ns = None  # and of the newest measurement (is the sensor there?)
         self._last_clock_ns = 0
-        self._peers = PeerWatch([qos.ESTIMATE, qos.MEASUREMENT, 'clock'], p['peer_timeout'],
+        self._sensor_topics = sensor_topics(p['measurement_topics'])
+        self._peers = PeerWatch([qos.ESTIMATE, *self._sensor_topics, 'clock'], p['peer_timeout'],
                                 log=ThrottledLog(self.get_logger()))
         self._answers = Answers()
         self._events = qos.QosEvents(self)
@@ -69,7 +79,9 @@ class ControllerNode(ProcessHooks, Node):
                                                  peers=self._peers)
         qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)
         # any sensor model's message (PointStamped, Vector3Stamped, Range): only its stamp is read
-        self._measurements = qos.PublishedTypeSubscription(self, self._events, qos.MEASUREMENT, self._on_measurement)
+        self._measurements = [qos.PublishedTypeSubscription(self, self._events, topic,
+                                                            partial(self._on_measurement, topic))
+                              for topic in self._sensor_topics]
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
@@ -97,9 +109,9 @@ class ControllerNode(ProcessHooks, Node):
         self.get_logger().warning(f'rejected estimate ({detail})', throttle_duration_sec=5.0)
         self._publish_diagnostics(max(stamp_ns, self._gate.last_ns or 0))
 
-    def _on_measurement(self, data: bytes) -> None:
-        """Only whether the sensor is there: its newest stamp."""
-        self._peers.saw(qos.MEASUREMENT)
+    def _on_measurement(self, topic: str, data: bytes) -> None:
+        """Only whether a sensor is there: the newest stamp of any of them."""
+        self._peers.saw(topic)
         try:
             stamp_ns = decode_stamp(data)
         except MessageError:
@@ -157,7 +169,8 @@ class ControllerNode(ProcessHooks, Node):
         if now > 0 and now - self._last_estimate_ns > timeout:
             return f'no estimate since t = {self._last_estimate_ns * 1e-9:.3f} s'
         if self._last_measurement_ns is not None and now > 0 and now - self._last_measurement_ns > timeout:
-            return f'no measurement since t = {self._last_measurement_ns * 1e-9:.3f} s (the estimates are predictions)'
+            return (f'no measurement since t = {self._last_measurement_ns * 1e-9:.3f} s on '
+                    f"{', '.join(self._sensor_topics)} (the estimates are predictions)")
         if self._peers.levels['clock'] != OK:
             return f'the clock stopped at t = {now * 1e-9:.3f} s'
         return None

@@ -27,7 +27,7 @@ from snn_estimator.measurements import OBSERVERS
 from snn_estimator.offline.blocks import FUSED_SEED_OFFSET
 
 from . import registry
-from .topics import PIPELINE_TOPICS
+from .topics import MEASUREMENT, PIPELINE_TOPICS
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
@@ -111,7 +111,7 @@ PLANT = MODEL + (
          "'estimate' and 'control' each with a publisher and a subscriber; says what it waits for"),
     Spec('min_truth_subscribers', 1, "Subscriptions 'truth' needs before the start (the sensor; the "
          'demo: 2 with the recorder)', low=0),
-    Spec('measurement_topics', ['measurement'], "The sensors' topics the loop check looks for (a sensor "
+    Spec('measurement_topics', [MEASUREMENT], "The sensors' topics the loop check looks for (a sensor "
          'publishing one, an estimator subscribing to every one): an estimator with `sensors`'),
     Spec('start_delay', 0.3, 'Wall-clock s to wait once the loop is there, so that every pair of '
          'endpoints has matched before the first sample', low=0.0),
@@ -190,6 +190,10 @@ CONTROLLER = MODEL + (
          'more than this plus two time steps ahead of it, are rejected, s', read_only=False, low=1e-9),
     Spec('time_jump_threshold', 1.0, 'Without a running /clock, an estimate this far before the '
          'last one means the time base restarted: start over, s', low=0.0),
+    Spec('measurement_topics', [MEASUREMENT], "The sensors' topics watched (any message type; only its "
+         'stamp is read): each is a peer in diagnostics (peer.<topic>), and safe mode starts when none '
+         'of them has sent anything for estimate_timeout (the estimates are then predictions); an '
+         'estimator with `sensors`: their topics'),
     # the spiking LQR (snn_estimator/spiking/lqr.py)
     Spec('controller_type', 'lqr', 'lqr: u = -K (x_hat - setpoint) computed directly; snn_lqr: the '
          'same law read out of a spike-coding network that encodes x_hat - setpoint',
@@ -606,6 +610,7 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
         'lidar': {**lidar, **close, 'max_range': float(D.HANDOVER_LIDAR_MAX_RANGE),
                   'measurement_period': float(period), 'seed': FUSED_SEED_OFFSET},
         'estimator': fused, 'cw_plant': {'measurement_topics': ['camera', 'lidar']},
+        'lqr_controller': {'measurement_topics': ['camera', 'lidar']},
         'recorder': {'topics': topics}}
     return suites
 

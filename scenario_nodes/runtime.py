@@ -236,13 +236,13 @@ def run_node(factory: Callable, args=None, name: str = 'node') -> int:
     finally:
         try:
             if node is not None:
-                _finish(node, executor)
+                finish_node(node, executor)
         finally:
             rclpy.try_shutdown()
     return code
 
 
-def _finish(node, executor) -> None:
+def finish_node(node, executor) -> None:
     """Drain, close, flush and destroy ``node``. A failing step does not skip the later ones
     (a bag left unclosed has no metadata.yaml and cannot be read); its exception propagates."""
     try:

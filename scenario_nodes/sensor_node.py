@@ -51,6 +51,9 @@ class SensorNode(ProcessHooks, Node):
         self._not_measured = Rejections()
         self._unmeasured_ns = None  # the stamp of the last truth that gave no measurement
         self._period = SamplePeriod(p['measurement_period'])
+        # every truth answered (a sample or "nothing measured"), or only the samples it measured
+        self._reports_every_truth = bool(p['publish_not_measured'] and model.has_limits)
+        self._unpublished = 0  # samples due but not published (dropped; limits when not said)
         self._published = 0
         self._rejected = Rejections()
         self._gate = NewestFirst(p['time_jump_threshold'])
@@ -107,7 +110,7 @@ class SensorNode(ProcessHooks, Node):
             self._answers.clear()
             self._period.reset()
         if not self._period.due(stamp_ns):  # between two samples (measurement_period): said, with limits
-            if self._p['publish_not_measured'] and self._model.has_limits:
+            if self._reports_every_truth:
                 self._send(stamp_ns, encode_no_measurement(self._model, 'between_samples', stamp_ns, self._frame))
             else:
                 self._unmeasured_ns = stamp_ns
@@ -122,6 +125,7 @@ class SensorNode(ProcessHooks, Node):
             self._not_measured[error.reason] += 1
             if error.reason not in SAYS_NOT_MEASURED or not self._p['publish_not_measured']:
                 self._unmeasured_ns = stamp_ns
+                self._unpublished += 1
                 if self._diagnostics.due(stamp_ns):
                     self._publish_diagnostics(stamp_ns)
                 return
@@ -144,7 +148,10 @@ class SensorNode(ProcessHooks, Node):
         self._period.reset()
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
+        # what a recorded run is checked against, per sensor (snn_tools.bag_tools.sensor_reports)
         values = {'measurements_published': self._published, 'measurements_resent': self._answers.resent,
+                  'topic': self._pub.topic.topic_name, 'sample_period': self._p['measurement_period'],
+                  'reports_every_truth': self._reports_every_truth, 'samples_unpublished': self._unpublished,
                   'time_jumps': self._time_jumps,
                   **self._rejected.as_values('truth'), **self._not_measured.as_values('measurement')}
         problems = [f'{self._rejected.total} truth messages rejected'] if self._rejected.total else []

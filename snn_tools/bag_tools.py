@@ -19,9 +19,12 @@ from rosbags.typesys import Stores, get_typestore
 from scenario_nodes import codec
 from scenario_nodes.topics import PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
 from snn_estimator.models import ClohessyWiltshire
+from snn_estimator.offline.blocks import SamplePeriod
 
 STATES = ClohessyWiltshire.state_names
 NS = codec.NS
+#: What a sensor node publishes (docs/sensors.md): on a topic of its own, any of these is a report.
+SENSOR_TYPES = frozenset(codec.MEASUREMENT_TYPES.values())
 
 
 def _stamp(header) -> int:
@@ -53,6 +56,9 @@ class RunData:
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
     namespace: str = ''
     repeats: dict = field(default_factory=dict)      # series -> resent samples left out of it
+    # sensor topic (relative, e.g. measurement, camera) -> (stamps ns, measured): one per stamp, in
+    # stamp order; measured False for "nothing measured"
+    reports: dict = field(default_factory=dict)
 
     def last_diagnostics(self, name: str) -> dict:
         entries = self.diagnostics.get(name)
@@ -78,11 +84,23 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
         run.namespace = namespace.rstrip('/')
         pipeline = [c for c in reader.connections
                     if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE_TOPICS]
-        messages = reader.messages(connections=pipeline) if pipeline else ()  # [] reads all
+        # a sensor's topic: its message type, directly in the namespace (not '<topic>/history')
+        sensors = {c.id for c in reader.connections if c.msgtype in SENSOR_TYPES
+                   and c.topic.startswith(prefix) and '/' not in c.topic[len(prefix):]}
+        chosen = pipeline + [c for c in reader.connections if c.id in sensors and c not in pipeline]
+        messages = reader.messages(connections=chosen) if chosen else ()  # [] reads all
         for connection, timestamp, raw in messages:
-            receive[connection.topic].append(timestamp)
-            _decode(run, series, typestore, connection, connection.topic[len(prefix):], raw)
+            name = connection.topic[len(prefix):]
+            if connection.id in sensors:
+                series[('report', name)].append(codec.sensor_report(connection.msgtype, raw))
+            if name in PIPELINE_TOPICS:
+                receive[connection.topic].append(timestamp)
+                _decode(run, series, typestore, connection, name, raw)
     run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}
+    for key in [key for key in series if isinstance(key, tuple)]:
+        reports, _ = _first_per_stamp(series.pop(key))
+        run.reports[key[1]] = (np.array([r[0] for r in reports], dtype=np.int64),
+                               np.array([r[1] for r in reports], dtype=bool))
     for name in ('truth', 'estimate', 'measurement', 'control'):
         series[name], run.repeats[name] = _first_per_stamp(series[name])
     if series['truth']:
@@ -169,26 +187,89 @@ def restarts(run: RunData) -> dict:
     return {name: n for name, n in found.items() if name in run.diagnostics}
 
 
+def _truth_grid(run: RunData) -> np.ndarray:
+    return np.unique(np.round(run.truth_t * NS).astype(np.int64))
+
+
+def _runs(missing: np.ndarray, schedule: np.ndarray) -> list:
+    """``missing`` stamps (ns, sorted, all in ``schedule``) as [first, last] runs in seconds,
+    a run being stamps that follow each other on the schedule."""
+    runs, start = [], None
+    for i, stamp in enumerate(missing):
+        start = stamp if start is None else start
+        following = missing[i + 1] if i + 1 < missing.size else None
+        if following is None or np.searchsorted(schedule, following) != np.searchsorted(schedule, stamp) + 1:
+            runs.append([start / NS, stamp / NS])
+            start = None
+    return runs
+
+
 def stamp_gaps(run: RunData) -> dict:
-    """Per recorded series (measurement, control, estimate), the stamps of the truth's grid it
-    lacks, as [first, last] runs in seconds (the last truth stamp needs no control)."""
-    grid = np.unique(np.round(run.truth_t * NS).astype(np.int64))
+    """Per recorded series answered on the truth's grid (control, estimate), the stamps of the
+    grid it lacks, as [first, last] runs in seconds (the last truth stamp needs no control).
+    The sensors: :func:`sensor_reports`."""
+    grid = _truth_grid(run)
     gaps = {}
-    for name, times, tail in (('measurement', run.measurement_t, 0), ('control', run.control_t, 1),
-                              ('estimate', run.estimate_t, 0)):
+    for name, times, tail in (('control', run.control_t, 1), ('estimate', run.estimate_t, 0)):
         if not times.size or not grid.size:
             continue  # not recorded (or no truth to judge against)
         expected = grid[:grid.size - tail]
-        missing = np.setdiff1d(expected, np.round(times * NS).astype(np.int64))
-        runs, start = [], None
-        for i, stamp in enumerate(missing):
-            start = stamp if start is None else start
-            following = missing[i + 1] if i + 1 < missing.size else None
-            if following is None or np.searchsorted(grid, following) != np.searchsorted(grid, stamp) + 1:
-                runs.append([start / NS, stamp / NS])
-                start = None
-        gaps[name] = runs
+        gaps[name] = _runs(np.setdiff1d(expected, np.round(times * NS).astype(np.int64)), expected)
     return gaps
+
+
+def sensor_schedule(grid: np.ndarray, period: float, every_truth: bool) -> np.ndarray:
+    """The truth stamps (ns) a sensor reports on: every one when it answers each truth (a sample
+    or "nothing measured"), else its samples, the first truth at or after each multiple of
+    ``period`` s (the sensor's own rule, :class:`SamplePeriod`; 0: every truth)."""
+    if every_truth or not period:
+        return grid
+    due = SamplePeriod(period).due
+    return grid[np.fromiter((due(int(stamp)) for stamp in grid), dtype=bool, count=grid.size)]
+
+
+def sensor_reports(run: RunData) -> dict:
+    """Each sensor's stream against its own schedule, by topic: a gap is a stamp the sensor was
+    due to report (every truth, or every ``sample_period``; :func:`sensor_schedule`) that the bag
+    lacks. The sensors are the nodes whose diagnostics count ``measurements_published``; their
+    diagnostics give the topic, the period, whether every truth is answered, and the samples
+    the sensor itself did not publish (dropouts; limits when it does not say "nothing
+    measured"), which explain that many missing stamps: ``lost`` are the ones left. A bag
+    without sensor diagnostics is read as the default sensor on `measurement` (every truth).
+
+    Per topic: node, period_s (between samples), expected, recorded (stamps on the schedule),
+    measured and not_measured (of the recorded), off_schedule, missing, gaps ([first, last] s),
+    not_published, lost."""
+    grid = _truth_grid(run)
+    if not grid.size:
+        return {}
+    step = float(np.median(np.diff(grid))) / NS if grid.size > 1 else 0.0
+    prefix = run.namespace + '/'
+    nodes = {}
+    for name, entries in run.diagnostics.items():
+        values = entries[-1][1]
+        if 'measurements_published' in values:
+            topic = values.get('topic') or ('measurement' if name == 'position_sensor' else name)
+            nodes[topic[len(prefix):] if topic.startswith(prefix) else topic.lstrip('/')] = (name, values)
+    if not nodes and 'measurement' in run.reports:
+        nodes['measurement'] = (None, {})
+    out = {}
+    for topic, (name, values) in sorted(nodes.items()):
+        period = _number(values, 'sample_period')
+        every_truth = str(values.get('reports_every_truth', 'True')) == 'True'
+        schedule = sensor_schedule(grid, period, every_truth)
+        stamps, measured = run.reports.get(topic, (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=bool)))
+        on_schedule = np.isin(stamps, schedule)
+        missing = np.setdiff1d(schedule, stamps)
+        not_published = int(_number(values, 'samples_unpublished'))
+        out[topic] = {
+            'node': name, 'period_s': period or step, 'every_truth': every_truth,
+            'expected': int(schedule.size), 'recorded': int(on_schedule.sum()),
+            'measured': int(measured[on_schedule].sum()), 'not_measured': int((~measured[on_schedule]).sum()),
+            'off_schedule': int((~on_schedule).sum()), 'missing': int(missing.size),
+            'gaps': _runs(missing, schedule), 'not_published': not_published,
+            'lost': max(0, int(missing.size) - not_published)}
+    return out
 
 
 def _number(values: dict, key: str, default=0.0) -> float:
@@ -232,7 +313,7 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         published.update({name: int(_number(run.last_diagnostics(name), 'measurements_published'))
                           for name in sensors})
     recorded = {name: int(run.counts.get(prefix + name, 0)) for name in published}
-    completeness = _completeness(run, estimator, published, recorded)
+    completeness = _completeness(run, estimator, published, recorded, sensor_reports(run))
     return {
         'estimator': estimator.get('filter', 'unknown'),
         'sim_time_s': _number(plant, 'sim_time'),
@@ -255,14 +336,17 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
     }
 
 
-def _completeness(run: RunData, estimator: dict, published: dict, recorded: dict) -> dict:
-    """Whether the bag holds the whole run: every stamp of the truth's grid in each series and,
-    when the nodes' totals can be compared (no restart, nobody publishing twice), every message
-    they published (a restarted node counts from its restart)."""
+def _completeness(run: RunData, estimator: dict, published: dict, recorded: dict, sensors: dict) -> dict:
+    """Whether the bag holds the whole run: every stamp of the truth's grid in control and
+    estimate, every stamp each sensor was due to report but those it says it did not publish,
+    and, when the nodes' totals can be compared (no restart, nobody publishing twice), every
+    message they published (a restarted node counts from its restart)."""
     restarted = restarts(run)
-    gaps = stamp_gaps(run)
+    gaps = {topic: values['gaps'] for topic, values in sensors.items()} | stamp_gaps(run)
     duplicates = max(0, run.repeats.get('estimate', 0) - int(_number(estimator, 'estimates_resent')))
     comparable = not any(restarted.values()) and not duplicates
-    complete = all(not runs for runs in gaps.values()) and (
-        not comparable or all(recorded[n] == published[n] for n in published))
-    return {'recording_complete': complete, 'restarts': restarted, 'duplicate_estimates': duplicates, 'gaps': gaps}
+    complete = (all(not gaps[name] for name in gaps if name not in sensors)
+                and all(not values['lost'] for values in sensors.values())
+                and (not comparable or all(recorded[n] == published[n] for n in published)))
+    return {'recording_complete': complete, 'restarts': restarted, 'duplicate_estimates': duplicates,
+            'gaps': gaps, 'sensors': sensors}

@@ -317,6 +317,24 @@ def _raise_interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
+def sensor_lines(sensors: dict) -> list[str]:
+    """One line per sensor of a summary (bag_tools.sensor_reports): its reports against its
+    schedule, and its gaps, told apart into those the sensor says it did not publish and lost."""
+    lines = []
+    for topic, v in sensors.items():
+        line = (f"{topic} {v['recorded']}/{v['expected']} reports ({v['measured']} measured, "
+                f"{v['not_measured']} nothing measured; a sample every {v['period_s']:g} s)")
+        if not v['gaps']:
+            lines.append(line + ': no gap')
+            continue
+        shown = ', '.join(f'{a:g}' if a == b else f'{a:g}-{b:g}' for a, b in v['gaps'][:3])
+        more = f' and {len(v["gaps"]) - 3} more' if len(v['gaps']) > 3 else ''
+        lost = f"{v['lost']} lost" if v['lost'] else 'none lost'
+        lines.append(line + f": {v['missing']} missing in {len(v['gaps'])} gap(s) at {shown} s{more} "
+                     f"({v['not_published']} not published by the sensor, {lost})")
+    return lines
+
+
 def print_summary(summary: dict, run_dir: Path) -> None:
     rmse = summary['rmse_last_60s']
     print(f"\n{summary['estimator']}: {summary['sim_time_s']:.1f} s simulated in "
@@ -331,6 +349,8 @@ def print_summary(summary: dict, run_dir: Path) -> None:
           f"{summary['measurements_rejected']}")
     counts = ', '.join(f"{k} {v['recorded']}/{v['published']}" for k, v in summary['messages'].items())
     print(f'  recorded/published {counts}')
+    for i, line in enumerate(sensor_lines(summary.get('sensors', {}))):
+        print(('  sensors            ' if i == 0 else ' ' * 21) + line)
     print(f'  files              {run_dir}/summary.json, {run_dir}/bag, {run_dir}/report.md')
 
 
@@ -360,8 +380,7 @@ def main(argv=None) -> int:
                         help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
     parser.add_argument('--single-process', action='store_true',
                         help='every node in one process and one executor (default: one process '
-                             'per node); same results, see docs/performance.md; experimental: crashed once '
-                             'at shutdown in the recorder drain')
+                             'per node); same results, see docs/performance.md')
     args = parser.parse_args(argv)
     sensor = '' if args.sensor == 'position' else f'_{args.sensor}'
     name = args.name or f"{args.estimator}{sensor}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"

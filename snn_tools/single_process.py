@@ -9,7 +9,8 @@ cores.
 
 The process ends when the plant is done (``exit_when_done``) or on SIGINT/SIGTERM; the nodes
 then stop as the demo stops them: the others first, the plant, and the recorder last, after it
-drained its queues, so the bag is complete. Exit code as :func:`scenario_nodes.runtime.run_node`.
+drained its queues, so the bag is complete (:func:`finish`: the shared executor is shut down
+first, never spun again). Exit code as :func:`scenario_nodes.runtime.run_node`.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def run(args=None, plant: str = 'cw', record: bool = True) -> int:
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
-    from scenario_nodes.runtime import EXIT_CONFIG, EXIT_OK, SPIN_BURST, StopFlag, _finish, make_executor, tune_process
+    from scenario_nodes.runtime import EXIT_CONFIG, EXIT_OK, SPIN_BURST, StopFlag, make_executor, tune_process
 
     stop = StopFlag()
     try:
@@ -52,7 +53,7 @@ def run(args=None, plant: str = 'cw', record: bool = True) -> int:
         return EXIT_CONFIG
     stop.install()
     nodes: dict = {}
-    executor = None
+    executor = spin_once = None
     code = EXIT_OK
     try:
         executor = make_executor()
@@ -81,14 +82,51 @@ def run(args=None, plant: str = 'cw', record: bool = True) -> int:
         code = EXIT_CONFIG
     finally:
         try:
-            order = [n for n in nodes if n != 'recorder'] + (['recorder'] if 'recorder' in nodes else [])
-            for name in order:  # the plant after the others (it is last in start order), recorder last
-                if name != 'recorder':
-                    executor.remove_node(nodes[name])
-                _finish(nodes[name], executor)
+            finish(nodes, executor)
         finally:
+            executor = spin_once = None  # freed here, while the context is valid (see finish)
             rclpy.try_shutdown()
     return code
+
+
+def finish(nodes: dict, executor) -> None:
+    """Stop the shared executor, then finish every node without spinning it again: the others
+    (final diagnostics, flushed, destroyed), the plant after them, and the recorder last, which
+    drains its queues on an executor of its own.
+
+    Why not remove each node from the shared executor and let the recorder spin it (as before,
+    which crashed with SIGSEGV in the recorder's drain in 2 of 6 runs): rclpy's EventsExecutor
+    (Jazzy, 7.1.6) queues every event of a QoS event handler (a Waitable) with a reference that
+    enters the waitable as a context manager. When the waitable is removed from the executor
+    while such an event is still queued, the executor later drops the event on its spinning
+    thread, which does not hold the GIL, and the last reference's ``__exit__`` runs Python code
+    without it. Here the event is the estimator's liveliness monitor seeing the `estimate`
+    writer go away as the estimator is destroyed (gdb on the core: ``__exit__`` called from the
+    executor's queue with no thread state; a 30-line reproduction crashed in 8 of 12 runs, with
+    this teardown in none of 12; upstream, by its title, rclpy issue #1644). ``shutdown()`` clears
+    every callback while holding the GIL and never runs the queue again; what is still queued is
+    freed with the executor, in Python, with the GIL held."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    from scenario_nodes.runtime import finish_node
+
+    try:
+        if executor is not None:
+            executor.shutdown()
+    finally:
+        recorder = nodes.get('recorder')
+        try:
+            for node in nodes.values():  # the plant after the others: it is last in start order
+                if node is not recorder:
+                    finish_node(node, None)
+        finally:
+            if recorder is not None:
+                drain = SingleThreadedExecutor(context=recorder.context)
+                drain.add_node(recorder)
+                try:
+                    finish_node(recorder, drain)
+                finally:
+                    drain.shutdown()
 
 
 def main(argv=None) -> int:

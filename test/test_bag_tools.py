@@ -160,3 +160,67 @@ def test_a_series_reads_in_stamp_order_with_the_first_copy_of_each_stamp():
 
     kept, dropped = _first_per_stamp([(3, 'live'), (4, 'live'), (1, 'history'), (3, 'resend'), (2, 'history')])
     assert kept == [(1, 'history'), (2, 'history'), (3, 'live'), (4, 'live')] and dropped == 1
+
+
+def sensor_diagnostics(name, published, period, every_truth=True, unpublished=0):
+    """What a sensor node reports about its schedule (scenario_nodes/sensor_node.py)."""
+    return diagnostics(name, measurements_published=published, topic=f'/{name}', sample_period=period,
+                       reports_every_truth=every_truth, samples_unpublished=unpublished)
+
+
+def test_each_sensor_is_checked_against_its_own_rate_and_a_gap_in_one_is_counted(tmp_path):
+    """Camera at every truth (10 Hz, nothing measured once too close), LIDAR sampling at 5 Hz
+    within range and saying "nothing measured" at every other truth: three LIDAR reports lost
+    (1.2-1.4 s) are a gap of the LIDAR, while its "nothing measured" stamps are not."""
+    from scenario_nodes.codec import encode_vector3
+    from snn_tools.demo import sensor_lines
+    vector = 'geometry_msgs/msg/Vector3Stamped'
+    messages = steps(30)
+    for k in range(30):
+        camera = [0.1, 0.2] if k < 20 else []  # too close from 2 s: nothing measured
+        messages.append(('/camera', vector, encode_vector3(camera, k * STEP_NS, 'camera')))
+        if k in (12, 13, 14):
+            continue  # lost: neither sample nor "nothing measured"
+        lidar = [5.0, 0.1, 0.2] if k % 2 == 0 and k >= 6 else []  # out of range before 0.6 s
+        messages.append(('/lidar', vector, encode_vector3(lidar, k * STEP_NS, 'lidar')))
+    messages += [diagnostics('cw_plant', truth_published=30),
+                 diagnostics('estimator', filter='ekf', estimates_published=30, spikes_published=0,
+                             sensors='camera,lidar'),
+                 sensor_diagnostics('camera', 30, 0.0), sensor_diagnostics('lidar', 27, 0.2)]
+    run = read_bag(write_bag(tmp_path / 'bag', messages))
+    summary = summarize(run)
+    camera, lidar = summary['sensors']['camera'], summary['sensors']['lidar']
+    assert camera == {'node': 'camera', 'period_s': pytest.approx(0.1), 'every_truth': True, 'expected': 30,
+                      'recorded': 30, 'measured': 20, 'not_measured': 10, 'off_schedule': 0, 'missing': 0,
+                      'gaps': [], 'not_published': 0, 'lost': 0}
+    # samples at 0.6, 0.8, 1.0, then 1.6 ... 2.8 s (1.2 and 1.4 lost with the truth between them)
+    assert (lidar['expected'], lidar['recorded'], lidar['measured'], lidar['not_measured']) == (30, 27, 10, 17)
+    assert lidar['period_s'] == 0.2 and lidar['gaps'] == [[1.2, 1.4]] and (lidar['missing'], lidar['lost']) == (3, 3)
+    assert summary['gaps'] == {'camera': [], 'lidar': [[1.2, 1.4]], 'estimate': []}
+    # both streams were recorded whole as published: only the per-sensor check sees the gap
+    assert summary['messages']['lidar'] == {'published': 27, 'recorded': 27}
+    assert not summary['recording_complete']
+    lines = sensor_lines(summary['sensors'])
+    assert lines[0] == 'camera 30/30 reports (20 measured, 10 nothing measured; a sample every 0.1 s): no gap'
+    assert lines[1] == ('lidar 27/30 reports (10 measured, 17 nothing measured; a sample every 0.2 s): '
+                        '3 missing in 1 gap(s) at 1.2-1.4 s (0 not published by the sensor, 3 lost)')
+
+
+def test_a_sensor_sampling_every_half_second_is_complete_and_its_own_dropout_is_explained(tmp_path):
+    """A position sensor with measurement_period 0.5 s says nothing between samples (no limits):
+    on a 0.1 s truth grid it is due at 0, 0.5, 1.0, 1.5 s; it dropped the 1.0 s sample itself
+    (dropout, counted), so the bag is complete with that gap reported."""
+    from scenario_nodes.codec import encode_point
+    messages = steps(20)
+    for k in (0, 5, 15):
+        messages.append(('/measurement', KNOWN_TYPES['measurement'],
+                         encode_point(np.ones(3), (0, 1, 2), k * STEP_NS, 'lvlh')))
+    messages += [diagnostics('cw_plant', truth_published=20),
+                 diagnostics('estimator', filter='ekf', estimates_published=20, spikes_published=0),
+                 diagnostics('position_sensor', measurements_published=3, topic='/measurement',
+                             sample_period=0.5, reports_every_truth=False, samples_unpublished=1)]
+    summary = summarize(read_bag(write_bag(tmp_path / 'bag', messages)))
+    sensor = summary['sensors']['measurement']
+    assert (sensor['expected'], sensor['recorded'], sensor['missing'], sensor['lost']) == (4, 3, 1, 0)
+    assert sensor['gaps'] == [[1.0, 1.0]] and sensor['period_s'] == 0.5 and sensor['node'] == 'position_sensor'
+    assert summary['recording_complete']

@@ -574,6 +574,65 @@ def test_controller_safe_mode_covers_a_dead_sensor_and_reports_its_peers(control
     assert spin_until(executor, lambda: harness.diagnostics('lqr_controller').get('peer.measurement') == 'OK')
 
 
+def test_controller_watches_every_sensor_topic_it_is_given_and_no_other():
+    """measurement_topics [camera, lidar] (an estimator with `sensors`, each on its own topic, of
+    its own type): one sensor silent is reported as its peer but the loop still measures (no
+    safe mode); both silent is safe mode naming both, and a message on the default
+    `measurement` topic does not count as either sensor."""
+    from geometry_msgs.msg import Vector3Stamped
+    from sensor_msgs.msg import Range
+    from std_msgs.msg import Header
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        controller = make(ControllerNode, context, executor, nodes, 'lqr_controller', diagnostics_period=0.0,
+                          peer_timeout=0.3, measurement_topics=['camera', 'lidar'])
+        camera = harness.node.create_publisher(Vector3Stamped, 'camera', qos.PUBLISHER_QOS)
+        lidar = harness.node.create_publisher(Range, 'lidar', qos.PUBLISHER_QOS)
+        assert spin_until(executor, lambda: camera.get_subscription_count() and lidar.get_subscription_count()
+                          and harness.node.count_subscribers(qos.ESTIMATE))
+        x = np.array([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])
+
+        def step(k, sensors, settle=0.0):
+            harness.clock(k * DT)
+            stamp = ns_to_stamp(k * DT)
+            if 'camera' in sensors:
+                camera.publish(Vector3Stamped(header=Header(stamp=stamp, frame_id='camera')))
+            if 'lidar' in sensors:
+                lidar.publish(Range(header=Header(stamp=stamp, frame_id='lidar'), range=float('inf')))
+            if 'measurement' in sensors:
+                harness.publish(qos.MEASUREMENT, measurement_to_point(x[:3], (0, 1, 2), k * DT, 'lvlh'))
+            spin_until(executor, lambda: False, timeout=settle)
+            harness.publish(qos.ESTIMATE, state_to_odometry(x, None, k * DT, 'lvlh', 'c'))
+            assert spin_until(executor, lambda: any(stamp_to_ns(m.header.stamp) == k * DT
+                                                    for m in harness.received[qos.CONTROL]))
+            return [m for m in harness.received[qos.CONTROL] if stamp_to_ns(m.header.stamp) == k * DT][-1]
+
+        for k in range(1, 5):
+            assert step(k, ('camera', 'lidar'), settle=0.05).accel.linear.x != 0.0
+        peers = harness.diagnostics('lqr_controller')
+        assert peers['peer.camera'] == peers['peer.lidar'] == 'OK' and 'peer.measurement' not in peers
+        for k in range(5, 20):  # the LIDAR gone for 1.5 s: still measured by the camera, thrust on
+            assert step(k, ('camera',), settle=0.05).accel.linear.x != 0.0
+        assert not controller.safe_mode
+        assert spin_until(executor, lambda: harness.diagnostics('lqr_controller')['peer.lidar'] == 'WARN',
+                          timeout=2.0)
+        assert harness.diagnostics('lqr_controller')['peer.camera'] == 'OK'
+        for k in range(20, 31):  # both gone, only the unwatched topics speak: steering on predictions
+            last = step(k, ('measurement',))
+        assert last.accel.linear.x == 0.0 and controller.safe_mode
+        assert spin_until(executor, lambda: 'no measurement since t = 1.900 s on camera, lidar' in
+                          harness.received[qos.DIAGNOSTICS][-1].status[0].message, timeout=1.0)
+        step(31, ('lidar',), settle=0.3)  # the LIDAR back: the loop measures again
+        assert step(32, ('lidar',)).accel.linear.x != 0.0 and not controller.safe_mode
+
+
+def test_controller_refuses_an_empty_or_repeated_sensor_topic():
+    with ros_context() as (context, executor, nodes):
+        for topics in (['camera', 'camera'], ['']):
+            with pytest.raises(ValueError, match='measurement_topics'):
+                make(ControllerNode, context, executor, nodes, 'lqr_controller', measurement_topics=topics)
+
+
 def test_an_integer_set_at_runtime_for_a_double_is_taken_as_that_double_through_the_parameter_service():
     """`ros2 param set /cw_plant real_time_factor 10` sends an INTEGER ParameterValue through the
     standard set_parameters service, as this test does; rclpy alone refuses it as the wrong

@@ -93,3 +93,48 @@ def test_the_camera_and_lidar_fused_over_ros_equal_the_offline_hand_over_and_doc
     lidar = data.last_diagnostics('lidar')
     assert int(lidar['measurement_rejected.too_far']) > 0  # beyond 30 m at the start: bearings only
     assert data.types['/camera'] == data.types['/lidar'] == 'geometry_msgs/msg/Vector3Stamped'
+    # the controller watched both sensors, not `measurement`, and never lost them while flying (at
+    # the end every peer goes quiet: the nodes are stopped one by one)
+    flying = [values for t, values in data.diagnostics['lqr_controller'] if t < data.truth_t[-1]]
+    assert flying and all(v['peer.camera'] == v['peer.lidar'] == 'OK' and 'peer.measurement' not in v
+                          for v in flying)
+    assert data.last_diagnostics('lqr_controller')['safe_mode_steps'] == '0'
+
+
+def test_each_sensor_of_the_fused_run_reported_every_stamp_of_its_schedule(fused_run):
+    """The per-sensor check of the summary on the real run: both sensors answered every truth
+    (a sample or "nothing measured"), the camera measured at every stamp but those too close,
+    the LIDAR only on its 0.2 s grid and within 30 m, as each sensor counted itself."""
+    data, summary = fused_run
+    sensors = summary['sensors']
+    assert set(sensors) == {'camera', 'lidar'}
+    for name, period in (('camera', 0.1), ('lidar', 0.2)):
+        values, own = sensors[name], data.last_diagnostics(name)
+        assert values['expected'] == values['recorded'] == 3601 and values['every_truth'], (name, values)
+        assert values['gaps'] == [] and values['lost'] == 0 and values['off_schedule'] == 0
+        assert values['period_s'] == pytest.approx(period) and values['node'] == name
+        due = -(-3601 // round(period / 0.1))  # samples due on its grid, from the first truth
+        assert values['measured'] == due - int(own['measurement_rejected']), (name, values, own)
+    stamps, measured = data.reports['lidar']
+    assert np.all((stamps[measured] // 100_000_000) % 2 == 0)  # LIDAR samples only at even steps
+    assert summary['gaps'] == {'camera': [], 'lidar': [], 'control': [], 'estimate': []}
+
+
+@pytest.fixture(scope='module')
+def lidar_dropout_run(tmp_path_factory):
+    """The fused loop for 60 s with the LIDAR dropping 5 % of its samples (not published)."""
+    run_dir = tmp_path_factory.mktemp('camera_lidar_dropout')
+    run_pipeline(run_dir, estimator='snn_ekf', sensor='camera+lidar', duration=60.0, timeout=240.0,
+                 extra={'lidar': {'dropout_probability': 0.05}})
+    data = read_bag(run_dir / 'bag')
+    return data, summarize(data)
+
+
+def test_a_sensors_own_dropouts_are_its_gaps_and_explained_by_its_count(lidar_dropout_run):
+    data, summary = lidar_dropout_run
+    lidar, own = summary['sensors']['lidar'], data.last_diagnostics('lidar')
+    dropped = int(own['measurement_rejected.dropout'])
+    assert dropped > 0 and lidar['missing'] == lidar['not_published'] == dropped and lidar['lost'] == 0
+    assert len(lidar['gaps']) == dropped and all(a == b for a, b in lidar['gaps'])  # one stamp each
+    assert all(round(a * 10) % 2 == 0 for a, _ in lidar['gaps'])  # on its 0.2 s grid
+    assert summary['sensors']['camera']['gaps'] == [] and summary['recording_complete']
