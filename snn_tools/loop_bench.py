@@ -184,22 +184,25 @@ CENSUS_SECONDS = 10.0
 
 
 def census_main(seconds: float) -> int:
-    """(the census process) Print, as JSON, the largest number of subscriptions seen on each
-    of CENSUS_TOPICS while watching the graph for ``seconds``."""
+    """(the census process) Print, as JSON, how many nodes subscribed to each of CENSUS_TOPICS
+    while it watched the graph for ``seconds`` (the nodes seen over the whole watch, not at
+    once: a short lockstep run's nodes may come and go within it)."""
     import rclpy
     rclpy.init(args=[])
     node = rclpy.create_node('snn_loop_census')
-    most = dict.fromkeys(CENSUS_TOPICS, 0)
+    seen: dict[str, set] = {topic: set() for topic in CENSUS_TOPICS}
     deadline = time.monotonic() + seconds
     try:
         while time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.2)
             for topic in CENSUS_TOPICS:
-                most[topic] = max(most[topic], node.count_subscribers(topic))
+                seen[topic].update((info.node_namespace, info.node_name)
+                                   for info in node.get_subscriptions_info_by_topic(topic)
+                                   if info.node_name != node.get_name())
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    print(json.dumps(most))
+    print(json.dumps({topic: len(nodes) for topic, nodes in seen.items()}))
     return 0
 
 
