@@ -180,3 +180,14 @@ def test_a_run_without_trajectories_holds_memory_for_its_chunk_not_its_duration(
         tracemalloc.stop()
     assert peaks[True] > 500e3  # ~0.65 MB of trajectories per run
     assert peaks[False] < 0.1 * peaks[True], peaks
+
+
+def test_the_bench_states_the_loop_against_the_filters_own_step():
+    """make bench's Monte-Carlo figures (results/bench_monte_carlo.json): CPU us per run-step
+    of each engine and of the filter's step alone, and their ratios."""
+    from snn_tools.bench import closed_loop_costs
+    costs = closed_loop_costs(short(rendezvous_scenario(initial_state_dispersion=True), 5.0), 'ekf', runs=4, passes=1)
+    for name in ('compiled', 'compiled_sums', 'reference', 'filter_step'):
+        assert 0 < costs[name] < 1e4, costs
+    assert costs['compiled_over_filter_step'] == pytest.approx(costs['compiled'] / costs['filter_step'], rel=0.02)
+    assert costs['reference_over_filter_step'] == pytest.approx(costs['reference'] / costs['filter_step'], rel=0.02)
