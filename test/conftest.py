@@ -69,6 +69,7 @@ EXHAUSTIVE = frozenset({
     'test_every_network_rebuilds_its_weights_from_h_of_x_hat_as_the_dense_network',
     'test_estimate_is_the_decoded_filtered_spike_train',
     'test_snn_lqr_closes_the_loop_offline_beside_the_lqr',
+    'test_restart_puts_the_chosen_runs_back_at_their_start_and_leaves_the_others',
 })
 
 

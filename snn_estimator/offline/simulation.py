@@ -262,6 +262,22 @@ class SimulationResult:
     #: nu^T (C P C^T + R_hat)^-1 nu of each measurement against the prior estimate, (runs,
     #: steps); None without a covariance.
     nis: np.ndarray | None = None
+    #: The step at which each run diverged (its state or control went non-finite), -1 for a run
+    #: that did not; its samples after that step are NaN (None: not recorded).
+    diverged_at: np.ndarray | None = None
+
+    @property
+    def diverged(self) -> np.ndarray:
+        """True for each run that diverged, shape (runs,). The statistics below (RMSE, mean
+        error, spikes, NEES/NIS) are over the other runs; per-run arrays keep NaN for it."""
+        if self.diverged_at is None:
+            return np.zeros(self.truth.shape[0], dtype=bool)
+        return self.diverged_at >= 0
+
+    def _kept(self, per_run: np.ndarray) -> np.ndarray:
+        """``per_run`` (leading runs axis) without the runs that diverged (as it is if none did)."""
+        diverged = self.diverged
+        return per_run[~diverged] if diverged.any() else per_run
 
     @property
     def error(self) -> np.ndarray:
@@ -274,35 +290,37 @@ class SimulationResult:
 
     def rmse(self, seconds: float | None = None) -> np.ndarray:
         """Ordinary RMSE per state over the final window: sqrt(mean over runs and time of e^2)."""
-        e = self.error[:, self.window(seconds)]
+        e = self._kept(self.error)[:, self.window(seconds)]
         return np.sqrt(np.mean(e * e, axis=(0, 1)))
 
     def mean_error(self, seconds: float | None = None) -> np.ndarray:
         """Time average over the final window of |mean over runs of e(t)| per state."""
-        e = self.error[:, self.window(seconds)]
+        e = self._kept(self.error)[:, self.window(seconds)]
         return np.mean(np.abs(e.mean(axis=0)), axis=0)
 
     def rmse_history(self) -> np.ndarray:
         """RMSE over runs at each time, shape (steps + 1, n)."""
-        return np.sqrt(np.mean(self.error ** 2, axis=0))
+        return np.sqrt(np.mean(self._kept(self.error) ** 2, axis=0))
 
     @property
     def spike_fraction(self) -> float | None:
         """Spikes emitted / (N x steps), averaged over runs (Fig. 7: 17%)."""
         if self.spikes_per_step is None:
             return None
-        steps = self.spikes_per_step.shape[1]
-        return float(self.spikes_per_step.sum() / (self.spikes_per_step.shape[0] * steps * self.neuron_count))
+        spikes = self._kept(self.spikes_per_step)
+        steps = spikes.shape[1]
+        return float(spikes.sum() / (spikes.shape[0] * steps * self.neuron_count))
 
     def final_range(self) -> np.ndarray:
         """Distance of the chaser from where the controller steers it (the target, or the
-        scenario's setpoint) at the end, per run, m."""
+        scenario's setpoint) at the end, per run, m (NaN for a run that diverged)."""
         aim = np.zeros(3) if self.scenario.setpoint is None else self.scenario.setpoint[:3]
         return np.linalg.norm(self.truth[:, -1, :3] - aim, axis=1)
 
     def delta_v(self) -> np.ndarray:
         """Velocity change the thrusters delivered, per run, m/s: sum over steps of
-        |u_x| + |u_y| + |u_z| times dt (one thruster pair per axis: propellant goes as this)."""
+        |u_x| + |u_y| + |u_z| times dt (one thruster pair per axis: propellant goes as this;
+        NaN for a run that diverged)."""
         return np.abs(self.control).sum(axis=(1, 2)) * self.scenario.dt
 
     def consistency(self, seconds: float | None = None) -> dict:
@@ -311,12 +329,13 @@ class SimulationResult:
         if self.nees is None:
             return {}
         window = self.window(seconds)
-        runs = self.nees.shape[0]
+        nees = self._kept(self.nees)
+        runs = nees.shape[0]
         sensor = self.scenario.sensor
-        nis = self.nis[:, window.start - 1:window.stop - 1]
+        nis = self._kept(self.nis)[:, window.start - 1:window.stop - 1]
         if sensor is not None:  # steps without a measurement have no NIS (NaN): average the others
             nis = nis[:, np.isfinite(nis).all(axis=0)]
-        return {'nees': consistency_check(self.nees[:, window].mean(axis=0), runs, self.truth.shape[2]),
+        return {'nees': consistency_check(nees[:, window].mean(axis=0), runs, self.truth.shape[2]),
                 'nis': consistency_check(nis.mean(axis=0), runs,
                                          self.scenario.model.n_meas if sensor is None else sensor.dim)}
 
@@ -383,16 +402,19 @@ class _Sensing:
         self.c, self.r_hat = scenario.model.measurement_matrix, estimator.settings.r_hat
         self.unmeasured = np.zeros(len(seeds), dtype=np.int64)
 
-    def step(self, k: int, plant, estimator, record, u: np.ndarray, dt: float) -> None:
+    def step(self, k: int, plant, estimator, record, u: np.ndarray, dt: float,
+             running: np.ndarray | None = None) -> None:
+        """Measure and step the filter; ``running`` (None: every run) masks out the runs that
+        diverged: they are not measured."""
         x_hat, covariance, c, r_hat = estimator.batch_x_hat, estimator.batch_P, self.c, self.r_hat
         if not self.with_limits:
             z = self.sensor.measure(plant.x)
             if covariance is not None:
                 record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
-            estimator.step(z, u, dt)
+            estimator.step(z, u, dt, valid=running)
             return
         sample = self.sensor.measure(plant.x)
-        valid = sample.valid
+        valid = sample.valid if running is None else sample.valid & running
         self.unmeasured += ~valid
         if covariance is not None:
             record.nis[:, k] = np.nan
@@ -401,8 +423,50 @@ class _Sensing:
             if valid.any():
                 record.nis[valid, k] = estimator.innovation_nis(np.where(valid[:, None], sample.z, 0.0),
                                                                 r_hat)[valid]
-            valid = sample.valid
+            valid = sample.valid if running is None else sample.valid & running
         estimator.step(sample.z, u, dt, valid=valid)
+
+
+class _Divergence:
+    """The runs of a batch that diverged, so that the others go on. A run diverges at step k when
+    its control at k, or its estimate, covariance or truth after step k, is not finite (a filter
+    whose P lost positive definiteness, ...). From then on its filter is restarted
+    (Estimator.restart) and never measured, it flies with u = 0, and its samples from k + 1 on
+    (controls, NIS and spikes from k) are discarded (NaN; :attr:`SimulationResult.diverged`).
+    With no run diverged nothing here touches a number."""
+
+    def __init__(self, runs: int):
+        #: The step at which each run diverged, -1 for none.
+        self.at = np.full(runs, -1, dtype=np.int64)
+        #: The runs still flying (None while every run is: the loop's arrays pass unchanged).
+        self.running: np.ndarray | None = None
+
+    def control(self, k: int, u: np.ndarray, estimator) -> np.ndarray:
+        """``u`` with the diverged runs' rows zero; a run whose control is not finite diverges here."""
+        finite = np.isfinite(u).all(axis=1)
+        if not finite.all():
+            self._mark(k, ~finite, estimator)
+        return u if self.running is None else np.where(self.running[:, None], u, 0.0)
+
+    def check(self, k: int, estimator, plant) -> int:
+        """Mark the runs that became non-finite in step ``k`` and restart their filters; returns
+        how many runs newly diverged."""
+        state = np.isfinite(estimator.batch_x_hat).all(axis=1)
+        if estimator.has_covariance:
+            state &= np.isfinite(estimator.batch_P).all(axis=(1, 2))
+        truth = np.isfinite(plant.x).all(axis=1)
+        if state.all() and truth.all():
+            return 0
+        return self._mark(k, ~(state & truth), estimator, broken=~state)
+
+    def _mark(self, k: int, bad: np.ndarray, estimator, broken: np.ndarray | None = None) -> int:
+        new = bad & (self.at < 0)
+        self.at[new] = k
+        self.running = self.at < 0
+        restart = new if broken is None else new | broken
+        if restart.any():
+            estimator.restart(restart)
+        return int(new.sum())
 
 
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
@@ -415,6 +479,9 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     e.g. silencing neurons). ``on_step(k)`` is called after each step (progress bars).
     ``controller``: lqr (u = -K (x_hat - setpoint)) or snn_lqr (the same law computed by a
     spike-coding network, snn_estimator.spiking.lqr; ``controller_options``: its neurons, leak).
+    A run whose control, estimate, covariance or truth goes non-finite is marked
+    (``result.diverged``, ``result.diverged_at``), its later samples are NaN and the batch's
+    statistics leave it out; the other runs go on as if it were not there.
     """
     seeds = [seed + b for b in range(runs)]
     config = scenario.estimator if config is None else config
@@ -427,13 +494,21 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     x_hat = estimator.batch_x_hat  # (runs, n) view, updated in place by the estimator
     record = _Record(estimator, runs, steps)
     record.sample(0, plant, x_hat, estimator.batch_P)
+    divergence = _Divergence(runs)
     started = time.perf_counter()
     for k in range(steps):
         if events and k in events:
             events[k](estimator)
-        u = control(k, x_hat, dt)
-        sensing.step(k, plant, estimator, record, u, dt)
+        u = divergence.control(k, control(k, x_hat, dt), estimator)
+        try:
+            sensing.step(k, plant, estimator, record, u, dt, divergence.running)
+        except FloatingPointError:  # every run took the step; the runs that went non-finite are found below
+            non_finite = True
+        else:
+            non_finite = False
         plant.step(u, dt)
+        if divergence.check(k, estimator, plant) == 0 and non_finite:
+            raise FloatingPointError(f'the {kind} state became non-finite')
         record.controls[:, k] = plant.applied
         record.sample(k + 1, plant, x_hat, estimator.batch_P)
         if estimator.spiking:
@@ -443,11 +518,13 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         if on_step is not None:
             on_step(k)
     wall = time.perf_counter() - started
+    record.discard(divergence.at)
     return SimulationResult(
         kind=kind, scenario=scenario, time=dt * np.arange(steps + 1), truth=record.truth,
         estimate=record.estimate, covariance_diag=record.cov, control=record.controls,
         spikes_per_step=record.spikes, raster=record.raster, neuron_count=estimator.neuron_count,
         wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
+        diverged_at=divergence.at,
         extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': sensing.unmeasured,
                'controller_spikes': (None if control.spiking_lqr is None
                                      else control.spiking_lqr.total_spikes.copy())})
@@ -467,6 +544,22 @@ class _Record:
         self.raster = np.zeros((steps, estimator.neuron_count), dtype=np.int16) if spiking else None
         self.nees = np.empty((runs, steps + 1)) if covariance else None
         self.nis = np.empty((runs, steps)) if covariance else None
+
+    def discard(self, diverged_at: np.ndarray) -> None:
+        """NaN for every sample of a run after the step it diverged at (controls and NIS from
+        that step on), no spikes from then on."""
+        for b in np.flatnonzero(diverged_at >= 0):
+            k = int(diverged_at[b])
+            for samples in (self.truth, self.estimate, self.cov, self.nees):
+                if samples is not None:
+                    samples[b, k + 1:] = np.nan
+            self.controls[b, k:] = np.nan
+            if self.nis is not None:
+                self.nis[b, k:] = np.nan
+            if self.spikes is not None:
+                self.spikes[b, k:] = 0
+                if b == 0:
+                    self.raster[k:] = 0
 
     def sample(self, k: int, plant, x_hat: np.ndarray, covariance: np.ndarray | None) -> None:
         """Truth, estimate, covariance diagonal and NEES at time k."""
