@@ -69,6 +69,11 @@ FAR_RANGE_ESTIMATOR = {
 #: and angles 1 mrad; camera angles 1 mrad.
 SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevation': (1e-2, 1e-6, 1e-6),
                 'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6}
+#: A sensor's boundary layer delta, per component, over its noise variance R (Decision 35): Eq. 8
+#: saturates diag(P^zz) / delta, a variance over delta, so delta is in the units of diag(P^zz)
+#: (m^2, rad^2), and each component keeps Table 6's delta / R = 0.1 / 1e-2 = 10 (position and a
+#: LIDAR's range: delta = 0.1 m^2; a 1 mrad angle: 1e-5 rad^2).
+SENSOR_BOUNDARY_LAYER_PER_VARIANCE = RENDEZVOUS_BOUNDARY_LAYER / RENDEZVOUS_MEASUREMENT_NOISE
 #: The close approach's sensor on the chaser, 70 m ahead of the target: boresight LVLH -x
 #: (180 deg about z, quaternion [x, y, z, w]), looking back at the target.
 CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)

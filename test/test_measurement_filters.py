@@ -273,6 +273,35 @@ def test_the_lidar_close_approach_docks_with_the_default_filter():
         assert result.extra['unmeasured_steps'].min() > 0  # inside the minimum range: no sample
 
 
+def test_a_sensors_boundary_layer_keeps_table_6s_delta_over_r_in_each_component():
+    """Eq. 8 divides diag(P^zz), a variance, by delta: each sensor component gets delta_j =
+    R_jj x Table 6's 0.1 / 1e-2, so its saturation floor R_hat_jj / delta_j is Table 6's
+    5 x 1e-2 / 0.1 = 0.5 for the range and the angles alike (Decision 35)."""
+    from snn_estimator.config import sensor_boundary_layer
+    from snn_estimator.offline.simulation import handover_scenario
+    assert sensor_boundary_layer(1e-2) == (0.1,) and sensor_boundary_layer([1e-2, 1e-6]) == (0.1, 1e-5)
+    for scenario in (sensor_rendezvous_scenario(), handover_scenario()):
+        delta = np.array(scenario.estimator.boundary_layer)
+        variances = np.diag(scenario.sensor.noise)
+        np.testing.assert_allclose(delta / variances, 0.1 / 1e-2, rtol=1e-12)
+        r_hat = scenario.estimator.measurement_noise_scale * variances
+        np.testing.assert_allclose(r_hat / delta, 0.5, rtol=1e-12)
+
+
+@pytest.mark.slow
+def test_the_literal_emsif_holds_the_lidars_angles_only_with_delta_as_a_variance():
+    """With delta one sigma (1e-3 rad) the angles' saturation is 5e-6 / 1e-3 = 0.005: the literal
+    EMSIF barely corrects them and is 0.4-1.5 m off at 110 s (before the sensor's minimum range);
+    with Table 6's ratio (1e-5 rad^2) it is within a few centimetres there."""
+    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
+    sigma = scenario.estimator.replace(boundary_layer=tuple(np.sqrt(np.diag(scenario.sensor.noise))))
+    k = int(round(110.0 / scenario.dt))
+    with np.errstate(all='ignore'):
+        variance, one_sigma = simulate(scenario, 'emsif', runs=4), simulate(scenario, 'emsif', runs=4, config=sigma)
+    assert np.linalg.norm(variance.error[:, k, :3], axis=1).max() < 0.15
+    assert np.linalg.norm(one_sigma.error[:, k, :3], axis=1).min() > 0.3
+
+
 @pytest.mark.slow
 def test_angles_only_the_range_is_observable_only_with_a_maneuver():
     """Bearings alone under free CW drift leave the range error at ~2 % of the range after

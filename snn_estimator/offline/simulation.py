@@ -19,7 +19,7 @@ import numpy as np
 import scipy.stats
 
 from snn_estimator import defaults as D
-from snn_estimator.config import EstimatorConfig
+from snn_estimator.config import EstimatorConfig, sensor_boundary_layer
 from snn_estimator.filters.estimators import TWIN_OF, make_estimator
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
 
@@ -152,9 +152,10 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
     6's position (issue 22): noise R per sample ``noise`` (default defaults.SENSOR_NOISE), the
     sensor on the chaser looking back at the target (defaults.CLOSE_SENSOR_MOUNTING; no field of
     view, and the range limit defaults.CLOSE_SENSOR_MIN_RANGE, unless ``sensor_options`` sets
-    them). The filters take the sensor's R as their R (times measurement_noise_scale) and one
-    sensor sigma per component as the boundary layer delta (Table 6: delta = 0.1 m = sigma),
-    unless ``measurement_noise`` or ``boundary_layer`` is given."""
+    them). The filters take the sensor's R as their R (times measurement_noise_scale) and, as the
+    boundary layer delta of Eq. 8, Table 6's delta / R per component in the units of diag(P^zz)
+    (config.sensor_boundary_layer: 0.1 m^2 for the range, 1e-5 rad^2 for a 1 mrad angle;
+    Decision 35), unless ``measurement_noise`` or ``boundary_layer`` is given."""
     from snn_estimator.measurements import make_model
     base = rendezvous_scenario(preset, **estimator_changes)
     options = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE,
@@ -163,8 +164,8 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
     config = base.estimator
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
-    if 'boundary_layer' not in estimator_changes:  # Table 6's delta is one sensor sigma: per component
-        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
+    if 'boundary_layer' not in estimator_changes:  # Table 6's delta / R per component (Decision 35)
+        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise))
     return replace(base, name=f'rendezvous_{sensor}', sensor=model, estimator=config,
                    measurement_noise=model.noise)
 
@@ -176,8 +177,8 @@ def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOV
     (range_azimuth_elevation, every ``periods[1]`` steps) within ``lidar_max_range``; both on the
     chaser looking back at the target, no closer than defaults.CLOSE_SENSOR_MIN_RANGE. Far, the
     filter has the bearings only (the LQR's known burns make the range observable); once the
-    LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta one
-    sensor sigma per component, as in :func:`sensor_rendezvous_scenario`."""
+    LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta
+    Table 6's delta / R per component, as in :func:`sensor_rendezvous_scenario`."""
     from snn_estimator.measurements import make_model
     from snn_estimator.measurements.stacked import Stacked
     base = rendezvous_scenario(preset, **estimator_changes)
@@ -190,7 +191,7 @@ def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOV
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
     if 'boundary_layer' not in estimator_changes:
-        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
+        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise))
     return replace(base, name='rendezvous_camera_lidar', sensor=model, estimator=config,
                    measurement_noise=model.noise, sensor_periods=tuple(periods))
 
