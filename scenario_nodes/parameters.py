@@ -584,19 +584,23 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
     (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
     sample, the mounting that looks back at the target, the minimum range, and the estimator's
     R and boundary layer (Table 6's delta / R per component, in the units of diag(P^zz):
-    snn_estimator.config.sensor_boundary_layer)."""
+    snn_estimator.config.sensor_boundary_layer) and its network (D.SENSOR_NETWORK: the deviation
+    coding in 1 mm and 0.01 mm/s units)."""
     def sensor(model: str, frame: str) -> tuple[dict, list]:
         noise = [float(v) for v in np.atleast_1d(D.SENSOR_NOISE[model])]
         return {'model': model, 'measurement_noise': noise,
                 'mounting_rotation': [float(v) for v in D.CLOSE_SENSOR_MOUNTING], 'sensor_frame_id': frame}, noise
 
     lidar, lidar_noise = sensor('range_azimuth_elevation', 'lidar')
+    network = {'network_coding': D.SENSOR_NETWORK['network_coding'],
+               'state_scale': [float(v) for v in D.SENSOR_NETWORK['state_scale']]}
     camera, camera_noise = sensor('line_of_sight', 'camera')
     close = {'min_range': float(D.CLOSE_SENSOR_MIN_RANGE)}
     suites = {'lidar': {'position_sensor': {**lidar, **close},
-                        'estimator': {**lidar, 'boundary_layer': list(sensor_boundary_layer(lidar_noise))}}}
+                        'estimator': {**lidar, 'boundary_layer': list(sensor_boundary_layer(lidar_noise)),
+                                      **network}}}
     # camera + LIDAR (offline: handover_scenario): two sensor nodes on their own topics, fused
-    fused = {'sensors': ['camera', 'lidar']}
+    fused = {'sensors': ['camera', 'lidar'], **network}
     for name, values, noise in (('camera', camera, camera_noise), ('lidar', lidar, lidar_noise)):
         fused.update({f'{name}.{key}': value for key, value in values.items() if key != 'sensor_frame_id'})
         fused[f'{name}.boundary_layer'] = list(sensor_boundary_layer(noise))

@@ -74,6 +74,12 @@ SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevati
 #: (m^2, rad^2), and each component keeps Table 6's delta / R = 0.1 / 1e-2 = 10 (position and a
 #: LIDAR's range: delta = 0.1 m^2; a 1 mrad angle: 1e-5 rad^2).
 SENSOR_BOUNDARY_LAYER_PER_VARIANCE = RENDEZVOUS_BOUNDARY_LAYER / RENDEZVOUS_MEASUREMENT_NOISE
+#: The spiking networks on the close-approach sensors (Decision 36): the deviation coding (13b) in
+#: units of 1 mm and 0.01 mm/s, a tenth of Table 6's network (RENDEZVOUS_STATE_SCALE). A LIDAR's
+#: angles leave the EKF ~1 mm and ~2e-5 m/s off where the sensor falls silent; the paper's coding
+#: in 1 cm and 0.1 mm/s units codes the state ~0.3 units (3e-5 m/s) off, which 240 s of dead
+#: reckoning turn into centimetres.
+SENSOR_NETWORK = {'network_coding': 'deviation', 'state_scale': (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5)}
 #: The close approach's sensor on the chaser, 70 m ahead of the target: boresight LVLH -x
 #: (180 deg about z, quaternion [x, y, z, w]), looking back at the target.
 CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)

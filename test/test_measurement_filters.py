@@ -8,6 +8,7 @@ import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
 from snn_estimator import FILTER_KINDS, EstimatorConfig, make_estimator
+from snn_estimator import defaults as D
 from snn_estimator.filters.reference import DenseFilter, DenseSpikingFilter
 from snn_estimator.measurements import OUT_OF_VIEW, make_model
 from snn_estimator.models import ClohessyWiltshire
@@ -300,6 +301,23 @@ def test_the_literal_emsif_holds_the_lidars_angles_only_with_delta_as_a_variance
         variance, one_sigma = simulate(scenario, 'emsif', runs=4), simulate(scenario, 'emsif', runs=4, config=sigma)
     assert np.linalg.norm(variance.error[:, k, :3], axis=1).max() < 0.15
     assert np.linalg.norm(one_sigma.error[:, k, :3], axis=1).min() > 0.3
+
+
+@pytest.mark.slow
+def test_on_the_sensors_the_spiking_ekf_is_within_1_2x_of_its_twin_only_in_the_finer_units():
+    """Below 0.3 m the sensors fall silent for the last ~240 s, so the final position error is
+    the velocity error at the last sample flown blind. The EKF's is ~2e-5 m/s; Table 6's network
+    units (0.1 mm/s) code the velocity ~0.3 units off, and the paper's network ends 1.5-3x the
+    EKF's RMSE; the sensors' network (deviation coding, 1 mm and 0.01 mm/s; Decision 36) within
+    1.2x, at a few per cent of the possible spikes."""
+    from snn_estimator.offline.simulation import handover_scenario
+    for make in (sensor_rendezvous_scenario, handover_scenario):
+        scenario = make(initial_state_dispersion=True)
+        twin = np.linalg.norm(simulate(scenario, 'ekf', runs=4).rmse()[:3])
+        spiking = simulate(scenario, 'snn_ekf', runs=4)
+        assert np.linalg.norm(spiking.rmse()[:3]) < 1.2 * twin and spiking.spike_fraction < 0.05
+        paper = make(initial_state_dispersion=True, network_coding='state', state_scale=D.RENDEZVOUS_STATE_SCALE)
+        assert np.linalg.norm(simulate(paper, 'snn_ekf', runs=4).rmse()[:3]) > 1.5 * twin
 
 
 @pytest.mark.slow

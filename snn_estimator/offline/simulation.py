@@ -155,9 +155,12 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
     them). The filters take the sensor's R as their R (times measurement_noise_scale) and, as the
     boundary layer delta of Eq. 8, Table 6's delta / R per component in the units of diag(P^zz)
     (config.sensor_boundary_layer: 0.1 m^2 for the range, 1e-5 rad^2 for a 1 mrad angle;
-    Decision 35), unless ``measurement_noise`` or ``boundary_layer`` is given."""
+    Decision 35), unless ``measurement_noise`` or ``boundary_layer`` is given. The spiking filters
+    code the deviation from the prediction in units of 1 mm and 0.01 mm/s (defaults.SENSOR_NETWORK;
+    Decision 36) unless ``network_coding`` or ``state_scale`` is given or the preset is
+    'as_published'."""
     from snn_estimator.measurements import make_model
-    base = rendezvous_scenario(preset, **estimator_changes)
+    base = rendezvous_scenario(preset, **_sensor_network(preset, estimator_changes))
     options = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE,
                **(sensor_options or {})}
     model = make_model(sensor, D.SENSOR_NOISE[sensor] if noise is None else noise, **options)
@@ -170,6 +173,14 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
                    measurement_noise=model.noise)
 
 
+def _sensor_network(preset: str, estimator_changes: dict) -> dict:
+    """``estimator_changes`` with the sensors' network (defaults.SENSOR_NETWORK) where it does not
+    say otherwise; the 'as_published' preset keeps the paper's network."""
+    if preset == 'as_published':
+        return estimator_changes
+    return {**D.SENSOR_NETWORK, **estimator_changes}
+
+
 def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOVER_LIDAR_MAX_RANGE,
                       periods=D.HANDOVER_PERIODS, **estimator_changes) -> Scenario:
     """Sec. 3.2 flown on two sensors fused in one filter (issue 22; not in the paper): a camera
@@ -178,10 +189,10 @@ def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOV
     chaser looking back at the target, no closer than defaults.CLOSE_SENSOR_MIN_RANGE. Far, the
     filter has the bearings only (the LQR's known burns make the range observable); once the
     LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta
-    Table 6's delta / R per component, as in :func:`sensor_rendezvous_scenario`."""
+    Table 6's delta / R per component and the network as in :func:`sensor_rendezvous_scenario`."""
     from snn_estimator.measurements import make_model
     from snn_estimator.measurements.stacked import Stacked
-    base = rendezvous_scenario(preset, **estimator_changes)
+    base = rendezvous_scenario(preset, **_sensor_network(preset, estimator_changes))
     geometry = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE}
     camera = make_model('line_of_sight', D.SENSOR_NOISE['line_of_sight'], **geometry)
     lidar = make_model('range_azimuth_elevation', D.SENSOR_NOISE['range_azimuth_elevation'],
