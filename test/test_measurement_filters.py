@@ -353,25 +353,35 @@ def test_a_step_that_would_overshoot_eq_6_is_split_into_held_sub_steps():
 
 
 @pytest.mark.slow
-def test_make_sensors_writes_the_tables_the_docs_and_the_readme_quote(tmp_path):
-    """results/sensors.{json,md} (make sensors): the LIDAR approach closes in (ekf, snn_ekf
-    below 0.1 m) and bearings alone leave the range error at ~2 % under free drift, a known burn
-    takes it below 1 % (what README and docs/sensors.md say)."""
+def test_make_sensors_writes_the_tables_the_docs_the_report_and_the_readme_quote(tmp_path):
+    """results/sensors.{json,md} and the sensor section of REPORT.md (make sensors): every kind and
+    variant on both suites, the LIDAR approach closes in (ekf, snn_ekf below 0.1 m), the error at
+    the last sample propagated blind gives the final position, and bearings alone leave the range
+    error at ~2 % under free drift, a known burn takes it below 1 % (what README and
+    docs/sensors.md say). make sensors and make experiments write the same REPORT section."""
     import json
 
     from snn_tools import sensor_results
-    assert sensor_results.main(['--runs', '1', '--suite-runs', '1', '--out', str(tmp_path), '--no-doc']) == 0
+    from snn_tools.report_md import write_report
+    (tmp_path / 'REPORT.md').write_text(f'# report\n\n{sensor_results.BEGIN}\n{sensor_results.END}\n\n## after\n')
+    assert sensor_results.main(['--runs', '1', '--out', str(tmp_path), '--no-doc']) == 0
     results = json.loads((tmp_path / 'sensors.json').read_text())
-    lidar = {row['filter']: row for row in results['lidar']}
-    assert lidar['ekf']['goal_met'] and lidar['snn_ekf']['goal_met']
+    suites = {(row['suite'], row['filter']): row for row in results['suites']}
+    expected = sum(len(FILTER_KINDS) + len(sensor_results.variants(suite)) for suite in sensor_results.SUITES)
+    assert len(suites) == expected
+    for suite in sensor_results.SUITES:
+        for kind in ('ekf', 'snn_ekf'):
+            assert suites[(suite, kind)]['final_range_max_m'] < 0.1 and suites[(suite, kind)]['diverged'] == 0
+        assert suites[(suite, 'ekf')]['blind']['blind_propagation_vs_final_m_max'] < 0.02
+    assert suites[('lidar', 'snn_ekf')]['twin_ratio'] is not None
     angles = {(row['filter'], row['maneuver']): row['range_error_percent'][-1] for row in results['angles_only']}
     for kind in sensor_results.ANGLES_FILTERS:
         assert 1.5 < angles[(kind, False)] < 3.0 and angles[(kind, True)] < 1.0
-    handover = {row['filter']: row for row in results['handover']}
-    assert handover['ekf']['goal_met'] and handover['snn_ekf']['goal_met'] and handover['ekf']['camera_only_s'] > 0
+    assert {row['suite'] for row in results['demo']} == set(sensor_results.SUITES)
     text = (tmp_path / 'sensors.md').read_text()
-    assert '### LIDAR close approach' in text and '### Camera + LIDAR fused' in text
-    suites = {(row['suite'], row['filter']): row for row in results['suites']}
-    assert len(suites) == 2 * (len(FILTER_KINDS) + 1)  # every kind, and the deviation coding, on both suites
-    assert suites[('camera+lidar', 'ekf')]['final_range_max_m'] < 0.1
-    assert suites[('lidar', 'snn_emsif_weighted')]['twin_ratio'] is not None
+    assert '### Every filter kind on each sensor suite' in text and '### Runs that diverged' in text
+    report = (tmp_path / 'REPORT.md').read_text()
+    assert report.startswith('# report') and report.endswith('## after\n')
+    assert sensor_results.report_section(results) in report
+    write_report(tmp_path)  # the whole report from the JSON files: the same section
+    assert sensor_results.report_section(results) in (tmp_path / 'REPORT.md').read_text()

@@ -196,6 +196,7 @@ def test_a_run_that_diverges_is_marked_and_discarded_and_the_others_go_on():
         assert np.isfinite(result.estimate[b, :k + 1]).all() and np.isnan(result.estimate[b, k + 1:]).all()
         assert np.isnan(result.truth[b, k + 1:]).all() and np.isnan(result.control[b, k:]).all()
     assert np.isnan(result.final_range()[expected]).all()
+    assert list(result.extra['diverged_cause']) == ['estimate' if e else '' for e in expected]
     for b in np.flatnonzero(~expected):  # every other run is the run alone, to the bit
         alone = simulate(scenario, 'ekf', runs=1, seed=b)
         np.testing.assert_array_equal(result.estimate[b], alone.estimate[0])

@@ -450,6 +450,8 @@ class _Divergence:
     def __init__(self, runs: int):
         #: The step at which each run diverged, -1 for none.
         self.at = np.full(runs, -1, dtype=np.int64)
+        #: What went non-finite first: control, estimate, covariance or truth ('' for none).
+        self.cause = np.full(runs, '', dtype=object)
         #: The runs still flying (None while every run is: the loop's arrays pass unchanged).
         self.running: np.ndarray | None = None
 
@@ -457,23 +459,27 @@ class _Divergence:
         """``u`` with the diverged runs' rows zero; a run whose control is not finite diverges here."""
         finite = np.isfinite(u).all(axis=1)
         if not finite.all():
-            self._mark(k, ~finite, estimator)
+            self._mark(k, np.where(finite, '', 'control'), estimator)
         return u if self.running is None else np.where(self.running[:, None], u, 0.0)
 
     def check(self, k: int, estimator, plant) -> int:
         """Mark the runs that became non-finite in step ``k`` and restart their filters; returns
         how many runs newly diverged."""
-        state = np.isfinite(estimator.batch_x_hat).all(axis=1)
-        if estimator.has_covariance:
-            state &= np.isfinite(estimator.batch_P).all(axis=(1, 2))
+        estimate = np.isfinite(estimator.batch_x_hat).all(axis=1)
+        covariance = (np.isfinite(estimator.batch_P).all(axis=(1, 2)) if estimator.has_covariance
+                      else estimate)
         truth = np.isfinite(plant.x).all(axis=1)
-        if state.all() and truth.all():
+        if estimate.all() and covariance.all() and truth.all():
             return 0
-        return self._mark(k, ~(state & truth), estimator, broken=~state)
+        cause = np.where(~estimate, 'estimate', np.where(~covariance, 'covariance', np.where(~truth, 'truth', '')))
+        return self._mark(k, cause, estimator, broken=~(estimate & covariance))
 
-    def _mark(self, k: int, bad: np.ndarray, estimator, broken: np.ndarray | None = None) -> int:
-        new = bad & (self.at < 0)
+    def _mark(self, k: int, cause: np.ndarray, estimator, broken: np.ndarray | None = None) -> int:
+        """Runs with a ``cause`` diverge at step ``k`` (the first cause is kept); the new ones and
+        any whose filter state is ``broken`` restart."""
+        new = (cause != '') & (self.at < 0)
         self.at[new] = k
+        self.cause[new] = cause[new]
         self.running = self.at < 0
         restart = new if broken is None else new | broken
         if restart.any():
@@ -538,6 +544,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         wall_time=wall, capped_steps=estimator.capped_steps, nees=record.nees, nis=record.nis,
         diverged_at=divergence.at,
         extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': sensing.unmeasured,
+               'diverged_cause': divergence.cause,
                'controller_spikes': (None if control.spiking_lqr is None
                                      else control.spiking_lqr.total_spikes.copy())})
 
