@@ -209,7 +209,7 @@ SENSOR_INPUT = (
 ) + tuple(spec for spec in SENSOR_GEOMETRY if spec.name != 'sensor_frame_id') + (
     Spec('sensor_frame_id', '', 'frame_id of its messages (empty: its name)'),
     Spec('boundary_layer', [D.RENDEZVOUS_BOUNDARY_LAYER], 'delta of the (M)SIF gains per component of its '
-         'sample (1 value: all), in the units of its variance for the MSIF gains (docs/decisions.md, 35)'),
+         'sample (1 value: all); the MSIF gains divide its variance by it (docs/decisions.md, 35)'),
     Spec('gate', 0.0, 'Mahalanobis gate: a sample whose normalised innovation squared exceeds it is dropped '
          '(counted as gated.<name>; 0: no gate; chi-square, e.g. 16.3 for 3 components at p = 0.001)', low=0.0),
 )
@@ -583,7 +583,7 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
     (``make demo SENSOR=<name>``, config/sensor_<name>.yaml). The numbers are the core's
     (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
     sample, the mounting that looks back at the target, the minimum range, and the estimator's
-    R and boundary layer (Table 6's delta / R per component, in the units of diag(P^zz):
+    R and boundary layer (Table 6's delta per component, one sensor sigma:
     snn_estimator.config.sensor_boundary_layer) and its network (D.SENSOR_NETWORK: the deviation
     coding in 1 mm and 0.01 mm/s units)."""
     def sensor(model: str, frame: str) -> tuple[dict, list]:

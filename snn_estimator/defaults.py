@@ -69,10 +69,12 @@ FAR_RANGE_ESTIMATOR = {
 #: and angles 1 mrad; camera angles 1 mrad.
 SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevation': (1e-2, 1e-6, 1e-6),
                 'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6}
-#: A sensor's boundary layer delta, per component, over its noise variance R (Decision 35): Eq. 8
-#: saturates diag(P^zz) / delta, a variance over delta, so delta is in the units of diag(P^zz)
-#: (m^2, rad^2), and each component keeps Table 6's delta / R = 0.1 / 1e-2 = 10 (position and a
-#: LIDAR's range: delta = 0.1 m^2; a 1 mrad angle: 1e-5 rad^2).
+#: A sensor's boundary layer delta per component from its noise R (Decision 35): Table 6's delta =
+#: 0.1 is one sigma of its R = 1e-2 m^2 and also 10 R. 'sigma': delta_j = sqrt(R_jj) (the
+#: default: 0.1 m for a range, 1e-3 rad for a 1 mrad angle); 'variance': delta_j = 10 R_jj, in
+#: the units of the diag(P^zz) Eq. 8 divides by it (1e-5 rad^2 for the angle).
+BOUNDARY_LAYER_UNITS = ('sigma', 'variance')
+SENSOR_BOUNDARY_LAYER_UNITS = 'sigma'
 SENSOR_BOUNDARY_LAYER_PER_VARIANCE = RENDEZVOUS_BOUNDARY_LAYER / RENDEZVOUS_MEASUREMENT_NOISE
 #: The spiking networks on the close-approach sensors (Decision 36): the deviation coding (13b) in
 #: units of 1 mm and 0.01 mm/s, a tenth of Table 6's network (RENDEZVOUS_STATE_SCALE). A LIDAR's

@@ -274,33 +274,38 @@ def test_the_lidar_close_approach_docks_with_the_default_filter():
         assert result.extra['unmeasured_steps'].min() > 0  # inside the minimum range: no sample
 
 
-def test_a_sensors_boundary_layer_keeps_table_6s_delta_over_r_in_each_component():
-    """Eq. 8 divides diag(P^zz), a variance, by delta: each sensor component gets delta_j =
-    R_jj x Table 6's 0.1 / 1e-2, so its saturation floor R_hat_jj / delta_j is Table 6's
-    5 x 1e-2 / 0.1 = 0.5 for the range and the angles alike (Decision 35)."""
+def test_a_sensors_boundary_layer_is_table_6s_delta_in_sigma_or_in_variance_units():
+    """Table 6's delta = 0.1 is one sigma of R = 1e-2 m^2 and 10 R: per component, 'sigma' (the
+    default) gives sqrt(R_jj), 'variance' 10 R_jj, whose saturation floor R_hat_jj / delta_j is
+    Table 6's 5 x 1e-2 / 0.1 = 0.5 for the range and the angles alike (Decision 35)."""
     from snn_estimator.config import sensor_boundary_layer
     from snn_estimator.offline.simulation import handover_scenario
-    assert sensor_boundary_layer(1e-2) == (0.1,) and sensor_boundary_layer([1e-2, 1e-6]) == (0.1, 1e-5)
-    for scenario in (sensor_rendezvous_scenario(), handover_scenario()):
+    assert sensor_boundary_layer(1e-2) == sensor_boundary_layer(1e-2, 'variance') == (0.1,)
+    assert sensor_boundary_layer([1e-2, 1e-6]) == (0.1, 1e-3)
+    assert sensor_boundary_layer([1e-2, 1e-6], 'variance') == (0.1, 1e-5)
+    with pytest.raises(ValueError, match='sigma, variance'):
+        sensor_boundary_layer(1e-2, 'm')
+    for make in (sensor_rendezvous_scenario, handover_scenario):
+        variances = np.diag(make().sensor.noise)
+        np.testing.assert_allclose(make().estimator.boundary_layer, np.sqrt(variances), rtol=1e-15)
+        scenario = make(boundary_layer_units='variance')
         delta = np.array(scenario.estimator.boundary_layer)
-        variances = np.diag(scenario.sensor.noise)
         np.testing.assert_allclose(delta / variances, 0.1 / 1e-2, rtol=1e-12)
-        r_hat = scenario.estimator.measurement_noise_scale * variances
-        np.testing.assert_allclose(r_hat / delta, 0.5, rtol=1e-12)
+        np.testing.assert_allclose(scenario.estimator.measurement_noise_scale * variances / delta, 0.5, rtol=1e-12)
 
 
 @pytest.mark.slow
-def test_the_literal_emsif_holds_the_lidars_angles_only_with_delta_as_a_variance():
+def test_the_literal_emsif_holds_the_lidars_angles_only_with_delta_in_variance_units():
     """With delta one sigma (1e-3 rad) the angles' saturation is 5e-6 / 1e-3 = 0.005: the literal
     EMSIF barely corrects them and is 0.4-1.5 m off at 110 s (before the sensor's minimum range);
-    with Table 6's ratio (1e-5 rad^2) it is within a few centimetres there."""
-    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
-    sigma = scenario.estimator.replace(boundary_layer=tuple(np.sqrt(np.diag(scenario.sensor.noise))))
-    k = int(round(110.0 / scenario.dt))
+    with delta in variance units (1e-5 rad^2) it is within a few centimetres there."""
+    one_sigma = sensor_rendezvous_scenario(initial_state_dispersion=True)
+    variance = sensor_rendezvous_scenario(initial_state_dispersion=True, boundary_layer_units='variance')
+    k = int(round(110.0 / one_sigma.dt))
     with np.errstate(all='ignore'):
-        variance, one_sigma = simulate(scenario, 'emsif', runs=4), simulate(scenario, 'emsif', runs=4, config=sigma)
-    assert np.linalg.norm(variance.error[:, k, :3], axis=1).max() < 0.15
-    assert np.linalg.norm(one_sigma.error[:, k, :3], axis=1).min() > 0.3
+        errors = {name: np.linalg.norm(simulate(scenario, 'emsif', runs=4).error[:, k, :3], axis=1)
+                  for name, scenario in (('sigma', one_sigma), ('variance', variance))}
+    assert errors['variance'].max() < 0.15 and errors['sigma'].min() > 0.3
 
 
 @pytest.mark.slow

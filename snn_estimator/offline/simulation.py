@@ -147,15 +147,17 @@ def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: flo
 
 
 def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: str = 'default', noise=None,
-                              sensor_options: dict | None = None, **estimator_changes) -> Scenario:
+                              sensor_options: dict | None = None,
+                              boundary_layer_units: str = D.SENSOR_BOUNDARY_LAYER_UNITS,
+                              **estimator_changes) -> Scenario:
     """Sec. 3.2 measured by ``sensor`` (a model of snn_estimator.measurements) instead of Table
     6's position (issue 22): noise R per sample ``noise`` (default defaults.SENSOR_NOISE), the
     sensor on the chaser looking back at the target (defaults.CLOSE_SENSOR_MOUNTING; no field of
     view, and the range limit defaults.CLOSE_SENSOR_MIN_RANGE, unless ``sensor_options`` sets
-    them). The filters take the sensor's R as their R (times measurement_noise_scale) and, as the
-    boundary layer delta of Eq. 8, Table 6's delta / R per component in the units of diag(P^zz)
-    (config.sensor_boundary_layer: 0.1 m^2 for the range, 1e-5 rad^2 for a 1 mrad angle;
-    Decision 35), unless ``measurement_noise`` or ``boundary_layer`` is given. The spiking filters
+    them). The filters take the sensor's R as their R (times measurement_noise_scale) and Table
+    6's delta per component in ``boundary_layer_units`` (config.sensor_boundary_layer: 'sigma',
+    one sensor sigma, the default; 'variance', 10 R_jj; Decision 35), unless ``measurement_noise``
+    or ``boundary_layer`` is given. The spiking filters
     code the deviation from the prediction in units of 1 mm and 0.01 mm/s (defaults.SENSOR_NETWORK;
     Decision 36) unless ``network_coding`` or ``state_scale`` is given or the preset is
     'as_published'."""
@@ -167,8 +169,8 @@ def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: 
     config = base.estimator
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
-    if 'boundary_layer' not in estimator_changes:  # Table 6's delta / R per component (Decision 35)
-        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise))
+    if 'boundary_layer' not in estimator_changes:  # Table 6's delta per component (Decision 35)
+        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise, boundary_layer_units))
     return replace(base, name=f'rendezvous_{sensor}', sensor=model, estimator=config,
                    measurement_noise=model.noise)
 
@@ -182,14 +184,15 @@ def _sensor_network(preset: str, estimator_changes: dict) -> dict:
 
 
 def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOVER_LIDAR_MAX_RANGE,
-                      periods=D.HANDOVER_PERIODS, **estimator_changes) -> Scenario:
+                      periods=D.HANDOVER_PERIODS, boundary_layer_units: str = D.SENSOR_BOUNDARY_LAYER_UNITS,
+                      **estimator_changes) -> Scenario:
     """Sec. 3.2 flown on two sensors fused in one filter (issue 22; not in the paper): a camera
     (line_of_sight, every ``periods[0]`` steps) for the whole approach and a LIDAR
     (range_azimuth_elevation, every ``periods[1]`` steps) within ``lidar_max_range``; both on the
     chaser looking back at the target, no closer than defaults.CLOSE_SENSOR_MIN_RANGE. Far, the
     filter has the bearings only (the LQR's known burns make the range observable); once the
     LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta
-    Table 6's delta / R per component and the network as in :func:`sensor_rendezvous_scenario`."""
+    and the network as in :func:`sensor_rendezvous_scenario`."""
     from snn_estimator.measurements import make_model
     from snn_estimator.measurements.stacked import Stacked
     base = rendezvous_scenario(preset, **_sensor_network(preset, estimator_changes))
@@ -202,7 +205,7 @@ def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOV
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
     if 'boundary_layer' not in estimator_changes:
-        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise))
+        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise, boundary_layer_units))
     return replace(base, name='rendezvous_camera_lidar', sensor=model, estimator=config,
                    measurement_noise=model.noise, sensor_periods=tuple(periods))
 
