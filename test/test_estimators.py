@@ -376,6 +376,21 @@ def test_restart_puts_the_chosen_runs_back_at_their_start_and_leaves_the_others(
             np.testing.assert_array_equal(estimator.spikes[1], fresh.spikes[1])
 
 
+@pytest.mark.parametrize('kind', ['ekf', 'emsif_weighted'])
+def test_a_state_that_becomes_non_finite_is_reported_after_every_run_took_the_step(kind):
+    """The compiled step checks the new estimate of each run: one that overflows raises
+    FloatingPointError once every run is stepped (the other run as if alone). With fast-math the
+    check made right after the arithmetic was folded away and a NaN estimate went unreported."""
+    estimator, alone = make_estimator(kind, runs=2), make_estimator(kind)
+    estimator.set_state(np.array([[70.0, 30.0, -5.0, 0.0, 0.0, 0.0], [1e308, 1e308, 1e308, 0.0, 0.0, 0.0]]))
+    alone.set_state(np.array([70.0, 30.0, -5.0, 0.0, 0.0, 0.0]))
+    with np.errstate(all='ignore'), pytest.raises(FloatingPointError, match='non-finite'):
+        estimator.step(np.array([[70.0, 30.0, -5.0], [1e308, -1e308, 1e308]]), np.zeros((2, 3)), 0.1)
+    alone.step(np.array([70.0, 30.0, -5.0]), np.zeros(3), 0.1)
+    np.testing.assert_array_equal(estimator.x_hat[0], alone.x_hat)
+    assert not np.isfinite(estimator.x_hat[1]).all()
+
+
 def test_non_finite_input_is_refused_and_changes_nothing():
     estimator = make_estimator('snn_emsif')
     before = (estimator.x_hat.copy(), estimator.P.copy(), estimator.rates.copy())

@@ -274,6 +274,23 @@ def test_the_lidar_close_approach_docks_with_the_default_filter():
         assert result.extra['unmeasured_steps'].min() > 0  # inside the minimum range: no sample
 
 
+def test_a_run_whose_covariance_overflows_does_not_stop_the_batch_in_the_weighted_gain():
+    """EMSIF-W inverts C P C^T inside the compiled step: a run whose P overflowed gets a NaN gain
+    (the step then reports a non-finite state, FloatingPointError) instead of an exception in
+    the middle of the batch; the other run took its step as alone."""
+    model = sensor('range_azimuth_elevation')
+    config = EstimatorConfig(measurement_noise=model.noise, initial_state=tuple(X0))
+    batch = make_estimator('emsif_weighted', config, runs=2, measurement=model)
+    alone = make_estimator('emsif_weighted', config, measurement=model)
+    batch.set_state(np.tile(X0, (2, 1)), P=np.stack([alone.P, np.full((6, 6), np.finfo(float).max)]))
+    z = model.h(X0) + np.array([0.05, 1e-3, -1e-3])
+    with np.errstate(all='ignore'), pytest.raises(FloatingPointError):
+        batch.step(np.tile(z, (2, 1)), np.zeros((2, 3)), 0.1)
+    alone.step(z, np.zeros(3), 0.1)
+    np.testing.assert_array_equal(batch.x_hat[0], alone.x_hat)
+    assert not np.isfinite(batch.x_hat[1]).all()
+
+
 def test_a_sensors_boundary_layer_is_table_6s_delta_in_sigma_or_in_variance_units():
     """Table 6's delta = 0.1 is one sigma of R = 1e-2 m^2 and 10 R: per component, 'sigma' (the
     default) gives sqrt(R_jj), 'variance' 10 R_jj, whose saturation floor R_hat_jj / delta_j is

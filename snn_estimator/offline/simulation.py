@@ -466,8 +466,9 @@ class _Divergence:
         return u if self.running is None else np.where(self.running[:, None], u, 0.0)
 
     def check(self, k: int, estimator, plant) -> int:
-        """Mark the runs that became non-finite in step ``k`` and restart their filters; returns
-        how many runs newly diverged."""
+        """Mark the runs that became non-finite in step ``k`` and restart their filters (a run
+        that diverged before and blew up again restarts again); returns how many runs were
+        non-finite."""
         estimate = np.isfinite(estimator.batch_x_hat).all(axis=1)
         covariance = (np.isfinite(estimator.batch_P).all(axis=(1, 2)) if estimator.has_covariance
                       else estimate)
@@ -475,7 +476,8 @@ class _Divergence:
         if estimate.all() and covariance.all() and truth.all():
             return 0
         cause = np.where(~estimate, 'estimate', np.where(~covariance, 'covariance', np.where(~truth, 'truth', '')))
-        return self._mark(k, cause, estimator, broken=~(estimate & covariance))
+        self._mark(k, cause, estimator, broken=~(estimate & covariance))
+        return int((cause != '').sum())
 
     def _mark(self, k: int, cause: np.ndarray, estimator, broken: np.ndarray | None = None) -> int:
         """Runs with a ``cause`` diverge at step ``k`` (the first cause is kept); the new ones and
@@ -528,7 +530,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         else:
             non_finite = False
         plant.step(u, dt)
-        if divergence.check(k, estimator, plant) == 0 and non_finite:
+        if divergence.check(k, estimator, plant) == 0 and non_finite:  # not a run's state: a bug to see
             raise FloatingPointError(f'the {kind} state became non-finite')
         record.controls[:, k] = plant.applied
         record.sample(k + 1, plant, x_hat, estimator.batch_P)
