@@ -349,7 +349,8 @@ def _blind_table(results: dict) -> list[str]:
 
 def _divergence_table(results: dict) -> list[str]:
     lines = ['### Runs that diverged', '',
-             'A run diverges when its estimate, covariance, control or truth goes non-finite '
+             'A run diverges when its estimate, covariance, control or truth goes non-finite, or its network '
+             'reaches the spike cap (1000 N in a step: it no longer follows the filter) '
              '(`SimulationResult.diverged`, what went first: `extra["diverged_cause"]`); the other runs go on. '
              'Per run (the first six): when, what, and when its P had first lost positive definiteness, at '
              'what true range.', '', '| suite | filter | diverged | runs |', '|---|---|---|---|']

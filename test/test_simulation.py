@@ -226,6 +226,25 @@ def test_the_spikes_of_a_diverged_run_are_left_out_and_the_other_runs_spike_as_a
         result.spikes_per_step[kept].sum() / (kept.sum() * steps * result.neuron_count), rel=1e-12)
 
 
+def test_a_network_that_reaches_its_spike_cap_has_diverged_there():
+    """A run whose spikes in a step reach max_spikes_per_step no longer follows its filter: it
+    diverges at the first such step (the same run without the cap shows where), the others are
+    the uncapped runs to the bit."""
+    import dataclasses
+    scenario, runs, cap = dataclasses.replace(rendezvous_scenario(initial_state_dispersion=True), duration=20.0), 6, 150
+    free = simulate(scenario, 'snn_ekf', runs=runs)
+    capped = simulate(scenario, 'snn_ekf', runs=runs, config=scenario.estimator.replace(max_spikes_per_step=cap))
+    first = [np.flatnonzero(free.spikes_per_step[b] >= cap) for b in range(runs)]
+    expected = np.array([steps.size > 0 for steps in first])
+    assert 0 < expected.sum() < runs and not free.diverged.any()
+    np.testing.assert_array_equal(capped.diverged, expected)
+    for b in range(runs):
+        if expected[b]:
+            assert capped.diverged_at[b] == first[b][0] and capped.extra['diverged_cause'][b] == 'spike_cap'
+        else:
+            np.testing.assert_array_equal(capped.estimate[b], free.estimate[b])
+
+
 @pytest.mark.slow
 def test_van_der_pol_filters_converge_from_the_wrong_initial_state():
     scenario = van_der_pol_scenario()

@@ -445,7 +445,9 @@ class _Sensing:
 class _Divergence:
     """The runs of a batch that diverged, so that the others go on. A run diverges at step k when
     its control at k, or its estimate, covariance or truth after step k, is not finite (a filter
-    whose P lost positive definiteness, ...). From then on its filter is restarted
+    whose P lost positive definiteness, ...), or when its network's spikes in step k reached
+    max_spikes_per_step (1000 N by default: the network no longer follows the filter, its
+    estimate is what the cap left). From then on its filter is restarted
     (Estimator.restart) and never measured, it flies with u = 0, and its samples from k + 1 on
     (controls, NIS and spikes from k) are discarded (NaN; :attr:`SimulationResult.diverged`).
     With no run diverged nothing here touches a number."""
@@ -453,7 +455,7 @@ class _Divergence:
     def __init__(self, runs: int):
         #: The step at which each run diverged, -1 for none.
         self.at = np.full(runs, -1, dtype=np.int64)
-        #: What went non-finite first: control, estimate, covariance or truth ('' for none).
+        #: What went first: control, estimate, covariance, truth or spike_cap ('' for none).
         self.cause = np.full(runs, '', dtype=object)
         #: The runs still flying (None while every run is: the loop's arrays pass unchanged).
         self.running: np.ndarray | None = None
@@ -473,9 +475,12 @@ class _Divergence:
         covariance = (np.isfinite(estimator.batch_P).all(axis=(1, 2)) if estimator.has_covariance
                       else estimate)
         truth = np.isfinite(plant.x).all(axis=1)
-        if estimate.all() and covariance.all() and truth.all():
+        spikes = (estimator.batch_spikes.sum(axis=1) < estimator.settings.max_spikes_per_step if estimator.spiking
+                  else truth)
+        if estimate.all() and covariance.all() and truth.all() and spikes.all():
             return 0
-        cause = np.where(~estimate, 'estimate', np.where(~covariance, 'covariance', np.where(~truth, 'truth', '')))
+        cause = np.where(~estimate, 'estimate', np.where(~covariance, 'covariance', np.where(
+            ~truth, 'truth', np.where(~spikes, 'spike_cap', ''))))
         self._mark(k, cause, estimator, broken=~(estimate & covariance))
         return int((cause != '').sum())
 
