@@ -503,7 +503,7 @@ def markdown(results: dict) -> str:
 def report_section(results: dict) -> str:
     """The sensor section of results/REPORT.md (between BEGIN and END), as `make sensors` and
     snn_tools.report_md write it."""
-    return (f'## {REPORT_TITLE}\n\n' + markdown(results).replace('\n### ', '\n#### ')
+    return (f'## {REPORT_TITLE}\n\n' + markdown(results)
             + '\nThe measurement models, the scenarios and the ROS loop: [docs/sensors.md](../docs/sensors.md).\n')
 
 
