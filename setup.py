@@ -19,7 +19,7 @@ data_files = [
     (f'share/{PACKAGE}/config/campaigns', glob('config/campaigns/*.yaml')),
     # the live view's RViz config and Foxglove layout
     (f'share/{PACKAGE}/config', glob('config/*.rviz') + glob('config/*.json')),
-    # the Fast DDS profile the demo and the launch file point Fast DDS at (docs/decisions.md, 36)
+    # the Fast DDS profile the demo and the launch file point Fast DDS at (docs/decisions.md, 38)
     (f'share/{PACKAGE}/config', glob('config/*.xml')),
     (f'share/{PACKAGE}/rosdep', glob('rosdep/*.yaml')),
 ]

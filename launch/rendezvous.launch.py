@@ -105,7 +105,7 @@ def _nodes(context):
                'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}
     actions = [node(entry.name, extra.get(entry.name), **options.get(entry.name, {}))
                for entry in registry.LOOP + registry.OPTIONAL]
-    if DDS_PROFILE_VARIABLE not in os.environ:  # the package's Fast DDS profile (docs/decisions.md, 36)
+    if DDS_PROFILE_VARIABLE not in os.environ:  # the package's Fast DDS profile (docs/decisions.md, 38)
         actions.insert(0, SetEnvironmentVariable(DDS_PROFILE_VARIABLE, PathJoinSubstitution(
             [FindPackageShare(PACKAGE), 'config', 'fastdds.xml'])))
     actions.append(plant)  # the registry's start order: consumers first, the plant last

@@ -21,7 +21,7 @@ import numpy as np
 from snn_estimator import defaults as D
 from snn_estimator import schema
 from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMINGS, START_MODES  # noqa: F401 (DEFAULT_FILTER re-exported)
-from snn_estimator.config import EstimatorConfig, silenced_neurons
+from snn_estimator.config import EstimatorConfig, sensor_boundary_layer, silenced_neurons
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
 from snn_estimator.offline.blocks import FUSED_SEED_OFFSET
@@ -213,7 +213,7 @@ SENSOR_INPUT = (
 ) + tuple(spec for spec in SENSOR_GEOMETRY if spec.name != 'sensor_frame_id') + (
     Spec('sensor_frame_id', '', 'frame_id of its messages (empty: its name)'),
     Spec('boundary_layer', [D.RENDEZVOUS_BOUNDARY_LAYER], 'delta of the (M)SIF gains per component of its '
-         'sample (1 value: all)'),
+         'sample (1 value: all); the MSIF gains divide its variance by it (docs/decisions.md, 35)'),
     Spec('gate', 0.0, 'Mahalanobis gate: a sample whose normalised innovation squared exceeds it is dropped '
          '(counted as gated.<name>; 0: no gate; chi-square, e.g. 16.3 for 3 components at p = 0.001)', low=0.0),
 )
@@ -587,22 +587,27 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
     (``make demo SENSOR=<name>``, config/sensor_<name>.yaml). The numbers are the core's
     (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
     sample, the mounting that looks back at the target, the minimum range, and the estimator's
-    R and boundary layer (one sensor sigma per component, as Table 6's delta = sigma)."""
+    R and boundary layer (Table 6's delta per component, one sensor sigma:
+    snn_estimator.config.sensor_boundary_layer) and its network (D.SENSOR_NETWORK: the deviation
+    coding in 1 mm and 0.01 mm/s units)."""
     def sensor(model: str, frame: str) -> tuple[dict, list]:
         noise = [float(v) for v in np.atleast_1d(D.SENSOR_NOISE[model])]
         return {'model': model, 'measurement_noise': noise,
                 'mounting_rotation': [float(v) for v in D.CLOSE_SENSOR_MOUNTING], 'sensor_frame_id': frame}, noise
 
     lidar, lidar_noise = sensor('range_azimuth_elevation', 'lidar')
+    network = {'network_coding': D.SENSOR_NETWORK['network_coding'],
+               'state_scale': [float(v) for v in D.SENSOR_NETWORK['state_scale']]}
     camera, camera_noise = sensor('line_of_sight', 'camera')
     close = {'min_range': float(D.CLOSE_SENSOR_MIN_RANGE)}
     suites = {'lidar': {'position_sensor': {**lidar, **close},
-                        'estimator': {**lidar, 'boundary_layer': [float(np.sqrt(v)) for v in lidar_noise]}}}
+                        'estimator': {**lidar, 'boundary_layer': list(sensor_boundary_layer(lidar_noise)),
+                                      **network}}}
     # camera + LIDAR (offline: handover_scenario): two sensor nodes on their own topics, fused
-    fused = {'sensors': ['camera', 'lidar']}
+    fused = {'sensors': ['camera', 'lidar'], **network}
     for name, values, noise in (('camera', camera, camera_noise), ('lidar', lidar, lidar_noise)):
         fused.update({f'{name}.{key}': value for key, value in values.items() if key != 'sensor_frame_id'})
-        fused[f'{name}.boundary_layer'] = [float(np.sqrt(v)) for v in noise]
+        fused[f'{name}.boundary_layer'] = list(sensor_boundary_layer(noise))
     period = D.HANDOVER_PERIODS[1] * D.RENDEZVOUS_TIME_STEP
     topics = [t for t in PIPELINE_TOPICS if t != 'measurement'] + ['camera', 'lidar']
     suites['camera+lidar'] = {

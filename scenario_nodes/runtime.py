@@ -136,7 +136,7 @@ def flush(node, timeout: float = 5.0) -> None:
     the last ones of a sparse topic (nothing newer shows the gap) only after the next heartbeat.
     With 2 s, a hot-swap test once lost the plant's final 22 diagnostics to a lagging recorder.
     The package's Fast DDS profile (config/fastdds.xml) heartbeats every 100 ms, so the wait is
-    usually that short (docs/decisions.md, 36)."""
+    usually that short (docs/decisions.md, 38)."""
     deadline = time.monotonic() + timeout
     for publisher in node.publishers:
         remaining = deadline - time.monotonic()

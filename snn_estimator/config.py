@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from . import defaults as D
 from .models import StateSpaceModel
 from .schema import FIELDS, GAIN_SCHEDULES, MEASUREMENT_NOISE_UNITS, NETWORK_DRIVES, SPIKE_RULES, field_docs  # noqa: F401
 
@@ -85,3 +86,19 @@ def silenced_neurons(neurons: int, seed: int, fraction: float = 0.0, explicit=()
         raise ValueError(f'silenced_fraction must be in [0, 1], got {fraction}')
     order = np.random.default_rng([int(seed), 4]).permutation(neurons)
     return sorted(set(explicit) | {int(i) for i in order[:int(round(fraction * neurons))]})
+
+
+def sensor_boundary_layer(noise, units: str = D.SENSOR_BOUNDARY_LAYER_UNITS) -> tuple[float, ...]:
+    """delta of Eq. 7-8 for a sensor of noise ``noise`` (R per sample in its model's units: the
+    matrix, or its diagonal), per component, from Table 6 (delta = 0.1 for R = 1e-2 m^2;
+    Decision 35): ``units`` 'sigma', one sensor sigma, sqrt(R_jj) (the units of z, as Eq. 7
+    divides an innovation by it); 'variance', R_jj times Table 6's delta / R = 10 (the units of
+    diag(P^zz), as Eq. 8 divides a variance by it). Both give Table 6's position sensor its 0.1."""
+    noise = np.asarray(noise, dtype=float)
+    variances = np.diag(noise) if noise.ndim == 2 else np.atleast_1d(noise)
+    if units == 'sigma':
+        return tuple(float(v) for v in np.sqrt(variances))
+    if units != 'variance':
+        raise ValueError(f"boundary layer units must be one of {', '.join(D.BOUNDARY_LAYER_UNITS)}; got {units!r}")
+    # 15 digits: 10 x 1e-6 is 1e-05 in YAML and docs, not 9.999999999999999e-06
+    return tuple(float(f'{D.SENSOR_BOUNDARY_LAYER_PER_VARIANCE * v:.15g}') for v in variances)

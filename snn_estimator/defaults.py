@@ -69,6 +69,19 @@ FAR_RANGE_ESTIMATOR = {
 #: and angles 1 mrad; camera angles 1 mrad.
 SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevation': (1e-2, 1e-6, 1e-6),
                 'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6}
+#: A sensor's boundary layer delta per component from its noise R (Decision 35): Table 6's delta =
+#: 0.1 is one sigma of its R = 1e-2 m^2 and also 10 R. 'sigma': delta_j = sqrt(R_jj) (the
+#: default: 0.1 m for a range, 1e-3 rad for a 1 mrad angle); 'variance': delta_j = 10 R_jj, in
+#: the units of the diag(P^zz) Eq. 8 divides by it (1e-5 rad^2 for the angle).
+BOUNDARY_LAYER_UNITS = ('sigma', 'variance')
+SENSOR_BOUNDARY_LAYER_UNITS = 'sigma'
+SENSOR_BOUNDARY_LAYER_PER_VARIANCE = RENDEZVOUS_BOUNDARY_LAYER / RENDEZVOUS_MEASUREMENT_NOISE
+#: The spiking networks on the close-approach sensors (Decision 36): the deviation coding (13b) in
+#: units of 1 mm and 0.01 mm/s, a tenth of Table 6's network (RENDEZVOUS_STATE_SCALE). A LIDAR's
+#: angles leave the EKF ~1 mm and ~2e-5 m/s off where the sensor falls silent; the paper's coding
+#: in 1 cm and 0.1 mm/s units codes the state ~0.3 units (3e-5 m/s) off, which 240 s of dead
+#: reckoning turn into centimetres.
+SENSOR_NETWORK = {'network_coding': 'deviation', 'state_scale': (1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5)}
 #: The close approach's sensor on the chaser, 70 m ahead of the target: boresight LVLH -x
 #: (180 deg about z, quaternion [x, y, z, w]), looking back at the target.
 CLOSE_SENSOR_MOUNTING = (0.0, 0.0, 1.0, 0.0)

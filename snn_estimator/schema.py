@@ -159,7 +159,8 @@ FIELDS: tuple[Field, ...] = (
           'filtered spike trains r', unit='1/s', symbol='lambda', equation='Eq. 10-11; Table 6: 0.001',
           low=0.0, runtime=True),
     Field('boundary_layer', 'vector', D.RENDEZVOUS_BOUNDARY_LAYER, 'sliding boundary layer of the '
-          '(M)SIF gain, per measured axis or one for all', unit='m', symbol='delta',
+          '(M)SIF gain, per measured axis or one for all, in the units of what the gain divides by it: '
+          'diag(P^zz) for the MSIF gains (m^2 on position), |z - z_hat| for the SIF (m)', symbol='delta',
           equation='Eq. 7-8, 21-24; Table 6: 0.1', low=0.0, strict=True, size='m', runtime=True),
     Field('decoder_variance', 'real', D.RENDEZVOUS_DECODER_VARIANCE, 'Variance of the decoder '
           'entries, D ~ N(0, var)', equation='Sec. 3.2: 1/15', low=0.0, strict=True),

@@ -200,24 +200,26 @@ def run_chunk(scenario_name: str, kind: str, settings: dict, seed: int, first_ru
     started = time.perf_counter()
     scenario = build_scenario(scenario_name, settings, seed)
     result = simulate(scenario, kind, runs=runs, seed=seed + first_run, trajectories=False)
-    sums = result.sums
+    sums, kept = result.sums, ~result.diverged  # a run that diverged is counted, its numbers left out
+    error = sums.error[kept]
     spiking = result.neuron_count > 0
     orbital = scenario_name in RANGE_SCENARIOS
     return {
         # per-step sums over runs of NEES and NIS in the window (consistency), or None
-        'nees_sum': sums.nees_sum if sums.covariance else None,
-        'nis_sum': sums.nis_sum if sums.covariance else None,
+        'nees_sum': sums.nees[kept].sum(axis=0) if sums.covariance else None,
+        'nis_sum': sums.nis[kept].sum(axis=0) if sums.covariance else None,
         'dof': (scenario.model.n_state, scenario.model.n_meas),
-        'delta_v': result.delta_v() if orbital else None,
-        'peak_thrust': sums.peak_control if orbital else None,
-        'saturated_steps': result.extra['saturated_steps'] if orbital else None,
-        'runs': runs,
+        'delta_v': result.delta_v()[kept] if orbital else None,
+        'peak_thrust': sums.peak_control[kept] if orbital else None,
+        'saturated_steps': result.extra['saturated_steps'][kept] if orbital else None,
+        'runs': int(kept.sum()),
+        'diverged': int(runs - kept.sum()),
         'samples': sums.samples,
-        'sum_sq': sums.sum_sq,
-        'sum_error': sums.sum_error,
-        'spikes': int(sums.spikes.sum()) if spiking else None,
-        'spike_slots': runs * scenario.steps * result.neuron_count if spiking else None,
-        'final_range': result.final_range() if orbital else None,
+        'sum_sq': np.sum(error * error, axis=(0, 1)),
+        'sum_error': error.sum(axis=0),
+        'spikes': int(sums.spikes[kept].sum()) if spiking else None,
+        'spike_slots': int(kept.sum()) * scenario.steps * result.neuron_count if spiking else None,
+        'final_range': result.final_range()[kept] if orbital else None,
         'capped_steps': int(result.capped_steps),
         'states': scenario.model.state_names,
         'code_version': code_version(),
@@ -256,6 +258,7 @@ def combine(partials: list[dict]) -> dict:
             row.update({f'{name}_average': check['average'], f'{name}_fraction_inside': check['fraction_inside'],
                         f'{name}_verdict': check['verdict']})
     row['capped_steps'] = sum(p['capped_steps'] for p in partials)
+    row['diverged_runs'] = sum(p.get('diverged', 0) for p in partials)  # left out of every figure above
     row['code_version'] = ' '.join(sorted({p['code_version'] for p in partials}))
     row['wall_time_s'] = sum(p['wall_time_s'] for p in partials)
     return row

@@ -215,7 +215,7 @@ def pipeline_env(domain_id: int | None = None) -> dict:
     elif 'ROS_DOMAIN_ID' not in env:
         env['ROS_DOMAIN_ID'] = str(random.randint(1, 100))
     env.setdefault('PYTHONUNBUFFERED', '1')
-    env.setdefault(DDS_PROFILE_VARIABLE, str(config_file(DDS_PROFILE)))  # docs/decisions.md, 36
+    env.setdefault(DDS_PROFILE_VARIABLE, str(config_file(DDS_PROFILE)))  # docs/decisions.md, 38
     return env
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 PACKAGE = 'snn_rendezvous'
 SOURCE_ROOT = Path(__file__).resolve().parents[1]
 #: The package's Fast DDS profile (config/fastdds.xml: reliable writers heartbeat every 100 ms,
-#: docs/decisions.md, 36) and the variable that points Fast DDS at it.
+#: docs/decisions.md, 38) and the variable that points Fast DDS at it.
 DDS_PROFILE = 'fastdds.xml'
 DDS_PROFILE_VARIABLE = 'FASTRTPS_DEFAULT_PROFILES_FILE'
 

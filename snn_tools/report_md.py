@@ -484,6 +484,10 @@ def write_report(folder: Path) -> Path:
             if (folder / 'figures' / figure).exists():
                 lines += ['', f'![{figure}](figures/{figure})']
         lines.append('')
+    sensors = folder / 'sensors.json'
+    if sensors.exists():  # make sensors rewrites this part alone, between the markers
+        from .sensor_results import BEGIN, END, report_section
+        lines += [BEGIN, report_section(json.loads(sensors.read_text())) + END, '']
     if (folder / 'neuromorphic.md').exists():
         lines += ['## Neuromorphic export and cost', '',
                   'NIR export, the network re-run by Brian2 from the exported file and the cost per '

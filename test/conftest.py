@@ -13,7 +13,7 @@ else:
     os.environ.setdefault('ROS_DOMAIN_ID', os.environ['SNN_TEST_DOMAIN'])
 os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
 # the package's Fast DDS profile (reliable writers heartbeat every 100 ms: nodes stop in ~0.4 s,
-# not 1-3 s; docs/decisions.md, 36), as snn_demo and the launch file set it
+# not 1-3 s; docs/decisions.md, 38), as snn_demo and the launch file set it
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 os.environ.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE', os.path.join(_ROOT, 'config', 'fastdds.xml'))
 
@@ -76,6 +76,7 @@ EXHAUSTIVE = frozenset({
     'test_the_compiled_loop_equals_the_python_loop_for_every_filter_kind',
     'test_the_compiled_loop_on_basilisk_truth_equals_the_python_loop',
     'test_the_compiled_loop_equals_the_python_loop_with_network_options',
+    'test_restart_puts_the_chosen_runs_back_at_their_start_and_leaves_the_others',
 })
 
 

@@ -28,7 +28,7 @@ def assert_same_run(compiled, reference, rtol=1e-9):
         if theirs is None:
             continue
         assert ours.shape == theirs.shape, name
-        scale = max(float(np.max(np.abs(theirs))), 1e-300)
+        scale = max(float(np.nanmax(np.abs(theirs))) if np.isfinite(theirs).any() else 0.0, 1e-300)
         np.testing.assert_allclose(ours, theirs, rtol=rtol, atol=rtol * scale, err_msg=name)
     np.testing.assert_array_equal(compiled.extra['saturated_steps'], reference.extra['saturated_steps'])
     assert compiled.capped_steps == reference.capped_steps
@@ -116,20 +116,17 @@ def test_auto_compiles_what_it_can_and_runs_the_rest_in_python():
     assert_same_run(simulate(scenario, 'ekf', engine='auto'), simulate(scenario, 'ekf', engine='reference'))
 
 
-def test_a_bad_input_raises_at_the_same_step_as_the_python_loop():
-    """A control that is not finite: Estimator.step refuses it (ValueError) before anything moves."""
+def test_a_control_that_is_not_finite_ends_its_run_at_that_step_in_both_loops():
+    """A known schedule with a NaN at step 37: that run diverges there (cause control), before
+    anything of the step happens, in the compiled loop as in the Python loop."""
     scenario = short(rendezvous_scenario(), 10.0)
     schedule = np.zeros((scenario.steps, 3))
     schedule[37] = np.nan
     open_loop = dataclasses.replace(scenario, lqr_state_weight=None, lqr_input_weight=None, control_schedule=schedule)
-    steps = {}
     for engine in ('compiled', 'reference'):
-        seen = []
-        with pytest.raises(ValueError, match='must be finite'):
-            simulate(open_loop, 'ekf', engine=engine, on_step=seen.append)
-        steps[engine] = len(seen)
-    assert steps['reference'] == 37
-    assert steps['compiled'] == 0  # progress is reported per chunk: none finished
+        result = simulate(open_loop, 'ekf', engine=engine)
+        assert result.diverged_at.tolist() == [37] and result.extra['diverged_cause'].tolist() == ['control']
+        assert np.isfinite(result.truth[0, :38]).all() and np.isnan(result.truth[0, 38:]).all()
 
 
 def test_taking_rows_in_blocks_gives_the_rows_of_single_draws():
@@ -191,3 +188,50 @@ def test_the_bench_states_the_loop_against_the_filters_own_step():
         assert 0 < costs[name] < 1e4, costs
     assert costs['compiled_over_filter_step'] == pytest.approx(costs['compiled'] / costs['filter_step'], rel=0.02)
     assert costs['reference_over_filter_step'] == pytest.approx(costs['reference'] / costs['filter_step'], rel=0.02)
+
+
+def _poison_covariance(estimator):
+    estimator._p[1, 0, 0] = np.nan  # the gain, then the estimate of run 1 go non-finite in the step
+
+
+def _poison_estimate(estimator):
+    estimator._x_hat[2, 1] = np.inf  # run 2's control is not finite before the step
+
+
+def _overdrive_network(estimator):
+    estimator._network.v[1] = 1e9  # run 1's network spikes up to its cap
+
+
+@pytest.mark.parametrize('kind, events', [
+    ('ekf', {300: _poison_covariance}), ('ekf', {250: _poison_estimate}),
+    ('snn_emsif', {300: _overdrive_network}), ('snn_ekf', {100: _poison_estimate})])
+@pytest.mark.parametrize('trajectories', [True, False])
+def test_a_run_that_diverges_is_marked_and_left_out_as_the_python_loop_does(kind, events, trajectories):
+    """simulate's divergence rules (a run's control, estimate or covariance not finite, or its
+    network at its spike cap) in the compiled loop: the same run, step and cause, the same NaN
+    samples after it, the same statistics over the other runs, with and without trajectories."""
+    scenario = dataclasses.replace(short(rendezvous_scenario(initial_state_dispersion=True)), metric_window=20.0)
+    ours = simulate(scenario, kind, runs=3, events=events, engine='compiled', trajectories=trajectories)
+    theirs = simulate(scenario, kind, runs=3, events=events, engine='reference', trajectories=trajectories)
+    assert ours.diverged.sum() == 1
+    np.testing.assert_array_equal(ours.diverged_at, theirs.diverged_at)
+    np.testing.assert_array_equal(ours.extra['diverged_cause'], theirs.extra['diverged_cause'])
+    np.testing.assert_allclose(ours.rmse(), theirs.rmse(), rtol=1e-9)
+    np.testing.assert_allclose(ours.final_range(), theirs.final_range(), rtol=1e-9)  # NaN for the diverged run
+    np.testing.assert_allclose(ours.delta_v(), theirs.delta_v(), rtol=1e-9)
+    assert ours.spike_fraction == pytest.approx(theirs.spike_fraction, rel=1e-12) if ours.spike_fraction else True
+    for name, check in ours.consistency().items():
+        assert check['average'] == pytest.approx(theirs.consistency()[name]['average'], rel=1e-9)
+    if trajectories:
+        assert_same_run(ours, theirs)
+
+
+def test_a_run_that_diverges_on_basilisk_truth_is_marked_as_the_python_loop_does():
+    pytest.importorskip('Basilisk')
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True, plant='basilisk'), 20.0)
+    events = {60: _poison_estimate}
+    ours = simulate(scenario, 'ekf', runs=3, events=events, engine='compiled')
+    theirs = simulate(scenario, 'ekf', runs=3, events=events, engine='reference')
+    np.testing.assert_array_equal(ours.diverged_at, [-1, -1, 60])
+    np.testing.assert_array_equal(ours.diverged_at, theirs.diverged_at)
+    assert_same_run(ours, theirs)

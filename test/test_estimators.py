@@ -347,6 +347,50 @@ def test_each_run_of_a_batch_equals_the_single_run_with_its_seed():
     np.testing.assert_array_equal(batch.spikes_per_step[1], single.spikes_per_step[0])
 
 
+@pytest.mark.parametrize('kind, coding', [('snn_ekf', 'state'), ('snn_ekf', 'deviation'), ('emsif_weighted', 'state')])
+def test_restart_puts_the_chosen_runs_back_at_their_start_and_leaves_the_others(kind, coding):
+    """A restarted run equals the same run of a new estimator stepped alike from then on, spike
+    for spike; the other runs are not touched."""
+    scenario, zs, us = rendezvous_inputs(steps=40)
+    config = scenario.estimator.replace(initial_state_dispersion=True, network_coding=coding)
+    estimator = make_estimator(kind, config, runs=3, seeds=[4, 5, 6])
+    fresh = make_estimator(kind, config, runs=3, seeds=[4, 5, 6])
+    for z, u in zip(zs[:20], us[:20]):
+        estimator.step(np.tile(z, (3, 1)), np.tile(u, (3, 1)), 0.1)
+    before = (estimator.x_hat.copy(), estimator.P.copy())
+    totals = np.array(estimator.total_spikes) if estimator.spiking else None
+    estimator.restart([1])
+    np.testing.assert_array_equal(estimator.x_hat[[0, 2]], before[0][[0, 2]])
+    np.testing.assert_array_equal(estimator.P[[0, 2]], before[1][[0, 2]])
+    np.testing.assert_array_equal(estimator.x_hat[1], fresh.x_hat[1])
+    np.testing.assert_array_equal(estimator.P[1], np.diag(config.initial_covariance))
+    if estimator.spiking:
+        np.testing.assert_array_equal(estimator.rates[1], fresh.rates[1])
+        np.testing.assert_array_equal(estimator.potentials[1], fresh.potentials[1])
+        np.testing.assert_array_equal(estimator.total_spikes, totals)
+    for z, u in zip(zs[20:], us[20:]):
+        estimator.step(np.tile(z, (3, 1)), np.tile(u, (3, 1)), 0.1)
+        fresh.step(np.tile(z, (3, 1)), np.tile(u, (3, 1)), 0.1)
+        np.testing.assert_array_equal(estimator.x_hat[1], fresh.x_hat[1])
+        if estimator.spiking:
+            np.testing.assert_array_equal(estimator.spikes[1], fresh.spikes[1])
+
+
+@pytest.mark.parametrize('kind', ['ekf', 'emsif_weighted'])
+def test_a_state_that_becomes_non_finite_is_reported_after_every_run_took_the_step(kind):
+    """The compiled step checks the new estimate of each run: one that overflows raises
+    FloatingPointError once every run is stepped (the other run as if alone). With fast-math the
+    check made right after the arithmetic was folded away and a NaN estimate went unreported."""
+    estimator, alone = make_estimator(kind, runs=2), make_estimator(kind)
+    estimator.set_state(np.array([[70.0, 30.0, -5.0, 0.0, 0.0, 0.0], [1e308, 1e308, 1e308, 0.0, 0.0, 0.0]]))
+    alone.set_state(np.array([70.0, 30.0, -5.0, 0.0, 0.0, 0.0]))
+    with np.errstate(all='ignore'), pytest.raises(FloatingPointError, match='non-finite'):
+        estimator.step(np.array([[70.0, 30.0, -5.0], [1e308, -1e308, 1e308]]), np.zeros((2, 3)), 0.1)
+    alone.step(np.array([70.0, 30.0, -5.0]), np.zeros(3), 0.1)
+    np.testing.assert_array_equal(estimator.x_hat[0], alone.x_hat)
+    assert not np.isfinite(estimator.x_hat[1]).all()
+
+
 def test_non_finite_input_is_refused_and_changes_nothing():
     estimator = make_estimator('snn_emsif')
     before = (estimator.x_hat.copy(), estimator.P.copy(), estimator.rates.copy())

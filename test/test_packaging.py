@@ -218,7 +218,7 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         assert on_exit.kwargs['target_action'] is next(n for n in created['node']
                                                       if n.kwargs['executable'] == 'cw_plant')
         assert handler in actions
-    # the package's Fast DDS profile unless the user points Fast DDS elsewhere (decisions.md, 36)
+    # the package's Fast DDS profile unless the user points Fast DDS elsewhere (decisions.md, 38)
     monkeypatch.delenv('FASTRTPS_DEFAULT_PROFILES_FILE', raising=False)
     created['environment'] = []
     actions = make_nodes(dict(base, scheduling='normal'))
@@ -240,7 +240,7 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
 
 def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
     """config/fastdds.xml: a default data-writer profile whose heartbeat period is 100 ms
-    (docs/decisions.md, 36), set by snn_demo's environment unless the user set another."""
+    (docs/decisions.md, 38), set by snn_demo's environment unless the user set another."""
     import xml.etree.ElementTree as ElementTree
 
     from snn_tools.demo import pipeline_env

@@ -292,5 +292,5 @@ def test_a_bad_value_fails_the_configure_transition_naming_the_parameter(user, s
     assert not change(user, Transition.TRANSITION_CONFIGURE)
     assert lifecycle_state(user) == 'unconfigured'
     log = next(tmp_path.glob('estimator_*.log'))
-    assert user.spin_until(lambda: 'boundary_layer (delta, m) must be > 0' in log.read_text())
+    assert user.spin_until(lambda: 'boundary_layer (delta) must be > 0' in log.read_text())
     assert State.PRIMARY_STATE_UNCONFIGURED == 1

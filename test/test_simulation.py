@@ -4,8 +4,25 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from snn_estimator import TWIN_OF, ClohessyWiltshire, rendezvous_scenario, simulate, van_der_pol_scenario
-from snn_estimator.offline.simulation import GaussianStream, Plant, PositionSensor, lqr_control, lqr_gain, matrix_sqrt
+from snn_estimator import (
+    TWIN_OF,
+    ClohessyWiltshire,
+    EstimatorConfig,
+    make_estimator,
+    rendezvous_scenario,
+    simulate,
+    van_der_pol_scenario,
+)
+from snn_estimator.models import StateSpaceModel
+from snn_estimator.offline.simulation import (
+    GaussianStream,
+    Plant,
+    PositionSensor,
+    Scenario,
+    lqr_control,
+    lqr_gain,
+    matrix_sqrt,
+)
 
 
 def test_scalar_lqr_matches_the_closed_form(double_integrator):
@@ -133,6 +150,99 @@ def test_metrics_are_the_two_readings_of_average_rmse():
     np.testing.assert_allclose(result.mean_error(), np.abs(bias), rtol=1e-12)
     np.testing.assert_allclose(result.rmse_history()[-1], np.hypot(bias, spread), rtol=1e-12)
     assert result.spike_fraction is None
+
+
+class Blowup(StateSpaceModel):
+    """x' = x^2 + u, x measured: from x(0) > 0 the solution reaches infinity at t = 1/x(0)."""
+
+    state_names, input_names, measurement_names = ('x',), ('u',), ('x',)
+
+    def __init__(self):
+        self._b, self._c = np.array([[1.0]]), np.array([[1.0]])
+
+    def f(self, x, u):
+        x = np.asarray(x, dtype=float)
+        return x * x + np.asarray(u, dtype=float)
+
+    def jacobian(self, x, u):
+        return 2.0 * np.asarray(x, dtype=float)[..., None]
+
+
+def blowup_scenario():
+    """The truth rests at x = 0; each run's estimate starts at x_hat0 ~ N(0, 4) and, with R_hat
+    so large that the gain is ~0, follows x' = x^2: a run with x_hat0 > 1/duration diverges at
+    about t = 1/x_hat0 (seeds 0-7: at 0.36, 1.51 and 1.61 s; the next would at 2.18 s)."""
+    config = EstimatorConfig(initial_state=(0.0,), initial_covariance=(4.0,), initial_state_dispersion=True,
+                             process_noise=1e-6, measurement_noise=1.0, measurement_noise_scale=1e6,
+                             state_scale=(1.0,), boundary_layer=1.0, neuron_count=20, leak_rate=0.5,
+                             decoder_variance=0.25)
+    return Scenario(name='blowup', model=Blowup(), x0=np.zeros(1), dt=0.01, duration=2.0,
+                    process_noise=np.zeros((1, 1)), measurement_noise=np.eye(1), estimator=config)
+
+
+def test_a_run_that_diverges_is_marked_and_discarded_and_the_others_go_on():
+    scenario, runs = blowup_scenario(), 8
+    with np.errstate(over='ignore', invalid='ignore'):
+        result = simulate(scenario, 'ekf', runs=runs)
+    starts = make_estimator('ekf', scenario.estimator, scenario.model, runs=runs,
+                            seeds=range(runs)).initial_states()[:, 0]
+    blowup_time = np.where(starts > 0, 1.0 / np.where(starts > 0, starts, 1.0), np.inf)
+    expected = blowup_time < scenario.duration
+    assert expected.sum() == 3
+    np.testing.assert_array_equal(result.diverged, expected)
+    np.testing.assert_allclose(result.diverged_at[expected] * scenario.dt, blowup_time[expected], atol=0.03)
+    for b in np.flatnonzero(expected):
+        k = result.diverged_at[b]
+        assert np.isfinite(result.estimate[b, :k + 1]).all() and np.isnan(result.estimate[b, k + 1:]).all()
+        assert np.isnan(result.truth[b, k + 1:]).all() and np.isnan(result.control[b, k:]).all()
+    assert np.isnan(result.final_range()[expected]).all()
+    assert list(result.extra['diverged_cause']) == ['estimate' if e else '' for e in expected]
+    for b in np.flatnonzero(~expected):  # every other run is the run alone, to the bit
+        alone = simulate(scenario, 'ekf', runs=1, seed=b)
+        np.testing.assert_array_equal(result.estimate[b], alone.estimate[0])
+        np.testing.assert_array_equal(result.covariance_diag[b], alone.covariance_diag[0])
+    kept = result.error[~expected]
+    np.testing.assert_allclose(result.rmse(1.0), np.sqrt(np.mean(kept[:, -100:] ** 2, axis=(0, 1))), rtol=1e-12)
+    assert result.consistency(1.0)['nees']['average'] == pytest.approx(result.nees[~expected, -100:].mean())
+    with np.errstate(over='ignore', invalid='ignore'):
+        again = simulate(scenario, 'ekf', runs=runs)
+    np.testing.assert_array_equal(again.diverged_at, result.diverged_at)
+
+
+def test_the_spikes_of_a_diverged_run_are_left_out_and_the_other_runs_spike_as_alone():
+    scenario, runs = blowup_scenario(), 8
+    with np.errstate(over='ignore', invalid='ignore'):
+        result = simulate(scenario, 'snn_ekf', runs=runs)
+    assert 0 < result.diverged.sum() < runs
+    kept = ~result.diverged
+    for b in np.flatnonzero(result.diverged):
+        assert not result.spikes_per_step[b, result.diverged_at[b]:].any()
+    for b in np.flatnonzero(kept):
+        alone = simulate(scenario, 'snn_ekf', runs=1, seed=b)
+        np.testing.assert_array_equal(result.spikes_per_step[b], alone.spikes_per_step[0])
+        np.testing.assert_array_equal(result.estimate[b], alone.estimate[0])
+    steps = result.spikes_per_step.shape[1]
+    assert result.spike_fraction == pytest.approx(
+        result.spikes_per_step[kept].sum() / (kept.sum() * steps * result.neuron_count), rel=1e-12)
+
+
+def test_a_network_that_reaches_its_spike_cap_has_diverged_there():
+    """A run whose spikes in a step reach max_spikes_per_step no longer follows its filter: it
+    diverges at the first such step (the same run without the cap shows where), the others are
+    the uncapped runs to the bit."""
+    import dataclasses
+    scenario, runs, cap = dataclasses.replace(rendezvous_scenario(initial_state_dispersion=True), duration=20.0), 6, 150
+    free = simulate(scenario, 'snn_ekf', runs=runs)
+    capped = simulate(scenario, 'snn_ekf', runs=runs, config=scenario.estimator.replace(max_spikes_per_step=cap))
+    first = [np.flatnonzero(free.spikes_per_step[b] >= cap) for b in range(runs)]
+    expected = np.array([steps.size > 0 for steps in first])
+    assert 0 < expected.sum() < runs and not free.diverged.any()
+    np.testing.assert_array_equal(capped.diverged, expected)
+    for b in range(runs):
+        if expected[b]:
+            assert capped.diverged_at[b] == first[b][0] and capped.extra['diverged_cause'][b] == 'spike_cap'
+        else:
+            np.testing.assert_array_equal(capped.estimate[b], free.estimate[b])
 
 
 @pytest.mark.slow

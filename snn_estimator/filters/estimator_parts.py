@@ -64,6 +64,24 @@ class EstimatorState:
             self._c[:] = 0.0
             self._relinearize(None, self._none_measured)
 
+    def restart(self, runs) -> None:
+        """Restart the runs ``runs`` (indices, or a bool per run) from their configured start
+        (:meth:`initial_states`, P0) and leave every other run exactly as it is; the step and
+        spike counters go on. The offline simulator restarts a run that diverged so that the
+        batch can go on stepping (the run's later samples are discarded). Not available on the
+        chip network (ValueError)."""
+        if self._chip is not None:
+            raise ValueError('restart() is not available on the chip network: reset() restarts every run')
+        chosen = np.zeros(self.runs, dtype=bool)
+        chosen[np.asarray(runs).reshape(-1)] = True
+        starts = self.initial_states()
+        self._p[chosen] = self.settings.initial_covariance
+        self._x_hat[chosen] = starts[chosen]
+        self._gain[chosen] = 0.0
+        if self.spiking:
+            for b in np.flatnonzero(chosen):  # its rates and potentials (and prediction) anew
+                self.encode(starts[b], run=b)
+
     def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
         """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons;
         with network_coding deviation the prediction restarts at ``x_hat`` and the network
@@ -198,17 +216,23 @@ class MeasuredSteps:
         sample_density = self._packed_density
         part = dt / parts
         spikes = np.zeros_like(self._network.spikes)
+        non_finite = None
         self._set_step(part, density=sample_density)
         try:
             for _ in range(parts):
                 z_eq, valid = self._relinearize(z, measured)
-                self._advance(z_eq, valid, u, part)
+                try:
+                    self._advance(z_eq, valid, u, part)
+                except FloatingPointError as error:  # every run took this sub-step: finish the step
+                    non_finite = error
                 spikes += self._network.spikes
                 self.steps -= 1
         finally:
             self._set_step(dt)
         self.steps += 1
         self._network.spikes[:] = spikes
+        if non_finite is not None:
+            raise non_finite
         return self.x_hat
 
     def _relinearize(self, z, measured):

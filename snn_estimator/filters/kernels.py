@@ -301,16 +301,24 @@ _FIRE = {'greedy': _fire_greedy, 'one_per_step': _fire_one_per_step, 'all_above'
 
 
 # ---------------------------------------------------------------- integration
+@numba.njit
+def _row_finite(x_hat, b):
+    """Every x_hat[b, :] finite. Compiled without fast-math and run on the stored row: with the
+    _FAST flags an isfinite right after the arithmetic that made the value is folded to True
+    (numba 0.68), and a NaN estimate went unreported."""
+    for i in range(x_hat.shape[1]):
+        if not np.isfinite(x_hat[b, i]):
+            return False
+    return True
+
+
 @_jit
 def _direct(b, dt, increment, noise, consts, state, network, scratch):
     """x_hat += dt increment. Returns (finite, spikes, capped)."""
     x_hat = state[0]
-    finite = True
     for i in range(x_hat.shape[1]):
         x_hat[b, i] += dt * increment[i]
-        if not np.isfinite(x_hat[b, i]):
-            finite = False
-    return finite, 0, False
+    return _row_finite(x_hat, b), 0, False
 
 
 # ---------------------------------------------------------------- network codings
@@ -376,16 +384,12 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
         spikes[b, i] = 0
     count, hit_cap = _fire(b, max_spikes, gram, thresholds, alive, r, v, spikes)
     total_spikes[b] += count
-    finite = True
     for k in range(n):
         acc = 0.0
         for i in range(neurons):
             acc += decoder[b, k, i] * r[b, i]
-        value = _decode(b, k, acc, scale, reference)
-        x_hat[b, k] = value
-        if not np.isfinite(value):
-            finite = False
-    return finite, count, hit_cap
+        x_hat[b, k] = _decode(b, k, acc, scale, reference)
+    return _row_finite(x_hat, b), count, hit_cap
 
 
 # ---------------------------------------------------------------- the step

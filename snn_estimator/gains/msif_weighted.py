@@ -64,6 +64,11 @@ def gain(b, out, nu, pct, pctr, consts, scratch):
             for i in range(n):
                 acc += c[k, i] * pct[i, j]
             cpc[k, j] = acc
+    if not np.isfinite(cpc).all():  # a run whose P overflowed: a NaN gain (the step reports it), no exception
+        for j in range(m):
+            for i in range(n):
+                out[b, i, j] = np.nan
+        return
     diagonal = 1.0  # the inverse, or the pseudo-inverse where C P C^T is singular (_inverse)
     for k in range(m):
         diagonal *= cpc[k, k]

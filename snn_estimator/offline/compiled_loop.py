@@ -46,6 +46,11 @@ _FAST = {'reassoc', 'contract', 'nsz', 'arcp'}
 _jit = numba.njit(fastmath=_FAST)
 
 CONTROL_NONE, CONTROL_LQR, CONTROL_SCHEDULE = 0, 1, 2
+#: The loop's own statuses beside the step kernel's (kernels.STATUS_*): a running run's control
+#: is not finite (returned before step k: nothing of it was done), or a run diverged in step k
+#: (its estimate, covariance or truth is not finite, or its spikes reached max_spikes_per_step;
+#: returned after step k, samples written). simulate's _Divergence then marks and restarts it.
+STATUS_CONTROL_DIVERGED, STATUS_RUN_DIVERGED = 3, 4
 #: The filter's step kernel, given to the loop template as a global by :func:`loop_kernel`.
 _step = None
 
@@ -130,12 +135,15 @@ def _quadratic(matrix, vector, factor, work):
 
 # ---------------------------------------------------------------- the pieces of one step
 @_jit
-def _control(b, k, x_hat, u, control):
-    """u_k of run b: -K (x_hat - setpoint) (Eq. 42), the schedule's, or none."""
+def _control(b, k, x_hat, u, control, running):
+    """u_k of run b: -K (x_hat - setpoint) (Eq. 42), the schedule's, or none; zero for a run
+    that diverged (not ``running``)."""
     mode, lqr, setpoint, schedule = control
     for i in range(u.shape[1]):
         acc = 0.0
-        if mode == CONTROL_LQR:
+        if not running[b]:
+            pass
+        elif mode == CONTROL_LQR:
             for q in range(x_hat.shape[1]):
                 acc -= lqr[i, q] * (x_hat[b, q] - setpoint[q])
         elif mode == CONTROL_SCHEDULE:
@@ -219,41 +227,82 @@ def _record(sample, step, with_metrics, x, applied, state, network, outputs, fac
                     raster_out[step, i] = spikes[0, i]
 
 
+@numba.njit(cache=True)
+def _controls_finite(u, running):
+    """Every running run's control finite (compiled without fast-math, as kernels._row_finite)."""
+    for b in range(u.shape[0]):
+        if running[b]:
+            for i in range(u.shape[1]):
+                if not np.isfinite(u[b, i]):
+                    return False
+    return True
+
+
+@numba.njit(cache=True)
+def _any_diverged(state, network, x, max_spikes, covariance, spiking):
+    """Whether a run's estimate, covariance (``covariance``) or truth is not finite or its
+    spikes this step reached ``max_spikes`` (simulate's _Divergence.check; no fast-math)."""
+    x_hat, p, spikes = state[0], state[1], network[6]
+    for b in range(x_hat.shape[0]):
+        for i in range(x_hat.shape[1]):
+            if not (np.isfinite(x_hat[b, i]) and np.isfinite(x[b, i])):
+                return True
+            if covariance:
+                for j in range(x_hat.shape[1]):
+                    if not np.isfinite(p[b, i, j]):
+                        return True
+        if spiking:
+            total = 0
+            for i in range(spikes.shape[1]):
+                total += spikes[b, i]
+            if total >= max_spikes:
+                return True
+    return False
+
+
 def _loop_template(step_args, membrane, truth, sensing, control, outputs, where):
     """Steps ``first .. first + count - 1`` (``where``) of the loop for every run; per step k,
-    simulate's order: u_k from x_hat_k; z_k = C x_k + L_R w; the NIS of z_k against x_hat_k and
-    P_k; the filter's step (with membrane[j] as its noise when given); then, with the truth
-    inside, x_{k+1} and the samples of k + 1. Returns (status, steps done, runs capped): at a
-    filter step whose status is not OK it stops before the truth moves (bad input: nothing
-    changed; non-finite: the filter stepped), where Estimator.step raises."""
-    consts, state, network, measured, dt, dynamics, drift, z, u, noise = step_args
+    simulate's order: u_k from x_hat_k (zero for a diverged run: ``step_args``' measured, the
+    runs still running); z_k = C x_k + L_R w; the NIS of z_k against x_hat_k and P_k; the filter's
+    step (with membrane[j] as its noise when given); then, with the truth inside, x_{k+1} and
+    the samples of k + 1. Returns (status, steps done, runs capped), stopping early at a step
+    whose status is not OK: bad input (nothing done), a running run's control not finite (before
+    the step, nothing done), a run diverged (after the step), or the state non-finite without a
+    run to blame (after the step): where simulate's Python loop raises or marks the run."""
+    consts, state, network, running, dt, dynamics, drift, z, u, noise = step_args
     first, count, sample_at, step_at, metrics_from = where
     x_hat, p, x = state[0], state[1], truth[5]
     runs, n = x_hat.shape
     m = z.shape[1]
     nu, s_matrix, factor_m, work_m = np.empty(m), np.empty((m, m)), np.empty((m, m)), np.empty(m)
     factor_n, work_n, error = np.empty((n, n)), np.empty(n), np.empty(n)
-    with_covariance = outputs[2].shape[2] > 0
+    with_covariance, spiking = outputs[2].shape[2] > 0, network[0].shape[2] > 0
     capped_total = 0
     for j in range(count):
         k = first + j
         with_metrics = k + 1 >= metrics_from
         for b in range(runs):
-            _control(b, k, x_hat, u, control)
+            _control(b, k, x_hat, u, control, running)
+        if not _controls_finite(u, running):
+            return STATUS_CONTROL_DIVERGED, j, capped_total
+        for b in range(runs):
             _measure(b, j, x, z, sensing)
             if with_covariance:
                 outputs[4][b, step_at + j] = (_nis(b, z, x_hat, p, sensing, nu, s_matrix, factor_m, work_m)
                                               if with_metrics else np.nan)
         step_noise = membrane[j] if membrane.shape[0] > 0 else noise
-        status, capped = _step(consts, state, network, measured, dt, dynamics, drift, z, u, step_noise)
+        status, capped = _step(consts, state, network, running, dt, dynamics, drift, z, u, step_noise)
         capped_total += capped
-        if status != kernels.STATUS_OK:  # as Estimator.step: raise before the truth moves on
-            return status, j, capped_total
-        if truth[0]:
-            for b in range(runs):
-                _propagate(b, j, truth, u, work_n)
-            _record(sample_at + j, step_at + j, with_metrics, x, truth[6], state, network, outputs, factor_n,
-                    work_n, error)
+        if status == kernels.STATUS_BAD_INPUT or not truth[0]:  # Basilisk: Python steps the truth
+            return status, j + (status != kernels.STATUS_BAD_INPUT), capped_total
+        for b in range(runs):
+            _propagate(b, j, truth, u, work_n)
+        _record(sample_at + j, step_at + j, with_metrics, x, truth[6], state, network, outputs, factor_n,
+                work_n, error)
+        if _any_diverged(state, network, x, consts[10], with_covariance, spiking):
+            return STATUS_RUN_DIVERGED, j + 1, capped_total
+        if status != kernels.STATUS_OK:
+            return status, j + 1, capped_total
     return kernels.STATUS_OK, count, capped_total
 
 
@@ -311,8 +360,9 @@ class FullRecord:
         """(index of sample first + 1, index of step first)."""
         return first + 1, first
 
-    def done(self, first: int, count: int) -> None:
-        """Steps first .. first + count - 1 are written (nothing to do: they stay)."""
+    def done(self, first: int, count: int, diverged_at: np.ndarray) -> None:
+        """Steps first .. first + count - 1 are written (nothing to do: they stay; simulate
+        discards a diverged run's samples at the end)."""
 
 
 class CompiledLoop:
@@ -353,64 +403,87 @@ class CompiledLoop:
         spiking = estimator.spiking
         self._sigma = estimator.settings.membrane_noise * np.sqrt(dt) if spiking else 0.0
 
-    def run(self, sink, steps: int, events=None, on_step=None) -> None:
+    def run(self, sink, steps: int, divergence, events=None, on_step=None) -> None:
         """Steps 0 .. steps - 1, written to ``sink`` (a :class:`FullRecord` or a chunk sink);
-        ``events`` and ``on_step`` as simulate's. Raises what Estimator.step raises at the
-        same step."""
+        ``divergence`` is simulate's ``_Divergence`` (the runs still running, and what marks
+        and restarts a run that diverged); ``events`` and ``on_step`` as simulate's. Raises what
+        simulate's Python loop raises at the same step."""
         boundaries = sorted({steps, *(k for k in (events or {}) if 0 < k < steps)})
         k = 0
         while k < steps:
             if events and k in events:
                 events[k](self.estimator)
             end = min(k + sink.chunk, next(b for b in boundaries if b > k))
-            self._chunk(sink, k, end - k)
+            self._chunk(sink, k, end - k, divergence)
             if on_step is not None:
                 for step in range(k, end):
                     on_step(step)
             k = end
 
-    def _chunk(self, sink, first: int, count: int) -> None:
-        """Steps first .. first + count - 1, then ``sink.done``."""
+    def _chunk(self, sink, first: int, count: int, divergence) -> None:
+        """Steps first .. first + count - 1, in as many compiled calls as divergences need, then
+        ``sink.done``."""
         runs, n = self._x.shape
-        sensing = self._sensing[:2] + (self.sensor._noise.take(count),) + self._sensing[3:]
+        plant_noise = (self.plant._noise.take(count) if self.truth_inside else np.zeros((runs, count, n)))
+        sensor_noise = self.sensor._noise.take(count)
         membrane = (np.stack([g.normal(0.0, self._sigma, (count, self._neurons))
                               for g in self.estimator._network.noise_rngs], axis=1)
                     if self._sigma > 0.0 else np.zeros((0, runs, self._neurons)))
         sample_at, step_at = sink.offsets(first)
-        packed = self.estimator._packed  # read each chunk: an event may have retuned the constants
-        self._step_args = (packed.constants, packed.state, packed.network, self.estimator._all_measured, self.dt,
-                           self._dynamics, self._drift, self._z, self._u, self.estimator._network.zero_noise)
-        if self.truth_inside:
-            truth = (True, self._phi, self._gamma, self._plant_root, self.plant._noise.take(count), self._x,
-                     self._applied)
-            where = (first, count, sample_at, step_at, sink.metrics_from)
-            self._account(*self._loop(self._step_args, membrane, truth, sensing, self._control, sink.outputs, where))
-            self.plant.x, self.plant.applied = self._x.copy(), self._applied.copy()
-            self.plant.time += count * self.dt
-        else:
-            truth = (False, self._phi, self._gamma, self._plant_root, np.zeros((runs, 0, n)), self._x,
-                     self._applied)
-            for j in range(count):  # Basilisk steps the truth between two compiled steps
-                one = sensing[:2] + (np.ascontiguousarray(sensing[2][:, j:j + 1]),) + sensing[3:]
-                where = (first + j, 1, sample_at + j, step_at + j, sink.metrics_from)
-                self._account(*self._loop(self._step_args, membrane[j:j + 1], truth, one, self._control,
-                                          sink.outputs, where))
-                self.plant.step(self._u, self.dt)
-                self._x[:] = self.plant.x
-                record_sample(sample_at + j, step_at + j, first + j + 1 >= sink.metrics_from, self._x,
-                              np.ascontiguousarray(self.plant.applied, dtype=float), self.estimator._packed.state,
-                              self.estimator._packed.network, sink.outputs)
-        sink.done(first, count)
+        done = 0
+        while done < count:
+            left = count if self.truth_inside else done + 1  # Basilisk: one step per call
+            status, taken = self._call(sink, first + done, left - done, sample_at + done, step_at + done,
+                                       plant_noise[:, done:left], sensor_noise[:, done:left],
+                                       membrane[done:left] if membrane.shape[0] else membrane, divergence)
+            done += taken
+            k = first + done - 1  # the last step taken
+            if self.truth_inside:
+                self._sync_plant(taken)
+            if status == STATUS_CONTROL_DIVERGED:  # mark before step first + done, then take it
+                divergence.control(first + done, self._u, self.estimator)
+            elif not self.truth_inside:
+                self._step_truth(sink, sample_at + done - 1, step_at + done - 1, k, status, divergence)
+            elif status == STATUS_RUN_DIVERGED:
+                divergence.check(k, self.estimator, self.plant)
+            elif status == kernels.STATUS_NON_FINITE:
+                raise FloatingPointError(f'the {self.estimator.kind} state became non-finite')
+        sink.done(first, count, divergence.at)
 
-    def _account(self, status: int, done: int, capped: int) -> None:
-        """The estimator's counters after compiled steps, and what Estimator.step raises."""
+    def _call(self, sink, first: int, count: int, sample_at: int, step_at: int, plant_noise, sensor_noise,
+              membrane, divergence) -> tuple[int, int]:
+        """One compiled call for steps first .. first + count - 1; returns (status, steps taken)
+        after the estimator's counters and a bad input's ValueError."""
         estimator = self.estimator
-        estimator.steps += done + (status == kernels.STATUS_NON_FINITE)  # that step was taken
+        packed = estimator._packed  # read each call: an event may have retuned the constants
+        running = estimator._all_measured if divergence.running is None else np.ascontiguousarray(divergence.running)
+        step_args = (packed.constants, packed.state, packed.network, running, self.dt, self._dynamics,
+                     self._drift, self._z, self._u, estimator._network.zero_noise)
+        truth = (self.truth_inside, self._phi, self._gamma, self._plant_root, np.ascontiguousarray(plant_noise),
+                 self._x, self._applied)
+        sensing = self._sensing[:2] + (np.ascontiguousarray(sensor_noise),) + self._sensing[3:]
+        status, taken, capped = self._loop(step_args, np.ascontiguousarray(membrane), truth, sensing, self._control,
+                                           sink.outputs, (first, count, sample_at, step_at, sink.metrics_from))
+        estimator.steps += taken
         estimator.capped_steps += capped
         if status == kernels.STATUS_BAD_INPUT:
             raise ValueError('z and u must be finite')
-        if status == kernels.STATUS_NON_FINITE:
-            raise FloatingPointError(f'the {estimator.kind} state became non-finite; call reset()')
+        return status, taken
+
+    def _step_truth(self, sink, sample: int, step: int, k: int, status: int, divergence) -> None:
+        """Step k's truth by the plant itself (Basilisk), its samples, and the divergence check."""
+        self.plant.step(self._u, self.dt)
+        self._x[:] = self.plant.x
+        record_sample(sample, step, k + 1 >= sink.metrics_from, self._x,
+                      np.ascontiguousarray(self.plant.applied, dtype=float), self.estimator._packed.state,
+                      self.estimator._packed.network, sink.outputs)
+        if divergence.check(k, self.estimator, self.plant) == 0 and status == kernels.STATUS_NON_FINITE:
+            raise FloatingPointError(f'the {self.estimator.kind} state became non-finite')
+
+    def _sync_plant(self, taken: int) -> None:
+        """The compiled truth back into the plant object after ``taken`` steps of it."""
+        self.plant.x, self.plant.applied = self._x.copy(), self._applied.copy()
+        self.plant.time += taken * self.dt
 
 
 def _plant_root(plant, dt: float) -> np.ndarray:

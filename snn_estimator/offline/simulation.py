@@ -19,7 +19,7 @@ import numpy as np
 import scipy.stats
 
 from snn_estimator import defaults as D
-from snn_estimator.config import EstimatorConfig
+from snn_estimator.config import EstimatorConfig, sensor_boundary_layer
 from snn_estimator.filters.estimators import TWIN_OF, make_estimator
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
 
@@ -151,40 +151,55 @@ def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: flo
 
 
 def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: str = 'default', noise=None,
-                              sensor_options: dict | None = None, **estimator_changes) -> Scenario:
+                              sensor_options: dict | None = None,
+                              boundary_layer_units: str = D.SENSOR_BOUNDARY_LAYER_UNITS,
+                              **estimator_changes) -> Scenario:
     """Sec. 3.2 measured by ``sensor`` (a model of snn_estimator.measurements) instead of Table
     6's position (issue 22): noise R per sample ``noise`` (default defaults.SENSOR_NOISE), the
     sensor on the chaser looking back at the target (defaults.CLOSE_SENSOR_MOUNTING; no field of
     view, and the range limit defaults.CLOSE_SENSOR_MIN_RANGE, unless ``sensor_options`` sets
-    them). The filters take the sensor's R as their R (times measurement_noise_scale) and one
-    sensor sigma per component as the boundary layer delta (Table 6: delta = 0.1 m = sigma),
-    unless ``measurement_noise`` or ``boundary_layer`` is given."""
+    them). The filters take the sensor's R as their R (times measurement_noise_scale) and Table
+    6's delta per component in ``boundary_layer_units`` (config.sensor_boundary_layer: 'sigma',
+    one sensor sigma, the default; 'variance', 10 R_jj; Decision 35), unless ``measurement_noise``
+    or ``boundary_layer`` is given. The spiking filters
+    code the deviation from the prediction in units of 1 mm and 0.01 mm/s (defaults.SENSOR_NETWORK;
+    Decision 36) unless ``network_coding`` or ``state_scale`` is given or the preset is
+    'as_published'."""
     from snn_estimator.measurements import make_model
-    base = rendezvous_scenario(preset, **estimator_changes)
+    base = rendezvous_scenario(preset, **_sensor_network(preset, estimator_changes))
     options = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE,
                **(sensor_options or {})}
     model = make_model(sensor, D.SENSOR_NOISE[sensor] if noise is None else noise, **options)
     config = base.estimator
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
-    if 'boundary_layer' not in estimator_changes:  # Table 6's delta is one sensor sigma: per component
-        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
+    if 'boundary_layer' not in estimator_changes:  # Table 6's delta per component (Decision 35)
+        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise, boundary_layer_units))
     return replace(base, name=f'rendezvous_{sensor}', sensor=model, estimator=config,
                    measurement_noise=model.noise)
 
 
+def _sensor_network(preset: str, estimator_changes: dict) -> dict:
+    """``estimator_changes`` with the sensors' network (defaults.SENSOR_NETWORK) where it does not
+    say otherwise; the 'as_published' preset keeps the paper's network."""
+    if preset == 'as_published':
+        return estimator_changes
+    return {**D.SENSOR_NETWORK, **estimator_changes}
+
+
 def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOVER_LIDAR_MAX_RANGE,
-                      periods=D.HANDOVER_PERIODS, **estimator_changes) -> Scenario:
+                      periods=D.HANDOVER_PERIODS, boundary_layer_units: str = D.SENSOR_BOUNDARY_LAYER_UNITS,
+                      **estimator_changes) -> Scenario:
     """Sec. 3.2 flown on two sensors fused in one filter (issue 22; not in the paper): a camera
     (line_of_sight, every ``periods[0]`` steps) for the whole approach and a LIDAR
     (range_azimuth_elevation, every ``periods[1]`` steps) within ``lidar_max_range``; both on the
     chaser looking back at the target, no closer than defaults.CLOSE_SENSOR_MIN_RANGE. Far, the
     filter has the bearings only (the LQR's known burns make the range observable); once the
-    LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta one
-    sensor sigma per component, as in :func:`sensor_rendezvous_scenario`."""
+    LIDAR sees the target it hands over. R_hat = scale * blockdiag(R_camera, R_lidar), delta
+    and the network as in :func:`sensor_rendezvous_scenario`."""
     from snn_estimator.measurements import make_model
     from snn_estimator.measurements.stacked import Stacked
-    base = rendezvous_scenario(preset, **estimator_changes)
+    base = rendezvous_scenario(preset, **_sensor_network(preset, estimator_changes))
     geometry = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING, 'min_range': D.CLOSE_SENSOR_MIN_RANGE}
     camera = make_model('line_of_sight', D.SENSOR_NOISE['line_of_sight'], **geometry)
     lidar = make_model('range_azimuth_elevation', D.SENSOR_NOISE['range_azimuth_elevation'],
@@ -194,7 +209,7 @@ def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOV
     if 'measurement_noise' not in estimator_changes:
         config = config.replace(measurement_noise=model.noise)
     if 'boundary_layer' not in estimator_changes:
-        config = config.replace(boundary_layer=tuple(np.sqrt(np.diag(model.noise))))
+        config = config.replace(boundary_layer=sensor_boundary_layer(model.noise, boundary_layer_units))
     return replace(base, name='rendezvous_camera_lidar', sensor=model, estimator=config,
                    measurement_noise=model.noise, sensor_periods=tuple(periods))
 
@@ -269,15 +284,35 @@ class SimulationResult:
     #: The readings without the trajectories (simulate(..., trajectories=False); then truth,
     #: estimate, covariance_diag, control, NEES, NIS and the raster are None): sums.LoopSums.
     kept_sums: LoopSums | None = None
+    #: The step at which each run diverged (its state or control went non-finite), -1 for a run
+    #: that did not; its samples after that step are NaN (None: not recorded).
+    diverged_at: np.ndarray | None = None
+
+    @property
+    def runs(self) -> int:
+        return self.kept_sums.runs if self.truth is None else self.truth.shape[0]
+
+    @property
+    def diverged(self) -> np.ndarray:
+        """True for each run that diverged, shape (runs,). The statistics below (RMSE, mean
+        error, spikes, NEES/NIS) are over the other runs; per-run arrays keep NaN for it."""
+        if self.diverged_at is None:
+            return np.zeros(self.runs, dtype=bool)
+        return self.diverged_at >= 0
+
+    def _kept(self, per_run: np.ndarray) -> np.ndarray:
+        """``per_run`` (leading runs axis) without the runs that diverged (as it is if none did)."""
+        diverged = self.diverged
+        return per_run[~diverged] if diverged.any() else per_run
 
     @property
     def sums(self) -> LoopSums:
-        """What the tables read, summed over runs and the metric window (sums.LoopSums): kept
-        as such, or summed from the trajectories."""
+        """The metric window's samples and the per-run totals (sums.LoopSums): kept as such, or
+        taken from the trajectories."""
         return self.kept_sums if self.truth is None else LoopSums.of_trajectories(self)
 
     def _without_trajectories(self, what: str, seconds: float | None = None) -> bool:
-        """True when only the sums were kept (then ``seconds`` must be the metric window)."""
+        """True when only the window was kept (then ``seconds`` must be the metric window)."""
         if self.truth is not None:
             return False
         if seconds is not None and abs(seconds - self.scenario.metric_window) > 1e-9:
@@ -299,42 +334,46 @@ class SimulationResult:
     def rmse(self, seconds: float | None = None) -> np.ndarray:
         """Ordinary RMSE per state over the final window: sqrt(mean over runs and time of e^2)."""
         if self._without_trajectories('rmse', seconds):
-            return self.kept_sums.rmse()
-        e = self.error[:, self.window(seconds)]
+            e = self._kept(self.kept_sums.error)
+        else:
+            e = self._kept(self.error)[:, self.window(seconds)]
         return np.sqrt(np.mean(e * e, axis=(0, 1)))
 
     def mean_error(self, seconds: float | None = None) -> np.ndarray:
         """Time average over the final window of |mean over runs of e(t)| per state."""
         if self._without_trajectories('mean_error', seconds):
-            return self.kept_sums.mean_error()
-        e = self.error[:, self.window(seconds)]
+            e = self._kept(self.kept_sums.error)
+        else:
+            e = self._kept(self.error)[:, self.window(seconds)]
         return np.mean(np.abs(e.mean(axis=0)), axis=0)
 
     def rmse_history(self) -> np.ndarray:
         """RMSE over runs at each time, shape (steps + 1, n)."""
-        return np.sqrt(np.mean(self.error ** 2, axis=0))
+        return np.sqrt(np.mean(self._kept(self.error) ** 2, axis=0))
 
     @property
     def spike_fraction(self) -> float | None:
         """Spikes emitted / (N x steps), averaged over runs (Fig. 7: 17%)."""
         if self.truth is None and self.neuron_count:
-            sums = self.kept_sums
-            return float(sums.spikes.sum() / (sums.runs * sums.steps * self.neuron_count))
+            spikes = self._kept(self.kept_sums.spikes)
+            return float(spikes.sum() / (spikes.shape[0] * self.kept_sums.steps * self.neuron_count))
         if self.spikes_per_step is None:
             return None
-        steps = self.spikes_per_step.shape[1]
-        return float(self.spikes_per_step.sum() / (self.spikes_per_step.shape[0] * steps * self.neuron_count))
+        spikes = self._kept(self.spikes_per_step)
+        steps = spikes.shape[1]
+        return float(spikes.sum() / (spikes.shape[0] * steps * self.neuron_count))
 
     def final_range(self) -> np.ndarray:
         """Distance of the chaser from where the controller steers it (the target, or the
-        scenario's setpoint) at the end, per run, m."""
+        scenario's setpoint) at the end, per run, m (NaN for a run that diverged)."""
         aim = np.zeros(3) if self.scenario.setpoint is None else self.scenario.setpoint[:3]
         final = self.kept_sums.final_state if self.truth is None else self.truth[:, -1]
         return np.linalg.norm(final[:, :3] - aim, axis=1)
 
     def delta_v(self) -> np.ndarray:
         """Velocity change the thrusters delivered, per run, m/s: sum over steps of
-        |u_x| + |u_y| + |u_z| times dt (one thruster pair per axis: propellant goes as this)."""
+        |u_x| + |u_y| + |u_z| times dt (one thruster pair per axis: propellant goes as this;
+        NaN for a run that diverged)."""
         if self.control is None:
             return self.kept_sums.delta_v()
         return np.abs(self.control).sum(axis=(1, 2)) * self.scenario.dt
@@ -345,20 +384,19 @@ class SimulationResult:
         sensor = self.scenario.sensor
         dof = self.scenario.model.n_meas if sensor is None else sensor.dim
         if self._without_trajectories('consistency', seconds):
-            sums = self.kept_sums
-            if not sums.covariance:
+            if not self.kept_sums.covariance:
                 return {}
-            nis = sums.nis_sum[np.isfinite(sums.nis_sum)]
-            return {'nees': consistency_check(sums.nees_sum / sums.runs, sums.runs, sums.sum_sq.size),
-                    'nis': consistency_check(nis / sums.runs, sums.runs, dof)}
-        if self.nees is None:
-            return {}
-        window = self.window(seconds)
-        runs = self.nees.shape[0]
-        nis = self.nis[:, window.start - 1:window.stop - 1]
+            nees, nis = self._kept(self.kept_sums.nees), self._kept(self.kept_sums.nis)
+        else:
+            if self.nees is None:
+                return {}
+            window = self.window(seconds)
+            nees = self._kept(self.nees)[:, window]
+            nis = self._kept(self.nis)[:, window.start - 1:window.stop - 1]
+        runs = nees.shape[0]
         if sensor is not None:  # steps without a measurement have no NIS (NaN): average the others
             nis = nis[:, np.isfinite(nis).all(axis=0)]
-        return {'nees': consistency_check(self.nees[:, window].mean(axis=0), runs, self.truth.shape[2]),
+        return {'nees': consistency_check(nees.mean(axis=0), runs, self.scenario.model.n_state),
                 'nis': consistency_check(nis.mean(axis=0), runs, dof)}
 
 
@@ -424,16 +462,19 @@ class _Sensing:
         self.c, self.r_hat = scenario.model.measurement_matrix, estimator.settings.r_hat
         self.unmeasured = np.zeros(len(seeds), dtype=np.int64)
 
-    def step(self, k: int, plant, estimator, record, u: np.ndarray, dt: float) -> None:
+    def step(self, k: int, plant, estimator, record, u: np.ndarray, dt: float,
+             running: np.ndarray | None = None) -> None:
+        """Measure and step the filter; ``running`` (None: every run) masks out the runs that
+        diverged: they are not measured."""
         x_hat, covariance, c, r_hat = estimator.batch_x_hat, estimator.batch_P, self.c, self.r_hat
         if not self.with_limits:
             z = self.sensor.measure(plant.x)
             if covariance is not None:
                 record.nis[:, k] = normalised_squares(z - x_hat @ c.T, c @ covariance @ c.T + r_hat)
-            estimator.step(z, u, dt)
+            estimator.step(z, u, dt, valid=running)
             return
         sample = self.sensor.measure(plant.x)
-        valid = sample.valid
+        valid = sample.valid if running is None else sample.valid & running
         self.unmeasured += ~valid
         if covariance is not None:
             record.nis[:, k] = np.nan
@@ -442,8 +483,63 @@ class _Sensing:
             if valid.any():
                 record.nis[valid, k] = estimator.innovation_nis(np.where(valid[:, None], sample.z, 0.0),
                                                                 r_hat)[valid]
-            valid = sample.valid
+            valid = sample.valid if running is None else sample.valid & running
         estimator.step(sample.z, u, dt, valid=valid)
+
+
+class _Divergence:
+    """The runs of a batch that diverged, so that the others go on. A run diverges at step k when
+    its control at k, or its estimate, covariance or truth after step k, is not finite (a filter
+    whose P lost positive definiteness, ...), or when its network's spikes in step k reached
+    max_spikes_per_step (1000 N by default: the network no longer follows the filter, its
+    estimate is what the cap left). From then on its filter is restarted
+    (Estimator.restart) and never measured, it flies with u = 0, and its samples from k + 1 on
+    (controls, NIS and spikes from k) are discarded (NaN; :attr:`SimulationResult.diverged`).
+    With no run diverged nothing here touches a number."""
+
+    def __init__(self, runs: int):
+        #: The step at which each run diverged, -1 for none.
+        self.at = np.full(runs, -1, dtype=np.int64)
+        #: What went first: control, estimate, covariance, truth or spike_cap ('' for none).
+        self.cause = np.full(runs, '', dtype=object)
+        #: The runs still flying (None while every run is: the loop's arrays pass unchanged).
+        self.running: np.ndarray | None = None
+
+    def control(self, k: int, u: np.ndarray, estimator) -> np.ndarray:
+        """``u`` with the diverged runs' rows zero; a run whose control is not finite diverges here."""
+        finite = np.isfinite(u).all(axis=1)
+        if not finite.all():
+            self._mark(k, np.where(finite, '', 'control'), estimator)
+        return u if self.running is None else np.where(self.running[:, None], u, 0.0)
+
+    def check(self, k: int, estimator, plant) -> int:
+        """Mark the runs that became non-finite in step ``k`` and restart their filters (a run
+        that diverged before and blew up again restarts again); returns how many runs were
+        non-finite."""
+        estimate = np.isfinite(estimator.batch_x_hat).all(axis=1)
+        covariance = (np.isfinite(estimator.batch_P).all(axis=(1, 2)) if estimator.has_covariance
+                      else estimate)
+        truth = np.isfinite(plant.x).all(axis=1)
+        spikes = (estimator.batch_spikes.sum(axis=1) < estimator.settings.max_spikes_per_step if estimator.spiking
+                  else truth)
+        if estimate.all() and covariance.all() and truth.all() and spikes.all():
+            return 0
+        cause = np.where(~estimate, 'estimate', np.where(~covariance, 'covariance', np.where(
+            ~truth, 'truth', np.where(~spikes, 'spike_cap', ''))))
+        self._mark(k, cause, estimator, broken=~(estimate & covariance))
+        return int((cause != '').sum())
+
+    def _mark(self, k: int, cause: np.ndarray, estimator, broken: np.ndarray | None = None) -> int:
+        """Runs with a ``cause`` diverge at step ``k`` (the first cause is kept); the new ones and
+        any whose filter state is ``broken`` restart."""
+        new = (cause != '') & (self.at < 0)
+        self.at[new] = k
+        self.cause[new] = cause[new]
+        self.running = self.at < 0
+        restart = new if broken is None else new | broken
+        if restart.any():
+            estimator.restart(restart)
+        return int(new.sum())
 
 
 def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
@@ -460,10 +556,13 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     ``controller_options``: its neurons, leak). ``engine``: compiled (the loop in numba,
     :mod:`.compiled_loop`: the same numbers, several times faster), reference (the loop in
     Python, :func:`_python_loop`), or auto (compiled where it applies: a linear model and the
-    position sensor, the float64 network, the LQR). ``trajectories=False`` keeps only the
-    readings of the metric window (``result.sums``, :mod:`.sums`): with the compiled engine a
-    run then holds ~12 kB of buffers besides its filter, instead of its trajectories (~0.7 MB
-    for the 360 s rendezvous).
+    position sensor, the float64 network, the LQR). ``trajectories=False`` keeps only the metric
+    window's errors, NEES and NIS and per-run totals (``result.sums``, :mod:`.sums`): with the
+    compiled engine a run then holds ~60 kB instead of its trajectories (~0.7 MB for the 360 s
+    rendezvous). A run whose control, estimate, covariance or truth goes non-finite, or whose
+    network hits its spike cap, is marked (``result.diverged``, ``result.diverged_at``,
+    :class:`_Divergence`), its later samples are NaN and the batch's statistics leave it out;
+    the other runs go on as if it were not there.
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {', '.join(ENGINES)}; got {engine!r}")
@@ -480,6 +579,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     compiled = engine != 'reference' and not why_not
     steps, dt = scenario.steps, scenario.dt
     record = sums = None
+    divergence = _Divergence(runs)
     if compiled and not trajectories:
         sums = _first_sums(scenario, estimator, plant)
     else:
@@ -491,24 +591,28 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
         sink = (compiled_loop.FullRecord(record, runs, scenario.model.n_state, estimator._network.r.shape[1])
                 if record is not None else
                 ChunkSink(sums, scenario.model.n_input, estimator.spiking))
-        loop.run(sink, steps, events, on_step)
+        loop.run(sink, steps, divergence, events, on_step)
     else:
-        _python_loop(scenario, estimator, plant, sensing, control, record, events, on_step)
-    result = _result(kind, scenario, estimator, plant, sensing, control, record, sums,
+        _python_loop(scenario, estimator, plant, sensing, control, record, divergence, events, on_step)
+    if record is not None:
+        record.discard(divergence.at)
+    result = _result(kind, scenario, estimator, plant, sensing, control, record, sums, divergence,
                      time.perf_counter() - started, trajectories)
     result.extra['cpu_time'] = time.thread_time() - cpu_started  # of the loop, this thread: a bench under load
     return result
 
 
-def _result(kind, scenario, estimator, plant, sensing, control, record, sums, wall: float,
+def _result(kind, scenario, estimator, plant, sensing, control, record, sums, divergence, wall: float,
             trajectories: bool) -> SimulationResult:
-    """simulate's result: the trajectories of ``record``, or the ``sums`` (summed from ``record``
-    when the reference engine ran without trajectories)."""
+    """simulate's result: the trajectories of ``record``, or the window's ``sums`` (taken from
+    ``record`` when the reference engine ran without trajectories)."""
     result = SimulationResult(
         kind=kind, scenario=scenario, time=scenario.dt * np.arange(scenario.steps + 1), truth=None,
         estimate=None, covariance_diag=None, control=None, spikes_per_step=None, raster=None,
         neuron_count=estimator.neuron_count, wall_time=wall, capped_steps=estimator.capped_steps, kept_sums=sums,
+        diverged_at=divergence.at,
         extra={'saturated_steps': plant.saturated_steps.copy(), 'unmeasured_steps': sensing.unmeasured,
+               'diverged_cause': divergence.cause,
                'controller_spikes': (None if control.spiking_lqr is None
                                      else control.spiking_lqr.total_spikes.copy())})
     if record is None:
@@ -523,7 +627,7 @@ def _result(kind, scenario, estimator, plant, sensing, control, record, sums, wa
 
 
 def _first_sums(scenario: Scenario, estimator, plant) -> LoopSums:
-    """The sums of a run that keeps no trajectory, with sample 0 (the start) in them."""
+    """The window of a run that keeps no trajectory, with sample 0 (the start) in it."""
     runs, n = estimator.runs, scenario.model.n_state
     window_start = scenario.steps + 1 - int(round(scenario.metric_window / scenario.dt))
     sums = LoopSums(runs, n, scenario.steps, window_start, scenario.dt, estimator.has_covariance)
@@ -533,17 +637,26 @@ def _first_sums(scenario: Scenario, estimator, plant) -> LoopSums:
     return sums
 
 
-def _python_loop(scenario: Scenario, estimator, plant, sensing, control, record, events, on_step) -> None:
+def _python_loop(scenario: Scenario, estimator, plant, sensing, control, record, divergence, events,
+                 on_step) -> None:
     """The loop in Python (engine reference), step by step:
     ``u_k = -K x_hat_k``; ``z_k = C x_k + v_k``; ``x_hat_{k+1} = estimator.step(z_k, u_k, dt)``;
-    ``x_{k+1} = plant.step(u_k, dt)``; the samples of k + 1."""
+    ``x_{k+1} = plant.step(u_k, dt)``; the samples of k + 1; a run that diverged is marked
+    (``divergence``)."""
     x_hat, dt = estimator.batch_x_hat, scenario.dt  # (runs, n) view, updated in place by the estimator
     for k in range(scenario.steps):
         if events and k in events:
             events[k](estimator)
-        u = control(k, x_hat, dt)
-        sensing.step(k, plant, estimator, record, u, dt)
+        u = divergence.control(k, control(k, x_hat, dt), estimator)
+        try:
+            sensing.step(k, plant, estimator, record, u, dt, divergence.running)
+        except FloatingPointError:  # every run took the step; the runs that went non-finite are found below
+            non_finite = True
+        else:
+            non_finite = False
         plant.step(u, dt)
+        if divergence.check(k, estimator, plant) == 0 and non_finite:  # not a run's state: a bug to see
+            raise FloatingPointError(f'the {estimator.kind} state became non-finite')
         record.controls[:, k] = plant.applied
         record.sample(k + 1, plant, x_hat, estimator.batch_P)
         if estimator.spiking:
@@ -568,6 +681,22 @@ class _Record:
         self.raster = np.zeros((steps, estimator.neuron_count), dtype=np.int16) if spiking else None
         self.nees = np.empty((runs, steps + 1)) if covariance else None
         self.nis = np.empty((runs, steps)) if covariance else None
+
+    def discard(self, diverged_at: np.ndarray) -> None:
+        """NaN for every sample of a run after the step it diverged at (controls and NIS from
+        that step on), no spikes from then on."""
+        for b in np.flatnonzero(diverged_at >= 0):
+            k = int(diverged_at[b])
+            for samples in (self.truth, self.estimate, self.cov, self.nees):
+                if samples is not None:
+                    samples[b, k + 1:] = np.nan
+            self.controls[b, k:] = np.nan
+            if self.nis is not None:
+                self.nis[b, k:] = np.nan
+            if self.spikes is not None:
+                self.spikes[b, k:] = 0
+                if b == 0:
+                    self.raster[k:] = 0
 
     def sample(self, k: int, plant, x_hat: np.ndarray, covariance: np.ndarray | None) -> None:
         """Truth, estimate, covariance diagonal and NEES at time k."""
