@@ -134,6 +134,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls, Provi
         self.not_measured = 0  # samples the sensor said it could not measure (no_measurement)
         self._last_unmeasured_ns: int | None = None
         self.controls_missing = 0
+        self.applied_received = 0  # the plant's reports of the control it applied
         self.dropout_steps = 0
         self.step_seconds: list[float] = []
         #: Where a re-initialisation starts from (recent data, never the parameters mid-flight).

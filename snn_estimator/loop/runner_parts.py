@@ -228,7 +228,7 @@ class Reporting:
             'step_time_us_last': float(times[-1]) if times.size else 0.0,
             'step_time_us_median': float(np.median(times)) if times.size else 0.0,
             'controls_missing': self.controls_missing, 'dropout_steps': self.dropout_steps,
-            'provisional_held': self.provisional_held,
+            'applied_received': self.applied_received, 'provisional_held': self.provisional_held,
             **{key: self.events[key] for key in ('provisional_steps', 'provisional_corrected',
                                                  'provisional_unconfirmed')},
         }
@@ -343,6 +343,7 @@ class Controls:
         if self.start_ns is not None and stamp_ns < self.start_ns:
             self.control_rejected['applied_before_init'] += 1
             return 'applied_before_init'
+        self.applied_received += 1
         self._applied[stamp_ns] = np.asarray(u, dtype=float)
         if len(self._applied) > CONTROL_MEMORY:
             del self._applied[min(self._applied)]
