@@ -18,11 +18,12 @@ during the first second of stepping (start-up: the filter's first steps, caches)
 rest. The default cases name the causes of the tail by switching them off one at a time at 10x:
 ``10x_gc_frozen`` runs every node with the garbage collector frozen and disabled after start-up
 (SNN_GC=freeze, see scenario_nodes.runtime.tune_process), ``10x_log_warn`` with the nodes'
-loggers at WARN (SNN_LOG_LEVEL); ``1x_wait`` and ``10x_wait`` (not run by default) run the estimator
-with ``provisional_steps: false``, waiting for the plant's report of the applied control as before
-provisional steps (one step of latency by design). An estimate published again under its stamp
-(a correction, snn_estimator.loop.provisional) counts from its first arrival, and the corrections
-are counted. Results: stdout and ``--out`` (JSON: case -> path -> p50_ms, p99_ms, max_ms, ...).
+loggers at WARN (SNN_LOG_LEVEL); ``10x_wait`` (and ``1x_wait``, not run by default) runs the
+estimator with ``provisional_steps: false``, waiting for the plant's report of the applied control
+as before provisional steps (one step of latency by design), the reference within the same run.
+An estimate published again under its stamp (a correction, snn_estimator.loop.provisional) counts
+from its first arrival, and the copies are counted (``estimates_again``). Results: stdout and
+``--out`` (JSON: case -> path -> p50_ms, p99_ms, max_ms, ...).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ CASES = {
     '1x_wait': (1.0, {}, {'estimator': {'provisional_steps': False}}),
     '10x_wait': (10.0, {}, {'estimator': {'provisional_steps': False}}),
 }
-DEFAULT_CASES = ('1x', '10x', '10x_gc_frozen', '10x_log_warn')
+DEFAULT_CASES = ('1x', '10x', '10x_gc_frozen', '10x_log_warn', '10x_wait')
 #: Paths measured: name -> topic whose receive time ends it (each starts at the measurement).
 PATHS = {'measurement_to_estimate': 'estimate', 'measurement_to_control': 'control'}
 PROBE_TOPICS = ('measurement', 'estimate', 'control')
