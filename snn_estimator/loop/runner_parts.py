@@ -344,12 +344,12 @@ class Controls:
             self.control_rejected['applied_before_init'] += 1
             return 'applied_before_init'
         self.applied_received += 1
-        self._applied[stamp_ns] = np.asarray(u, dtype=float)
+        u = self._applied[stamp_ns] = np.asarray(u, dtype=float)
         if len(self._applied) > CONTROL_MEMORY:
             del self._applied[min(self._applied)]
         self._plant_reports = True
         if self._provisional:
-            self._report(stamp_ns, self._applied[stamp_ns])
+            self._report(stamp_ns, u)
         if self.started:
             self._process()
         return None
