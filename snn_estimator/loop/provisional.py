@@ -145,8 +145,8 @@ class ProvisionalSteps:
 
     def _report(self, stamp_ns: int, u: np.ndarray) -> None:
         """The plant's report for ``stamp_ns``: confirms its held step, or corrects it."""
-        half = self._dt_ns // 2
-        index = next((i for i, held in enumerate(self._provisional) if abs(held.stamp_ns - stamp_ns) <= half), None)
+        index = next((i for i, held in enumerate(self._provisional)
+                      if abs(held.stamp_ns - stamp_ns) * 2 < self._dt_ns), None)  # as _stamped pairs them
         if index is None or self._provisional[index].final:
             return
         if np.array_equal(u, self._provisional[index].u):
@@ -170,7 +170,7 @@ class ProvisionalSteps:
         for key in [key for key, count in self.events.items() if count <= 0]:
             del self.events[key]
         self.events['provisional_corrected'] += 1
-        self._log('info', f'the plant applied another control at t = {first.stamp_ns * 1e-9:.3f} s than the '
+        self._log('info', f'at t = {first.stamp_ns * 1e-9:.3f} s the plant applied another control than the '
                   f'estimate used: {len(redo)} step(s) taken again')
         self._replaying = True
         try:
