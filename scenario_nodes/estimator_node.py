@@ -13,7 +13,9 @@ an active estimator that sees another one alive yields by name (snn_estimator.lo
 
 Timing (snn_estimator.loop.runner): the estimate x_hat_k stamped t_k is published; the controller
 answers with u_k; when z_k and u_k are both here the filter steps and x_hat_{k+1} is published
-stamped t_k + time_step.
+stamped t_k + time_step. Once the plant reports the controls it applied, that step is
+provisional until the report of step k comes; a report that differs from u_k takes the step
+again and publishes x_hat_{k+1} once more, under the same stamp (``provisional_steps``).
 """
 
 from __future__ import annotations
@@ -74,7 +76,8 @@ def runner_settings(p: dict) -> RunnerSettings:
                           initial_fit_window=p['initial_fit_window'],
                           time_jump_threshold=p['time_jump_threshold'],
                           control_validity=p['control_validity'],
-                          measurement_timing=p['measurement_timing'])
+                          measurement_timing=p['measurement_timing'],
+                          provisional_steps=p['provisional_steps'])
 
 
 class Inputs:
@@ -174,7 +177,7 @@ class Outputs:
         self.publishers = [self._count, self.diagnostics.publisher] + [self._spikes] * bool(self._spikes)
         self._costs = costs
         self.answers = Answers()
-        self.published = self.spikes_published = 0
+        self.published = self.spikes_published = self.corrected = 0
         self._published_wall = -1e9
 
     def open(self) -> None:
@@ -192,13 +195,20 @@ class Outputs:
             self.estimate.destroy(self._node)
             self.estimate = None
 
-    def publish(self, estimator, stamp_ns: int, active: bool) -> None:
+    def publish(self, estimator, stamp_ns: int, active: bool, corrected: bool = False) -> None:
+        """The estimate at ``stamp_ns`` and its step's spikes; ``corrected``: the estimate of a stamp
+        published before, taken again with the control the plant applied (the estimate alone:
+        spike_count and spikes carry one message per step, as first taken)."""
         data = encode_odometry(estimator.x_hat, estimator.P, stamp_ns, self._frame, self._child)
         self.answers.remember(stamp_ns, data)  # inactive too: a resend after activation needs it
         if not active or self.estimate is None:
             return
         self.estimate.publish(data)
         self._published_wall = time.monotonic()
+        if corrected:
+            self.corrected += 1
+            self.published += 1
+            return
         self._count.publish(encode_uint32(estimator.spike_count))
         if self._spikes is not None:
             self._spikes.publish(encode_spikes(estimator.spikes if estimator.spiking else ()))
@@ -215,7 +225,7 @@ class Outputs:
 
     def values(self, estimator) -> dict:
         values = {'estimates_published': self.published, 'estimates_resent': self.answers.resent,
-                  'spikes_published': self.spikes_published}
+                  'estimates_corrected': self.corrected, 'spikes_published': self.spikes_published}
         if self._costs is not None and estimator.steps:  # the last step's cost (snn_estimator.spiking.costs)
             costs = self._costs.step(estimator.spike_count)
             values.update(synops_per_step=int(costs.synops), neuron_updates_per_step=int(costs.neuron_updates),
@@ -240,6 +250,7 @@ def apply_runtime_changes(runner: FilterRunner, values: dict, changes: dict) -> 
         retune['silenced_neurons'] = silenced_set(values, estimator.neuron_count, estimator.settings.seed)
     settings = runner_settings(values)  # validate first
     if retune:
+        runner.settle('parameters changed')  # a held step is never taken again with other settings
         estimator.retune(**retune)  # validated (also against the step in use) before it changes anything
     runner.replace_settings(settings)
     if estimator.spiking and silencing:
@@ -326,7 +337,8 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         covariance = estimator.settings.r_hat / p['measurement_noise_scale']  # R per sample
         history = (collect_history(self, p['frame_id'], axes, p['history_wait'], measurement, p['sensor_frame_id'])
                    if p['initialization'] != 'parameters' else None)
-        self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log)
+        self._runner = FilterRunner(estimator, runner_settings(p), covariance, self._publish, self.log,
+                                    republish=self._republish)
         measured = [s.topic for s in self._sensors] if self._sensors else [qos.MEASUREMENT]
         self.peers = PeerWatch([*measured, qos.CONTROL, 'clock'], p['peer_timeout'], log=self.log)
         self._last_clock_ns = 0
@@ -453,6 +465,10 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self._announce = self._announce and not self._active
         if self._active and self._out.diagnostics.due(stamp_ns):
             self._publish_diagnostics(stamp_ns)
+
+    def _republish(self, stamp_ns: int) -> None:
+        """A corrected estimate (snn_estimator.loop.provisional): the same stamp again."""
+        self._out.publish(self._runner.estimator, stamp_ns, self._active, corrected=True)
 
     def values(self) -> dict:
         """Everything the diagnostics report: the runner's counters, the outputs, the state."""

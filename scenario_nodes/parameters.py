@@ -275,6 +275,10 @@ ESTIMATOR = MODEL + (
          'rejected as misaligned), any (a sensor on its own clock: each measurement is the input '
          'until the next one\'s stamp and the estimate is published at each measurement\'s stamp; '
          'docs/decisions.md, 31)', choices=MEASUREMENT_TIMINGS),
+    Spec('provisional_steps', True, "Once the plant reports the controls it applied (`applied_control`): "
+         "answer z_k at once with the controller's u_k and correct the estimate (published again under its "
+         'stamp) if the report differs; false: wait for the report (in realtime one tick later). At most '
+         '8 steps are held for their reports (grid measurement_timing only; docs/decisions.md, 22b)'),
     Spec('history_wait', 1.0, 'Wall-clock s at most to read the history that publishers keep on '
          '`estimate`, `measurement` and `control` when configured (no wait when none keeps any)', low=0.0),
     Spec('initial_fit_window', D.INITIAL_FIT_WINDOW, 'Seconds of measurement history a least-squares '

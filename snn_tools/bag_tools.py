@@ -55,7 +55,7 @@ class RunData:
     receive_times: dict = field(default_factory=dict)  # pipeline topic -> (k,) ns, in bag order
     diagnostics: dict = field(default_factory=dict)    # status name -> list of (stamp s, values)
     namespace: str = ''
-    repeats: dict = field(default_factory=dict)      # series -> resent samples left out of it
+    repeats: dict = field(default_factory=dict)      # series -> resent (or corrected) samples left out of it
     # sensor topic (relative, e.g. measurement, camera) -> (stamps ns, measured): one per stamp, in
     # stamp order; measured False for "nothing measured"
     reports: dict = field(default_factory=dict)
@@ -98,11 +98,11 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
                 _decode(run, series, typestore, connection, name, raw)
     run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}
     for key in [key for key in series if isinstance(key, tuple)]:
-        reports, _ = _first_per_stamp(series.pop(key))
+        reports, _ = _one_per_stamp(series.pop(key))
         run.reports[key[1]] = (np.array([r[0] for r in reports], dtype=np.int64),
                                np.array([r[1] for r in reports], dtype=bool))
     for name in ('truth', 'estimate', 'measurement', 'control'):
-        series[name], run.repeats[name] = _first_per_stamp(series[name])
+        series[name], run.repeats[name] = _one_per_stamp(series[name], last=name == 'estimate')
     if series['truth']:
         run.truth_t = np.array([s[0] for s in series['truth']]) / NS
         run.truth = np.stack([s[1] for s in series['truth']])
@@ -145,17 +145,18 @@ def _decode(run: RunData, series: dict, typestore, connection, name: str, raw: b
             run.diagnostics.setdefault(status.name, []).append((stamp, {kv.key: kv.value for kv in status.values}))
 
 
-def _first_per_stamp(samples: list) -> tuple[list, int]:
-    """Samples with a stamp already seen dropped (a lockstep resend repeats a sample when its
-    answer is late, docs/decisions.md 21; the copy is on record in the bag, once in the series),
-    and how many were dropped."""
-    seen, kept = set(), []
+def _one_per_stamp(samples: list, last: bool = False) -> tuple[list, int]:
+    """One sample per stamp, in stamp order, and how many were left out. A lockstep resend
+    repeats a sample when its answer is late (docs/decisions.md 21: the same bytes); an estimate
+    taken again with the control the plant applied is published again under its stamp (22b), so
+    for estimates ``last`` keeps the final one (the estimator's answer; the first is what the
+    controller acted on). Every copy stays on record in the bag."""
+    kept = {}
     for sample in samples:
-        if sample[0] not in seen:
-            seen.add(sample[0])
-            kept.append(sample)
-    kept.sort(key=lambda sample: sample[0])  # in stamp order: a recorder backfills missed samples later
-    return kept, len(samples) - len(kept)
+        if last or sample[0] not in kept:
+            kept[sample[0]] = sample
+    ordered = sorted(kept.values(), key=lambda sample: sample[0])  # a recorder backfills missed samples later
+    return ordered, len(samples) - len(ordered)
 
 
 def matched_errors(run: RunData) -> tuple[np.ndarray, np.ndarray]:
@@ -303,7 +304,9 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'measurement': int(_number(sensor, 'measurements_published')),
         'control': int(_number(controller, 'controls_published')),
         'estimate': int(estimates),
-        'spike_count': int(estimates - _number(estimator, 'estimates_resent')),  # not sent again
+        # one per step: not sent again with a resend or a correction
+        'spike_count': int(estimates - _number(estimator, 'estimates_resent')
+                           - _number(estimator, 'estimates_corrected')),
         # none with publish_spikes false; estimators older than the key published one per estimate
         'spikes': int(_number(estimator, 'spikes_published', estimates)),
     }
@@ -343,7 +346,8 @@ def _completeness(run: RunData, estimator: dict, published: dict, recorded: dict
     message they published (a restarted node counts from its restart)."""
     restarted = restarts(run)
     gaps = {topic: values['gaps'] for topic, values in sensors.items()} | stamp_gaps(run)
-    duplicates = max(0, run.repeats.get('estimate', 0) - int(_number(estimator, 'estimates_resent')))
+    duplicates = max(0, run.repeats.get('estimate', 0) - int(_number(estimator, 'estimates_resent'))
+                     - int(_number(estimator, 'estimates_corrected')))
     comparable = not any(restarted.values()) and not duplicates
     complete = (all(not gaps[name] for name in gaps if name not in sensors)
                 and all(not values['lost'] for values in sensors.values())

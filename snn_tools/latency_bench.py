@@ -18,8 +18,13 @@ during the first second of stepping (start-up: the filter's first steps, caches)
 rest. The default cases name the causes of the tail by switching them off one at a time at 10x:
 ``10x_gc_frozen`` runs every node with the garbage collector frozen and disabled after start-up
 (SNN_GC=freeze, see scenario_nodes.runtime.tune_process), ``10x_log_warn`` with the nodes'
-loggers at WARN (SNN_LOG_LEVEL). Results: stdout and ``--out`` (JSON: case -> path -> p50_ms,
-p99_ms, max_ms, ...).
+loggers at WARN (SNN_LOG_LEVEL), ``10x_unpinned`` without the demo's CPU plan (``1x_unpinned`` on
+request); ``10x_wait`` (and ``1x_wait``, not run by default) runs the
+estimator with ``provisional_steps: false``, waiting for the plant's report of the applied control
+as before provisional steps (one step of latency by design), the reference within the same run.
+An estimate published again under its stamp (a correction, snn_estimator.loop.provisional) counts
+from its first arrival, and the copies are counted (``estimates_again``). Results: stdout and
+``--out`` (JSON: case -> path -> p50_ms, p99_ms, max_ms, ...).
 """
 
 from __future__ import annotations
@@ -43,14 +48,21 @@ import numpy as np
 from scenario_nodes.parameters import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 
-#: case -> (plant real_time_factor, extra environment of every node)
+#: case -> (plant real_time_factor, extra environment of every node, node parameters changed,
+#: run_pipeline options)
 CASES = {
-    '1x': (1.0, {}),
-    '10x': (10.0, {}),
-    '10x_gc_frozen': (10.0, {'SNN_GC': 'freeze'}),
-    '10x_log_warn': (10.0, {'SNN_LOG_LEVEL': 'warn'}),
+    '1x': (1.0, {}, {}, {}),
+    '10x': (10.0, {}, {}, {}),
+    '10x_gc_frozen': (10.0, {'SNN_GC': 'freeze'}, {}, {}),
+    '10x_log_warn': (10.0, {'SNN_LOG_LEVEL': 'warn'}, {}, {}),
+    # the estimator waiting for the plant's applied_control report (the design before provisional steps)
+    '1x_wait': (1.0, {}, {'estimator': {'provisional_steps': False}}, {}),
+    '10x_wait': (10.0, {}, {'estimator': {'provisional_steps': False}}, {}),
+    # no CPU plan: every node may run on either CPU (the demo pins them for lockstep throughput)
+    '1x_unpinned': (1.0, {}, {}, {'pin_cpus': False}),
+    '10x_unpinned': (10.0, {}, {}, {'pin_cpus': False}),
 }
-DEFAULT_CASES = ('1x', '10x', '10x_gc_frozen', '10x_log_warn')
+DEFAULT_CASES = ('1x', '10x', '10x_gc_frozen', '10x_log_warn', '10x_unpinned', '10x_wait')
 #: Paths measured: name -> topic whose receive time ends it (each starts at the measurement).
 PATHS = {'measurement_to_estimate': 'estimate', 'measurement_to_control': 'control'}
 PROBE_TOPICS = ('measurement', 'estimate', 'control')
@@ -116,6 +128,15 @@ def match_latencies(source: dict[int, int], target: dict[int, int], offset_ns: i
     return np.asarray(pairs, dtype=float) * 1e-6
 
 
+def first_arrivals(rows: np.ndarray) -> dict[int, int]:
+    """Stamp -> receive time of its first message, from (stamp, receive ns) rows in arrival
+    order (a corrected estimate or a resend comes again under its stamp)."""
+    first = {}
+    for stamp, received in rows.tolist():
+        first.setdefault(stamp, received)
+    return first
+
+
 def stamp_ns(data: bytes) -> int:
     """The header stamp of a CDR message with a std_msgs/Header first (nanoseconds)."""
     sec, nanosec = _STAMP.unpack_from(data, 4)
@@ -179,7 +200,7 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
              time_step: float = 0.1) -> dict:
     """One realtime run with the probe; returns the case's figures."""
     from .demo import pipeline_env, run_pipeline
-    factor, env = CASES[case]
+    factor, env, parameters, options = CASES[case]
     run_dir.mkdir(parents=True, exist_ok=True)
     probe_file = run_dir / 'probe.npz'
     with environment(env):
@@ -190,7 +211,7 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
             time.sleep(2.0)  # the probe's subscriptions are up before the first measurement
             duration = (samples + START_SAMPLES + 5) * time_step
             run_pipeline(run_dir, estimator, 'realtime', duration=duration, real_time_factor=factor,
-                         domain_id=domain_id)
+                         domain_id=domain_id, extra=parameters, **options)
         finally:
             probe.send_signal(signal.SIGINT)
             try:
@@ -201,11 +222,11 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
     if not probe_file.exists():
         raise RuntimeError(f'the latency probe wrote nothing; see {run_dir / "probe.log"}')
     recorded = np.load(probe_file)
-    received = {topic: dict(zip(recorded[topic][:, 0].tolist(), recorded[topic][:, 1].tolist()))
-                for topic in PROBE_TOPICS}
+    received = {topic: first_arrivals(recorded[topic]) for topic in PROBE_TOPICS}
     offset = int(round(time_step * 1e9))
-    figures = {'real_time_factor': factor, 'environment': env,
-               'measurements': len(received['measurement'])}
+    figures = {'real_time_factor': factor, 'environment': env, 'parameters': parameters, 'pipeline': options,
+               'measurements': len(received['measurement']),
+               'estimates_again': int(len(recorded['estimate']) - len(received['estimate']))}
     for path, topic in PATHS.items():
         latencies = match_latencies(received['measurement'], received[topic], offset)[:samples]
         figures[path] = path_figures(latencies, min(samples, len(received['measurement'])))

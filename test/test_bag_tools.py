@@ -154,12 +154,33 @@ def test_a_complete_bag_without_restarts_is_complete(tmp_path):
     assert summary['recording_complete'] and summary['gaps'] == {'estimate': []}
 
 
-def test_a_series_reads_in_stamp_order_with_the_first_copy_of_each_stamp():
-    """A recorder writes backfilled samples after newer live ones; a resend repeats a stamp."""
-    from snn_tools.bag_tools import _first_per_stamp
+def test_a_corrected_estimate_replaces_the_first_in_the_series_and_the_bag_is_still_complete(tmp_path):
+    """The estimator published stamp 0.2 s again, taken with the control the plant applied
+    (estimates_corrected): the series holds the corrected one, the spike counts one per step,
+    and nothing counts as a duplicate."""
+    corrected = ('/estimate', KNOWN_TYPES['estimate'], encode_odometry(np.full(6, 9.0), np.eye(6), 2 * STEP_NS,
+                                                                       'lvlh', 'chaser'))
+    messages = steps(5) + [corrected] + [
+        diagnostics('cw_plant', truth_published=5),
+        diagnostics('estimator', filter='ekf', estimates_published=6, estimates_corrected=1, spikes_published=0)]
+    run = read_bag(write_bag(tmp_path / 'bag', messages))
+    np.testing.assert_array_equal(run.estimate[:, 0], [0.5, 1.5, 9.0, 3.5, 4.5])
+    assert run.repeats['estimate'] == 1 and run.counts['/estimate'] == 6
+    summary = summarize(run)
+    assert summary['messages']['spike_count'] == {'published': 5, 'recorded': 5}
+    assert summary['recording_complete'] and summary['duplicate_estimates'] == 0
 
-    kept, dropped = _first_per_stamp([(3, 'live'), (4, 'live'), (1, 'history'), (3, 'resend'), (2, 'history')])
+
+def test_a_series_reads_in_stamp_order_with_the_first_copy_of_each_stamp_and_an_estimates_last():
+    """A recorder writes backfilled samples after newer live ones; a resend repeats a stamp; a
+    corrected estimate comes after the provisional one under its stamp (the estimator's answer)."""
+    from snn_tools.bag_tools import _one_per_stamp
+
+    samples = [(3, 'live'), (4, 'live'), (1, 'history'), (3, 'again'), (2, 'history')]
+    kept, dropped = _one_per_stamp(samples)
     assert kept == [(1, 'history'), (2, 'history'), (3, 'live'), (4, 'live')] and dropped == 1
+    kept, dropped = _one_per_stamp(samples, last=True)
+    assert kept == [(1, 'history'), (2, 'history'), (3, 'again'), (4, 'live')] and dropped == 1
 
 
 def sensor_diagnostics(name, published, period, every_truth=True, unpublished=0):

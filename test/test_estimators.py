@@ -720,3 +720,60 @@ def test_the_kernels_entry_point_sees_any_input_as_the_dispatcher_would(kind):
         odd.step(inputs, readonly if k % 2 else [0, 0, 0], 0.1)
     assert odd._step_entry is not odd._kernel  # the fast path is the one in use
     np.testing.assert_array_equal(odd.x_hat, clean.x_hat)
+
+
+def _snapshot_cases():
+    """Every filter kind, and the variants whose state lives elsewhere: membrane noise (the
+    generators), the deviation coding (the prediction), the chip network (its own arrays), a
+    nonlinear sensor (H re-linearised each step), a batch of runs."""
+    scenario = rendezvous_scenario(initial_state_dispersion=True)
+    config = scenario.estimator
+    cases = [pytest.param(kind, config, {}, id=kind) for kind in FILTER_KINDS]
+    return cases + [
+        pytest.param('snn_ekf', config.replace(membrane_noise=1e-3), {}, id='snn_ekf-membrane_noise'),
+        pytest.param('snn_emsif_weighted', config.replace(network_coding='deviation'), {}, id='deviation_coding'),
+        pytest.param('snn_emsif', config.replace(gain_schedule='steady_state', precision='loihi'), {}, id='chip'),
+        pytest.param('snn_ekf', config, {'lidar': True}, id='snn_ekf-lidar'),
+        pytest.param('ekf', config, {'lidar': True}, id='ekf-lidar'),
+        pytest.param('snn_emsif_hybrid', config, {'runs': 3}, id='three_runs')]
+
+
+@pytest.mark.parametrize('kind, config, options', _snapshot_cases())
+def test_restore_returns_the_filter_to_its_snapshot_bit_for_bit_and_the_steps_again_equal(kind, config, options):
+    from snn_estimator.measurements import make_model
+    scenario, zs, us = rendezvous_inputs(steps=40)
+    runs = options.get('runs', 1)
+    measurement = None
+    if options.get('lidar'):  # looking back along -x at the rendezvous positions
+        measurement = make_model('range_azimuth_elevation', [1e-2, 1e-6, 1e-6], mounting_rotation=(0.0, 0.0, 1.0, 0.0))
+        zs = measurement.h(np.c_[zs, np.zeros_like(zs)])
+        config = config.replace(measurement_noise=measurement.noise, measurement_noise_units='per_sample')
+    estimator = make_estimator(kind, config, scenario.model, runs=runs, measurement=measurement)
+
+    def state():
+        values = [estimator.x_hat.copy(), estimator.gain.copy(), estimator.steps, estimator.capped_steps]
+        if estimator.P is not None:
+            values.append(estimator.P.copy())
+        if estimator.spiking:
+            values += [estimator.rates.copy(), estimator.potentials.copy(), estimator.spikes.copy(),
+                       np.copy(estimator.total_spikes), estimator.prediction]
+        return values
+
+    def batch(value):
+        return np.broadcast_to(value, (runs, 3))
+
+    def steps(ks):
+        return [estimator.step(batch(zs[k]), batch(us[k] if k % 4 else np.zeros(3)), scenario.dt).copy() for k in ks]
+
+    steps(range(20))
+    before, snapshot = state(), estimator.snapshot()
+    first = steps(range(20, 30))
+    assert not np.array_equal(first[-1], before[0])
+    estimator.step(batch(zs[30]), batch(us[30] * 3), scenario.dt)  # another control: the step to redo
+    estimator.restore(snapshot)
+    for restored, saved in zip(state(), before):
+        np.testing.assert_array_equal(restored, saved)
+    for again, once in zip(steps(range(20, 30)), first):
+        np.testing.assert_array_equal(again, once)
+    with pytest.raises(ValueError, match='snapshot'):
+        make_estimator(kind, config, scenario.model, runs=runs, measurement=measurement).restore(snapshot)

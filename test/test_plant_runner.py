@@ -140,13 +140,16 @@ def test_bad_settings_are_refused_naming_the_field(field, value, message):
 
 
 class Spy:
-    """Records the control of every step an estimator takes (and passes it on)."""
+    """Records the control of every step an estimator takes (and passes it on); a step taken
+    again (a provisional step corrected: the estimator restored) replaces its record, so
+    ``controls[k]`` is the control step k finally used."""
 
     def __init__(self, estimator):
         self.controls = []
         step = estimator.step
 
         def recording(z, u, dt):
+            del self.controls[estimator.steps:]
             self.controls.append(np.array(u, dtype=float))
             return step(z, u, dt)
         estimator.step = recording
@@ -198,10 +201,12 @@ def test_a_dead_controllers_last_command_expires_to_zero_thrust_in_plant_and_est
     assert sum('expired' in m for m in filter_logs) == 1
 
 
-def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_predicts_with_it():
+@pytest.mark.parametrize('provisional', [True, False])
+def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_predicts_with_it(provisional):
     """A control that comes after the realtime plant's tick is not applied (the one in force
     is); the plant reports what it stepped with, and an estimator fed the reports predicts with
-    exactly that, where the controller's late u_k alone would have made it predict with u_k."""
+    exactly that, where the controller's late u_k alone would have made it predict with u_k.
+    With provisional steps it first steps with u_k and takes the step again with the report."""
     from snn_estimator import make_estimator
     from snn_estimator.loop.runner import FilterRunner, RunnerSettings
     scenario = rendezvous_scenario()
@@ -217,8 +222,8 @@ def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_
     for told in (True, False):
         estimator = make_estimator('ekf', scenario.estimator, scenario.model)
         spies[told] = Spy(estimator)
-        filter_runner = FilterRunner(estimator, RunnerSettings(time_step=0.1), 1e-2 * np.eye(3),
-                                     publish=lambda stamp: None)
+        filter_runner = FilterRunner(estimator, RunnerSettings(time_step=0.1, provisional_steps=provisional),
+                                     1e-2 * np.eye(3), publish=lambda stamp: None)
         filter_runner.start('parameters')
         spies[told].runner = filter_runner
     runner.begin()
@@ -248,3 +253,5 @@ def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_
         np.testing.assert_array_equal(told[k], reports[k][1], err_msg=f'estimator told, step {k}')
         np.testing.assert_array_equal(untold[k], controls(k), err_msg=f'estimator untold, step {k}')
     assert any(not np.array_equal(reports[k][1], controls(k)) for k in late)
+    corrected = spies[True].runner.values().get('provisional_corrected', 0)
+    assert corrected == (sum(not np.array_equal(reports[k][1], controls(k)) for k in late) if provisional else 0)

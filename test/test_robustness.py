@@ -169,6 +169,50 @@ def test_estimator_counts_the_spike_messages_it_publishes_apart_from_the_estimat
         assert node.values()['spikes_published'] == spike_messages
 
 
+def _flown_with_a_differing_report(provisional):
+    """An estimator that hears the plant's reports: u_1 = 0.02 m/s^2 along x is commanded, the
+    plant reports it flew zero thrust (u_1 came after its tick). Returns the estimates received,
+    the spike counts received and the node's values."""
+    with ros_context() as (context, executor, nodes):
+        harness = Harness(context, executor, nodes)
+        harness.publishers[qos.APPLIED_CONTROL] = harness.node.create_publisher(
+            AccelStamped, qos.APPLIED_CONTROL, qos.PUBLISHER_QOS)
+        node = make(EstimatorNode, context, executor, nodes, 'estimator', **QUIET, provisional_steps=provisional)
+        assert spin_until(executor, lambda: harness.node.count_subscribers(qos.APPLIED_CONTROL) > 0)
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), 0, 'lvlh'))
+        harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))
+        harness.wait_estimates(2)
+        harness.publish(qos.APPLIED_CONTROL, control_to_accel(np.zeros(3), 0, 'lvlh'))  # the plant reports
+        assert spin_until(executor, lambda: node.values()['applied_received'] == 1)
+        harness.publish(qos.CONTROL, control_to_accel(np.array([0.02, 0.0, 0.0]), DT, 'lvlh'))
+        harness.publish(qos.MEASUREMENT, measurement_to_point(X0, (0, 1, 2), DT, 'lvlh'))
+        if provisional:  # answered at once, with u_1
+            harness.wait_estimates(3)
+        else:
+            executor.spin_once(timeout_sec=0.3)
+            assert len(harness.received[qos.ESTIMATE]) == 2  # waits for the report
+        harness.publish(qos.APPLIED_CONTROL, control_to_accel(np.zeros(3), DT, 'lvlh'))
+        harness.wait_estimates(4 if provisional else 3)
+        executor.spin_once(timeout_sec=0.3)
+        return harness.estimates(), len(harness.received[qos.SPIKE_COUNT]), node.values()
+
+
+def test_an_estimate_taken_again_with_the_applied_control_is_published_again_under_its_stamp():
+    """With provisional steps z_1 is answered at once with u_1; the plant's report that it flew
+    zero thrust takes the step again: x_hat(0.2 s) comes a second time, corrected, equal to what
+    waiting for the report gives; its spike count once; counted in diagnostics."""
+    estimates, spike_counts, values = _flown_with_a_differing_report(True)
+    waited, waited_spike_counts, waited_values = _flown_with_a_differing_report(False)
+    assert [stamp for stamp, _ in estimates] == [0, DT, 2 * DT, 2 * DT]
+    assert [stamp for stamp, _ in waited] == [0, DT, 2 * DT]
+    assert not np.allclose(estimates[2][1], estimates[3][1], rtol=0, atol=1e-9)  # u_1 against zero
+    np.testing.assert_array_equal(estimates[3][1], waited[2][1])
+    assert spike_counts == waited_spike_counts == 3
+    assert values['estimates_corrected'] == 1 and values['provisional_corrected'] == 1
+    assert values['estimates_published'] == 4 and values['provisional_held'] == 0
+    assert waited_values['estimates_corrected'] == 0 and waited_values['provisional_steps'] == 0
+
+
 def test_estimator_rejects_controls_with_a_wrong_frame(estimator_rig):
     harness, node = estimator_rig
     harness.publish(qos.CONTROL, control_to_accel(np.zeros(3), DT, 'map'))

@@ -452,3 +452,244 @@ def test_a_nonlinear_sensor_restarts_from_the_position_its_sample_gives_and_neve
     restart, _, source = runner.recovery.restart_state(120 * DT, z)
     np.testing.assert_allclose(restart[:3], truth[:3], rtol=0, atol=1e-9)
     assert source != 'least_squares'
+
+
+# ------------------------------------------------------------------ provisional steps (issue 25, 4)
+def _realtime_stream(steps, late=(), seed=3, silent_from=None, validity=0.5):
+    """What a realtime plant's loop delivers: z_k, the controller's u_k (a fixed sequence, the
+    same whatever the estimates; none from ``silent_from`` on) and the plant's report of what it
+    stepped with from t_k (PlantRunner); the controls of ``late`` reach the plant after its tick
+    (it applies the one in force) while the estimator has them before the report."""
+    from snn_estimator.loop.plant_runner import PlantRunner, PlantSettings
+    scenario = rendezvous_scenario()
+    plant = Plant(scenario.model, scenario.x0, scenario.process_noise, [seed])
+    sensor = PositionSensor(scenario.model, scenario.measurement_noise, [seed])
+    reports = {}
+    ticker = PlantRunner(plant, PlantSettings(time_step=0.1, mode='realtime', control_validity=validity),
+                         publish=lambda stamp, resend: None,
+                         applied=lambda stamp, u: reports.__setitem__(stamp, np.array(u, dtype=float)))
+    ticker.begin()
+    measurements, controls = {}, {}
+    for k in range(steps):
+        measurements[k * DT] = sensor.measure(plant.x)[0]
+        if silent_from is None or k < silent_from:
+            controls[k * DT] = np.array([2e-3, -1e-3, 5e-4]) * np.sin(0.3 * k + 1.0)
+        commanded = k * DT in controls
+        if commanded and k not in late:
+            ticker.control(k * DT, controls[k * DT])
+        ticker.tick()
+        if commanded and k in late:
+            ticker.control(k * DT, controls[k * DT])
+    return measurements, controls, reports
+
+
+def _feed(runner, out, stream, report_delay=1, lost=(), lost_controls=()):
+    """Feed a runner in a realtime order: at tick k the report of step k - report_delay (unless
+    lost), then z_k; the controller's u_k (unless lost) came before z_k (it answered x_hat(t_k),
+    published at tick k - 1). Returns the tick at which each stamp was first published."""
+    measurements, controls, reports = stream
+    steps = len(measurements)
+    first_tick = {}
+    for k in range(steps + report_delay + 3):
+        reported = k - report_delay
+        if 0 <= reported < steps and reported not in lost:
+            runner.applied(reported * DT, reports[reported * DT])
+        if k < steps:
+            if k * DT in controls and k not in lost_controls:
+                runner.control(k * DT, controls[k * DT])
+            runner.measurement(k * DT, measurements[k * DT])
+        for stamp in out.first:
+            first_tick.setdefault(stamp, k)
+        out.most_held = max(out.most_held, runner.provisional_held)
+    return first_tick
+
+
+class Published:
+    """What a runner published: every estimate in order, the stamps as first published, and the
+    stamps published again after a correction."""
+
+    def __init__(self):
+        self.estimates, self.first, self.again = [], [], []
+        self.most_held = 0  # steps held at once, at most (after a tick)
+
+
+def _provisional_runner(kind='ekf', provisional=True, **settings):
+    scenario = rendezvous_scenario()
+    estimator = make_estimator(kind, scenario.estimator, scenario.model)
+    out = Published()
+
+    def publish(stamps):
+        return lambda stamp: (stamps.append(stamp), out.estimates.append((stamp, estimator.x_hat.copy())))
+    runner = FilterRunner(estimator, RunnerSettings(time_step=0.1, provisional_steps=provisional, **settings), R,
+                          publish=publish(out.first), republish=publish(out.again))
+    runner.start('auto')
+    return runner, out
+
+
+def _final(published):
+    """Stamp -> the last estimate published under it (a correction replaces the first)."""
+    return {stamp: x for stamp, x in published}
+
+
+def _stepped_with(kind, stream, used):
+    """The estimates of a bare estimator stepped with z_k and the control ``used[k]``: what
+    waiting for every report gives (an independent loop, no runner)."""
+    measurements = stream[0]
+    estimator = make_estimator(kind, rendezvous_scenario().estimator, rendezvous_scenario().model)
+    estimates = {0: estimator.x_hat.copy()}
+    for k in range(len(measurements)):
+        estimator.step(measurements[k * DT], used[k], 0.1)
+        estimates[(k + 1) * DT] = estimator.x_hat.copy()
+    return estimates
+
+
+def test_a_provisional_step_the_plant_confirms_gives_exactly_the_estimates_of_waiting_one_step_sooner():
+    """Every report equals the controller's u_k: the estimate of t_{k+1} is published at the tick
+    of z_k (waiting for the report: one tick later), once, and the very same numbers."""
+    stream = _realtime_stream(60)
+    runs = {}
+    for provisional in (True, False):
+        runner, out = _provisional_runner('snn_ekf', provisional)
+        runs[provisional] = (runner, out, _feed(runner, out, stream))
+    (runner, out, ticks), (waiting, waited, waited_ticks) = runs[True], runs[False]
+    assert out.again == [] and runner.values()['provisional_corrected'] == 0
+    stamps = [k * DT for k in range(61)]
+    assert [stamp for stamp, _ in out.estimates] == [stamp for stamp, _ in waited.estimates] == stamps
+    for (stamp, x), (_, y) in zip(out.estimates, waited.estimates):
+        np.testing.assert_array_equal(x, y, err_msg=f'{stamp / NS} s')
+    assert all(ticks[(k + 1) * DT] == k for k in range(60))
+    assert all(waited_ticks[(k + 1) * DT] == k + 1 for k in range(1, 60))  # the report's tick
+    assert runner.values()['provisional_steps'] == 59  # step 0 came before the plant's first report
+    assert runner.provisional_held == 0 and runner.values()['provisional_held'] == 0
+    for key in ('measurements_used', 'controls_missing', 'dropout_steps', 'spikes_total', 'steps'):
+        assert runner.values()[key] == waiting.values()[key], key
+
+
+@pytest.mark.parametrize('kind', ['snn_ekf', 'ekf'])
+def test_a_report_that_differs_restores_the_step_and_takes_it_again_exactly_as_waiting_would(kind):
+    """u_k came after the plant's tick at three steps: the plant flew the control in force and says
+    so; the estimator had stepped with u_k, so it goes back, takes the step with what was applied
+    and publishes the corrected estimate again under its stamp. Every stamp's last estimate is
+    the bare estimator stepped with the reports, bit for bit, as the runner that waits."""
+    late = {7, 8, 20}
+    stream = _realtime_stream(40, late=late)
+    measurements, controls, reports = stream
+    differing = [k for k in sorted(late) if not np.array_equal(reports[k * DT], controls[k * DT])]
+    assert differing == sorted(late)
+    expected = _stepped_with(kind, stream, [reports[k * DT] for k in range(40)])
+    finals = {}
+    for provisional in (True, False):
+        runner, out = _provisional_runner(kind, provisional)
+        _feed(runner, out, stream)
+        finals[provisional] = _final(out.estimates)
+        assert sorted(finals[provisional]) == sorted(expected)
+        for stamp, x in expected.items():
+            np.testing.assert_array_equal(finals[provisional][stamp], x, err_msg=f'{provisional}: {stamp / NS} s')
+        if provisional:
+            assert out.again == [(k + 1) * DT for k in differing]  # each corrected stamp once more
+            values = runner.values()
+            assert values['provisional_corrected'] == len(differing) and values['provisional_held'] == 0
+            assert values['provisional_unconfirmed'] == 0 and 'applied_missing' not in values
+            first = dict(out.estimates[::-1])  # the first estimate of each stamp
+            assert not np.array_equal(first[8 * DT], expected[8 * DT])  # published with the late u_7
+        else:
+            assert out.again == []
+
+
+def test_lost_reports_leave_the_commanded_control_and_never_hold_more_than_the_limit():
+    """Reports of steps 10 and 30-59 lost (a plant that stopped reporting): each held step is
+    accepted as applied once PROVISIONAL_LIMIT later steps are held behind it, counted; memory
+    stays bounded; the estimates are those of the controller's controls, as the waiting runner's."""
+    from snn_estimator.loop.runner import PROVISIONAL_LIMIT
+    lost = {10, *range(30, 60)}
+    stream = _realtime_stream(60)
+    measurements, controls, reports = stream
+    expected = _stepped_with('ekf', stream, [controls[k * DT] for k in range(60)])
+    runner, out = _provisional_runner('ekf')
+    _feed(runner, out, stream, lost=lost)
+    assert out.most_held == PROVISIONAL_LIMIT
+    final = _final(out.estimates)
+    for stamp, x in expected.items():
+        np.testing.assert_array_equal(final[stamp], x, err_msg=f'{stamp / NS} s')
+    values = runner.values()
+    assert values['provisional_unconfirmed'] == 1 + (60 - 30 - PROVISIONAL_LIMIT)
+    assert values['provisional_held'] == PROVISIONAL_LIMIT and values['provisional_corrected'] == 0
+    waiting, waited = _provisional_runner('ekf', provisional=False)
+    _feed(waiting, waited, stream, lost=lost)
+    for stamp, x in _final(waited.estimates).items():
+        np.testing.assert_array_equal(final[stamp], x, err_msg=f'waiting: {stamp / NS} s')
+
+
+def test_several_held_steps_corrected_in_order_with_reports_three_ticks_late():
+    """Reports come three ticks after their step (z_{k+1}, z_{k+2} came first), two of them
+    differing: three steps are held, a correction takes its step and every later one again
+    in order, and the last estimate of every stamp is the estimator stepped with the reports."""
+    late = {12, 13, 25}
+    stream = _realtime_stream(40, late=late)
+    measurements, controls, reports = stream
+    expected = _stepped_with('snn_ekf', stream, [reports[k * DT] for k in range(40)])
+    runner, out = _provisional_runner('snn_ekf')
+    ticks = _feed(runner, out, stream, report_delay=3)
+    final = _final(out.estimates)
+    for stamp, x in expected.items():
+        np.testing.assert_array_equal(final[stamp], x, err_msg=f'{stamp / NS} s')
+    assert all(ticks[(k + 1) * DT] == k for k in range(40))  # never waited for a report
+    assert out.most_held == 3
+    values = runner.values()
+    assert values['provisional_corrected'] == 3 and values['provisional_held'] == 0
+    # each correction republished its step and the two (three at the end) held behind it
+    assert out.again[:3] == [13 * DT, 14 * DT, 15 * DT] and len(out.again) == 9
+    assert values['measurements_used'] == 40 and values['steps'] == 40
+    assert values['provisional_steps'] == 37  # steps 0-2 came before the plant's first report
+
+
+def test_set_state_accepts_the_held_steps_so_a_later_report_never_undoes_it():
+    """Steps 1-7 held (no report yet), then the state is set: they are accepted as they are
+    (counted), and step 5's differing report that comes afterwards goes back to nothing."""
+    stream = _realtime_stream(8, late={5})
+    measurements, controls, reports = stream
+    runner, out = _provisional_runner('ekf')
+    for k in range(8):
+        runner.control(k * DT, controls[k * DT])
+        runner.measurement(k * DT, measurements[k * DT])
+        if k == 0:
+            runner.applied(0, reports[0])
+    assert runner.provisional_held == 7
+    runner.set_state(WRONG, np.eye(6))
+    assert runner.provisional_held == 0 and runner.values()['provisional_unconfirmed'] == 7
+    for k in range(1, 8):
+        runner.applied(k * DT, reports[k * DT])  # step 5's differs: nothing to go back to
+    np.testing.assert_array_equal(runner.estimator.x_hat, WRONG)
+    assert runner.values()['provisional_corrected'] == 0 and out.again == []
+
+
+def test_a_correction_leaves_the_counters_and_the_recovery_data_as_if_the_applied_control_came():
+    """The controller dies after step 20, whose control the plant got but the estimator lost;
+    control_validity 0.15 s; reports five ticks late. The estimator steps 20 with the control in
+    force (u_19) and predicts 21-22 with zero thrust (u_19 expired), all held; step 20's report
+    says u_20: the three are taken again (u_20, then u_20 in force, then expired). Counters, the
+    estimates and a least-squares restart from the recovery's data afterwards are those of an
+    estimator that had u_20."""
+    stream = _realtime_stream(40, silent_from=21, validity=0.15)
+    runs = {}
+    for lost in ((), (20,)):
+        runner, out = _provisional_runner('ekf', control_validity=0.15)
+        _feed(runner, out, stream, report_delay=5, lost_controls=lost)
+        runs[lost] = (runner, out)
+    (runner, out), (reference, expected) = runs[(20,)], runs[()]
+    assert runner.values()['provisional_corrected'] == 1 and out.again[0] == 21 * DT
+    assert reference.values()['provisional_corrected'] == 0
+    for key in ('controls_missing', 'controls_expired', 'measurements_used', 'provisional_steps', 'steps'):
+        assert runner.values()[key] == reference.values()[key], key
+    assert runner.values()['controls_expired'] == 16  # 22-37 (38 and 39 waited for their reports)
+    final, wanted = _final(out.estimates), _final(expected.estimates)
+    assert sorted(final) == sorted(wanted)
+    for stamp in wanted:
+        np.testing.assert_array_equal(final[stamp], wanted[stamp], err_msg=f'{stamp / NS} s')
+    measurements = stream[0]
+    for each in (runner, reference):  # a reset: the next step restarts from the recovery's data
+        assert each.reset('test') == 'data'
+        each.control(40 * DT, np.zeros(3))
+        each.measurement(40 * DT, measurements[39 * DT] + 0.01)
+    assert runner.values()['restarts_from.least_squares'] == 1
+    np.testing.assert_array_equal(runner.estimator.x_hat, reference.estimator.x_hat)

@@ -7,7 +7,8 @@ the network, the kernel's packed constants) and are not used on their own.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -15,6 +16,19 @@ from . import kernels
 
 #: rng stream id of the dispersed initial estimate
 DISPERSION_STREAM = 5
+
+
+@dataclass(frozen=True)
+class EstimatorSnapshot:
+    """What a step of an Estimator changes, copied (:meth:`EstimatorState.snapshot`): opaque to
+    callers, restored only into the estimator it was taken from."""
+
+    owner: int
+    arrays: dict        # name -> copy of the live array (EstimatorState._live_arrays)
+    counters: tuple     # steps, capped_steps, recovery_spikes, split_steps
+    noise: tuple        # the membrane-noise generators' states
+    chip: Any           # ChipNetwork.snapshot() or None
+    call_dt: float | None
 
 
 class EstimatorState:
@@ -81,6 +95,45 @@ class EstimatorState:
         if self.spiking:
             for b in np.flatnonzero(chosen):  # its rates and potentials (and prediction) anew
                 self.encode(starts[b], run=b)
+
+    def _live_arrays(self) -> dict:
+        """The arrays a step writes: estimate, covariance, gain, H (and its pseudo-inverse) of a
+        nonlinear measurement, and the network's rates, potentials, spikes and prediction."""
+        arrays = {'x_hat': self._x_hat, 'p': self._p, 'gain': self._gain}
+        if self._linearize:
+            arrays.update(c=self._c, c_pinv=self._c_pinv)
+        if self.spiking:
+            net = self._network
+            arrays.update(r=net.r, v=net.v, spikes=net.spikes, total_spikes=net.total_spikes,
+                          reference=net.reference)
+        return arrays
+
+    def snapshot(self) -> EstimatorSnapshot:
+        """Everything a step changes (estimate, covariance, gain, the network's r, v, spikes,
+        total spikes and prediction, the chip network's state, the membrane-noise generators,
+        the step counters), copied: :meth:`restore` returns the filter to it bit for bit, so a
+        step can be taken again with another control. Settings, silenced neurons and the
+        decoder are not part of it (retune and silence between the two are not undone)."""
+        rngs = tuple(g.bit_generator.state for g in self._network.noise_rngs) if self.spiking else ()
+        return EstimatorSnapshot(
+            owner=id(self), arrays={name: array.copy() for name, array in self._live_arrays().items()},
+            counters=(self.steps, self.capped_steps, self.recovery_spikes, self.split_steps), noise=rngs,
+            chip=self._chip.snapshot() if self._chip is not None else None, call_dt=self._call_dt)
+
+    def restore(self, snapshot: EstimatorSnapshot) -> None:
+        """Return to ``snapshot`` (taken from this estimator by :meth:`snapshot`), in place:
+        the kernel's packed arguments keep holding the same arrays."""
+        if not isinstance(snapshot, EstimatorSnapshot) or snapshot.owner != id(self):
+            raise ValueError('restore takes a snapshot() of this estimator')
+        if self._chip is not None:  # first: reloading an unprepared chip writes x_hat
+            self._chip.restore(snapshot.chip)
+        for name, array in self._live_arrays().items():
+            array[...] = snapshot.arrays[name]
+        self.steps, self.capped_steps, self.recovery_spikes, self.split_steps = snapshot.counters
+        for generator, state in zip(self._network.noise_rngs if self.spiking else (), snapshot.noise):
+            generator.bit_generator.state = state
+        if snapshot.call_dt is not None and snapshot.call_dt != self._call_dt:
+            self._set_step(snapshot.call_dt)
 
     def encode(self, x_hat: np.ndarray, run: int = 0) -> None:
         """Set the network of one run to represent ``x_hat`` (rates by NNLS over live neurons;

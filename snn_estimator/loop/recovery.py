@@ -58,6 +58,15 @@ class Recovery:
         self._trusted = None
         self.in_storm = False
 
+    def snapshot(self) -> tuple:
+        """What the steps change (data, trusted estimate, resets, storms), for :meth:`restore`
+        (a step taken again: snn_estimator.loop.provisional)."""
+        return deque(self._data), self._trusted, deque(self._resets), self.storms, self.in_storm
+
+    def restore(self, snapshot: tuple) -> None:
+        data, self._trusted, resets, self.storms, self.in_storm = snapshot
+        self._data, self._resets = deque(data), deque(resets)
+
     def record(self, stamp_ns: int, z: np.ndarray | None, u: np.ndarray) -> None:
         """The step from ``stamp_ns`` used measurement ``z`` (None: predicted over) and control ``u``."""
         self._data.append((stamp_ns, None if z is None else np.array(z, dtype=float), np.array(u, dtype=float)))

@@ -23,11 +23,16 @@ else:
   ``applied_control``) once a plant reports them, so estimate and truth agree on what was applied
   also when a control came after a realtime plant's tick; else (no such report, or it was lost)
   the controller's u_k; a missing control: the one in force by the plant's rule
-  (:mod:`snn_estimator.loop.plant_runner`).
+  (:mod:`snn_estimator.loop.plant_runner`). A step whose report is not here yet is taken at
+  once with the controller's u_k and corrected if the report differs
+  (:mod:`snn_estimator.loop.provisional`; ``provisional_steps``).
 
 Stamps are integer nanoseconds. The caller supplies the clock reading ``now_ns`` (0 when there
 is no clock yet), a wall clock (for the dropout wait) and a ``publish(stamp_ns)`` callback
-that is called after each estimate (the estimator then holds x_hat at ``stamp_ns``).
+that is called after each estimate (the estimator then holds x_hat at ``stamp_ns``), and
+optionally ``republish(stamp_ns)`` for an estimate corrected after it was published (default:
+``publish``): every stamp is published once as it is first estimated, and again each time a
+correction changes it.
 """
 
 from __future__ import annotations
@@ -43,6 +48,7 @@ from snn_estimator.catalog import MEASUREMENT_TIMINGS, START_MODES  # noqa: F401
 from snn_estimator.filters.estimators import Estimator
 
 from .gates import NS, seconds_to_ns
+from .provisional import PROVISIONAL_LIMIT, ProvisionalSteps  # noqa: F401 (PROVISIONAL_LIMIT re-exported)
 from .recovery import Recovery
 from .runner_parts import CONTROL_MEMORY, Controls, Gating, HeldMeasurements, History, Reporting, StartUp  # noqa: F401 (History, CONTROL_MEMORY re-exported)
 
@@ -74,6 +80,10 @@ class RunnerSettings:
     #: sensor); 'any': stamped at any time (a sensor on its own clock), each measurement held
     #: until the next one's stamp (see :data:`MEASUREMENT_TIMINGS`).
     measurement_timing: str = 'grid'
+    #: Once the plant reports its applied controls: take a step at once with the controller's u_k
+    #: and correct it when the report differs (True), or wait for the report (False: the estimate
+    #: one realtime tick later). Grid timing only (snn_estimator.loop.provisional).
+    provisional_steps: bool = True
 
     def __post_init__(self):
         if self.measurement_timing not in MEASUREMENT_TIMINGS:
@@ -81,17 +91,21 @@ class RunnerSettings:
                              f'got {self.measurement_timing!r}')
 
 
-class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
+class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls, ProvisionalSteps):
     """Steps ``estimator`` from time-stamped inputs (see the module docstring)."""
 
     def __init__(self, estimator: Estimator, settings: RunnerSettings, measurement_covariance,
                  publish: Callable[[int], None], log: Callable[[str, str], None] | None = None,
-                 wall_clock: Callable[[], float] = time.monotonic):
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 republish: Callable[[int], None] | None = None):
         self.estimator = estimator
         self.settings = settings
         #: R per sample, for the NIS check and the least-squares start.
         self.measurement_covariance = np.asarray(measurement_covariance, dtype=float)
         self._publish = publish
+        self._republish = republish or publish
+        self._provisional = []  # Held steps, oldest first (snn_estimator.loop.provisional)
+        self._replaying = False
         self._log = log or (lambda level, message: None)
         self._wall = wall_clock
         self._dt_ns = seconds_to_ns(settings.time_step)
@@ -120,6 +134,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         self.not_measured = 0  # samples the sensor said it could not measure (no_measurement)
         self._last_unmeasured_ns: int | None = None
         self.controls_missing = 0
+        self.applied_received = 0  # the plant's reports of the control it applied
         self.dropout_steps = 0
         self.step_seconds: list[float] = []
         #: Where a re-initialisation starts from (recent data, never the parameters mid-flight).
@@ -231,6 +246,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         self._awaiting_start = False
         self._controls = {t: u for t, u in self._controls.items() if t >= stamp_ns}
         self._applied = {t: u for t, u in self._applied.items() if t >= stamp_ns}
+        self._provisional.clear()
         if publish:
             self._publish(stamp_ns)
 
@@ -239,6 +255,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         filter from the data (:class:`snn_estimator.loop.recovery.Recovery`), returns 'data'; before
         the filter ran, it starts from the parameters at the next measurement ('parameters')."""
         if self.started and self.measurements_used:
+            self.settle('a reset was requested')
             self.events['resets'] += 1
             self._reset_requested = (why, 'reset')
             return 'data'
@@ -259,12 +276,14 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         self._drop(set(self._pending), 'the filter restarted')
         self._controls.clear()
         self._applied.clear()
+        self._provisional.clear()
         self._plant_reports = False
         self._high_nis = 0
         self._awaiting_start = True
 
     def set_state(self, x: np.ndarray, covariance: np.ndarray | None) -> None:
         """Replace the estimate (ValueError, nothing changed, if it cannot be represented)."""
+        self.settle('the state was set')
         self.estimator.set_state(x, self.usable_covariance(covariance))
         self._high_nis = 0
         self.events['set_state'] += 1
@@ -292,7 +311,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
             if not self.on_grid and first == self.time_ns:
                 self._held_z = self._pending.pop(first)  # the input from now to the next stamp
                 continue
-            if self._control_for(self.time_ns) is None and len(self._pending) <= 2:
+            if not self._can_step(self.time_ns) and len(self._pending) <= 2:
                 return  # wait: the next measurement may overtake this step's control
             if self.on_grid:
                 self._step(self._pending.pop(first) if first == self.time_ns else None, self.time_ns)
@@ -307,10 +326,8 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         once, on its first part)."""
         if continued:
             return self._continue_hold(z, stamp_ns, dt_ns, publish)
-        u = self._control_for(stamp_ns)
-        if u is None and self._plant_reports:  # the plant's report was lost or is late
-            u = self._stamped(self._controls, stamp_ns)
-            self.events['applied_missing'] += 1
+        held = self._checkpoint(stamp_ns, z)  # None unless provisional or after a provisional step
+        u, final = self._control_of_step(stamp_ns)
         if u is None:
             u = self._in_force(stamp_ns)
             self.controls_missing += 1
@@ -334,14 +351,15 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls):
         except FloatingPointError as error:
             self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
         self.recovery.record(stamp_ns, z, u)
+        if held is not None:
+            self._hold(held, u, final)
         self.step_seconds.append(time.perf_counter() - started)
         if len(self.step_seconds) > 2000:
             del self.step_seconds[:1000]
         self.time_ns = stamp_ns + (self._dt_ns if dt_ns is None else dt_ns)
-        self._controls = {t: v for t, v in self._controls.items() if t > stamp_ns}
-        self._applied = {t: v for t, v in self._applied.items() if t > stamp_ns}
+        self._forget_controls(stamp_ns)
         if publish:
-            self._publish(self.time_ns)
+            (self._republish if self._replaying else self._publish)(self.time_ns)
 
     def _inconsistency(self, z: np.ndarray) -> tuple[str, str] | None:
         """NIS over nis_threshold for nis_window steps in a row means the filter lost the

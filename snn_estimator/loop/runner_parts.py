@@ -228,6 +228,9 @@ class Reporting:
             'step_time_us_last': float(times[-1]) if times.size else 0.0,
             'step_time_us_median': float(np.median(times)) if times.size else 0.0,
             'controls_missing': self.controls_missing, 'dropout_steps': self.dropout_steps,
+            'applied_received': self.applied_received, 'provisional_held': self.provisional_held,
+            **{key: self.events[key] for key in ('provisional_steps', 'provisional_corrected',
+                                                 'provisional_unconfirmed')},
         }
         values['measurements_rejected'] = sum(self.rejected.values())
         values.update({f'measurements_rejected.{k}': v for k, v in sorted(self.rejected.items())})
@@ -333,15 +336,20 @@ class Controls:
 
     def applied(self, stamp_ns: int, u: np.ndarray) -> str | None:
         """Offer the control the plant reports it stepped with from ``stamp_ns``; None if
-        accepted, else the rejection reason. From the first one on, a step waits for the
-        plant's report (as long as it waits for a control) and predicts with it."""
+        accepted, else the rejection reason. From the first one on, a step predicts with the
+        plant's report: taken provisionally with the controller's u_k until it comes, corrected
+        if it differs (snn_estimator.loop.provisional), or, without provisional steps, waiting
+        for it (as long as it waits for a control)."""
         if self.start_ns is not None and stamp_ns < self.start_ns:
             self.control_rejected['applied_before_init'] += 1
             return 'applied_before_init'
-        self._applied[stamp_ns] = np.asarray(u, dtype=float)
+        self.applied_received += 1
+        u = self._applied[stamp_ns] = np.asarray(u, dtype=float)
         if len(self._applied) > CONTROL_MEMORY:
             del self._applied[min(self._applied)]
         self._plant_reports = True
+        if self._provisional:
+            self._report(stamp_ns, u)
         if self.started:
             self._process()
         return None

@@ -316,6 +316,24 @@ class ChipNetwork:
         self._x_hat[run] = self._x_read[run] * self._read_scale
         self.steps = 0
 
+    def snapshot(self) -> tuple:
+        """The state a step changes (readout, coding error, potentials, counters), copied; the
+        estimate and spike arrays belong to the estimator, which copies them itself."""
+        arrays = None if self._dt is None else (self._e.copy(), self._x_read.copy(), self._v.copy())
+        return arrays, (self.steps, self.capped_steps, self.overflows, self.synops)
+
+    def restore(self, snapshot: tuple) -> None:
+        """Return to ``snapshot`` (see :meth:`snapshot`); one taken before :meth:`prepare` is
+        the state loaded from the encoded rates."""
+        arrays, counters = snapshot
+        if arrays is None:
+            if self._dt is not None:
+                for b in range(self.runs):
+                    self._load(b)
+        else:
+            self._e[...], self._x_read[...], self._v[...] = arrays
+        self.steps, self.capped_steps, self.overflows, self.synops = counters
+
     # ------------------------------------------------------------------ stepping
     def active_set(self) -> int:
         """The weight set in use at the current time (steps x dt since the reset)."""
