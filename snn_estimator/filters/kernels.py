@@ -477,11 +477,12 @@ def _fire_only_template(max_spikes, network, scale, x_hat):
 
 
 def _sources_digest() -> str:
-    """A hash of every source a composed kernel is made of: this file and the laws' compiled
-    pieces (numba's cache checks only the file of the function it caches)."""
+    """A hash of every source a composed kernel is made of: this file and the files of the laws'
+    compiled pieces, whole, so that a helper a gain calls counts too (numba's cache checks only
+    the file of the function it caches)."""
     digest = hashlib.sha256(Path(__file__).read_bytes())
     for law in gains.laws().values():
-        digest.update(inspect.getsource(law.gain).encode())
+        digest.update(Path(inspect.getsourcefile(law.gain)).read_bytes())
     return digest.hexdigest()[:12]
 
 
