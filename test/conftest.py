@@ -64,7 +64,7 @@ EXHAUSTIVE = frozenset({
     'test_the_ekf_agrees_with_filterpys_extended_kalman_filter',
     'test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol',
     'test_the_papers_coding_is_the_default_and_bit_identical_to_before',
-    'test_the_papers_coding_leaves_every_potential_and_rate_bit_identical_to_before',
+    'test_the_papers_coding_leaves_every_potential_and_rate_as_before_to_rounding',
     'test_van_der_pol_network_integrates_the_drive_it_is_set_to',
     'test_float_chip_network_with_one_set_is_the_float_kernels_network_spike_for_spike',
     'test_a_filter_steps_measurements_at_jittered_stamps_as_the_written_out_filter',

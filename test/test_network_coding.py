@@ -39,9 +39,12 @@ def test_the_papers_coding_is_the_default_and_bit_identical_to_before(key, kind,
 
 
 @pytest.mark.parametrize('kind', SPIKING)
-def test_the_papers_coding_leaves_every_potential_and_rate_bit_identical_to_before(kind):
+def test_the_papers_coding_leaves_every_potential_and_rate_as_before_to_rounding(kind):
     """Potentials v and rates r after 100 steps of a fixed input (a spike decision hides a
-    small change of v from the estimate; this sees it)."""
+    small change of v from the estimate; this sees it). To 1e-12, not to the bit: the kernels
+    are compiled with fast-math, and the same kernel for the same argument types compiled in a
+    different process (warm_up() compiling every kernel against a test compiling one) was seen
+    to round the SNN-EMSIF-W potentials 2e-14 apart; the spikes and estimates above stay exact."""
     expected = json.loads(GOLDEN.read_text())[f'{kind}/potentials']
     estimator = make_estimator(kind, rendezvous_scenario(initial_state_dispersion=True).estimator, runs=2,
                                seeds=[7, 8])
@@ -50,9 +53,8 @@ def test_the_papers_coding_leaves_every_potential_and_rate_bit_identical_to_befo
         t = 0.1 * k
         z = np.stack([x[:3] + x[3:] * t + 0.05 * np.sin(t + b) for b in range(2)])
         estimator.step(z, np.full((2, 3), 1e-3 * np.cos(t)), 0.1)
-    np.testing.assert_array_equal(estimator.potentials, np.array(expected['v']))
-    np.testing.assert_array_equal(estimator.rates, np.array(expected['r']))
-    np.testing.assert_array_equal(estimator.x_hat, np.array(expected['x_hat']))
+    for actual, key in ((estimator.potentials, 'v'), (estimator.rates, 'r'), (estimator.x_hat, 'x_hat')):
+        np.testing.assert_allclose(actual, np.array(expected[key]), rtol=1e-12, atol=1e-12, err_msg=key)
 
 
 def dispersed_inputs(steps=300, seed=0):

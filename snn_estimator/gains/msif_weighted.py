@@ -7,7 +7,6 @@ of its correlation matrix below SINGULAR_CORRELATION): fused sensors that measur
 step makes its rows zero; the pseudo-inverse is then the weighted inverse on the rows that carry
 information. One sensor always takes the inverse (its numbers unchanged to the bit)."""
 
-import numba
 import numpy as np
 
 from . import msif
@@ -54,17 +53,6 @@ def macs(n: int, m: int) -> int:
     return msif.macs(n, m) + 2 * m * m * n + m ** 3 + n * m  # P C^T (C P C^T)^-1
 
 
-@numba.njit
-def _all_finite(a):
-    """Every entry of a finite. Compiled without the kernels' fast-math flags, which would fold the
-    check to True; a separate function also leaves the gain's own loops compiled as before the
-    check (an inline isfinite changed their rounding by 1e-14)."""
-    for value in a.flat:
-        if not np.isfinite(value):
-            return False
-    return True
-
-
 def gain(b, out, nu, pct, pctr, consts, scratch):
     """Columns of P C^T (C P C^T)^-1 times the MSIF saturations."""
     c = consts[0]
@@ -76,7 +64,7 @@ def gain(b, out, nu, pct, pctr, consts, scratch):
             for i in range(n):
                 acc += c[k, i] * pct[i, j]
             cpc[k, j] = acc
-    if not _all_finite(cpc):  # a run whose P overflowed: a NaN gain (the step reports it), no exception
+    if not np.isfinite(cpc).all():  # a run whose P overflowed: a NaN gain (the step reports it), no exception
         for j in range(m):
             for i in range(n):
                 out[b, i, j] = np.nan
