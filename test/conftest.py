@@ -47,6 +47,25 @@ class DoubleIntegrator(StateSpaceModel):
         return np.array([[1.0, 0.0]])
 
 
+_MODULES_SEEN: list = []
+
+
+@pytest.fixture(scope='module', autouse=True)
+def _domain_of_its_own_per_module(request):
+    """Without xdist (the slow tier runs its ROS pipelines one module after another), each module
+    talks on the next of the session's three domains, so no endpoint or diagnostics of the
+    previous module's processes (a participant lingers in the graph until its lease ends) can be
+    counted or recorded by the next one. Under xdist each worker keeps its own domain."""
+    if 'PYTEST_XDIST_WORKER' in os.environ:
+        yield
+        return
+    _MODULES_SEEN.append(request.module.__name__)
+    previous = os.environ['ROS_DOMAIN_ID']
+    os.environ['ROS_DOMAIN_ID'] = str(int(os.environ['SNN_TEST_DOMAIN']) + len(_MODULES_SEEN) % 3)
+    yield
+    os.environ['ROS_DOMAIN_ID'] = previous
+
+
 @pytest.fixture
 def double_integrator():
     return DoubleIntegrator()
