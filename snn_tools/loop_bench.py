@@ -20,11 +20,12 @@ is counted per run:
   threads (/proc/<pid>/task/*/status over the same window): every time a thread slept and was
   woken (an executor callback, a DDS receive thread, a timer). The executor callbacks alone are
   one per delivery (EventsExecutor runs one subscription callback per sample) plus the timers;
-* ``critical_path_hops``: 3 (estimate k -> controller -> control k -> plant -> applied_control
-  k -> estimator -> estimate k+1: the estimator steps with the control the plant reports it
-  applied; the plant -> sensor -> estimator path runs one step ahead, in parallel: z_k was
-  there before u_k's report in 98 % of the steps, timed by a probe on every loop topic). So a
-  step costs at least 1.5 round trips: the floor dt / RTT is 1.5x above what this loop can reach.
+* ``critical_path_hops``: 2 (estimate k -> controller -> control k -> estimator -> estimate
+  k+1: with provisional steps, the default, the estimator steps with the controller's u_k and
+  the plant's report of the control it applied only confirms the step; the plant -> sensor ->
+  estimator path runs one step ahead, in parallel: z_k was there before u_k's report in 98 % of
+  the steps, timed by a probe on every loop topic). Without provisional steps it is 3 (the
+  estimator waits for applied_control): a step then costs at least 1.5 round trips.
 
 ``--single-process`` runs every node in one process and one executor
 (:mod:`snn_tools.single_process`) instead of one process per node.
@@ -47,7 +48,7 @@ from scenario_nodes.parameters import DEFAULT_FILTER
 from scenario_nodes.topics import APPLIED_CONTROL, CLOCK, DIAGNOSTICS, PIPELINE_TOPICS
 from snn_estimator.filters.estimators import FILTER_KINDS
 
-from .demo import SCHEDULING, Pipeline, run_pipeline
+from .demo import SCHEDULING, Pipeline, pipeline_env, run_pipeline
 from .progress import track
 
 #: Part of the stepping interval, at each end, left out of the CPU window.
@@ -55,9 +56,11 @@ WINDOW_MARGIN = 0.2
 SAMPLE_PERIOD = 0.05
 
 
-#: Deliveries on the path that paces a lockstep step (estimate -> control -> applied_control ->
-#: estimate; before the plant reported what it applied, 2: estimate -> control -> estimate).
-CRITICAL_PATH_HOPS = 3
+#: Deliveries on the path that paces a lockstep step: estimate -> control -> estimate, since
+#: provisional steps (the estimator steps with the controller's u_k at once; the plant's report
+#: of the applied control only confirms it). Waiting for that report (``provisional_steps:
+#: false``) makes it 3: estimate -> control -> applied_control -> estimate.
+CRITICAL_PATH_HOPS = 2
 #: The sampler reads the context switches of every thread every this many samples.
 SWITCH_EVERY = 10
 
@@ -178,27 +181,36 @@ def _per_step(samples, stepping_end: float, stepping_wall_s: float, steps: int, 
 
 #: Topics whose matched subscriptions the census counts (absolute names, no namespace).
 CENSUS_TOPICS = tuple('/' + t for t in PIPELINE_TOPICS) + ('/' + APPLIED_CONTROL, CLOCK)
-#: How long the census watches the graph (seconds from the nodes' start): the nodes are up
-#: after a few seconds; the largest count seen per topic is the graph of the running loop.
-CENSUS_SECONDS = 10.0
+#: The longest the census watches the graph (seconds); bench_run stops it when the run ends.
+CENSUS_MAX_SECONDS = 3600.0
+#: What rmw reports for an endpoint discovered before its participant's node names arrived.
+UNKNOWN_NODE = '_NODE_NAME_UNKNOWN_'
 
 
 def census_main(seconds: float) -> int:
     """(the census process) Print, as JSON, how many nodes subscribed to each of CENSUS_TOPICS
-    while it watched the graph for ``seconds`` (the nodes seen over the whole watch, not at
-    once: a short lockstep run's nodes may come and go within it)."""
+    while it watched the graph: until its standard input closes (the run ended) or ``seconds``
+    passed. It counts the nodes seen over the whole watch, not at once (a short lockstep run's
+    nodes may come and go within it), by name, and leaves out endpoints whose node is not known
+    yet (rmw names them _NODE_NAME_UNKNOWN_ until the participant's node list arrives: counted,
+    one node would count twice)."""
     import rclpy
     rclpy.init(args=[])
     node = rclpy.create_node('snn_loop_census')
     seen: dict[str, set] = {topic: set() for topic in CENSUS_TOPICS}
+    ended = threading.Event()
+    threading.Thread(target=lambda: (sys.stdin.read(), ended.set()), daemon=True).start()
+    print('ready', flush=True)
     deadline = time.monotonic() + seconds
     try:
         while time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.2)
+            rclpy.spin_once(node, timeout_sec=0.1)
             for topic in CENSUS_TOPICS:
                 seen[topic].update((info.node_namespace, info.node_name)
                                    for info in node.get_subscriptions_info_by_topic(topic)
-                                   if info.node_name != node.get_name())
+                                   if info.node_name not in (node.get_name(), UNKNOWN_NODE))
+            if ended.is_set():
+                break
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
@@ -207,24 +219,25 @@ def census_main(seconds: float) -> int:
 
 
 class Census:
-    """Runs the census process beside a pipeline (same ROS domain); ``result()`` waits for it."""
+    """Runs the census process in the pipeline's ROS domain, started before the nodes so that it
+    discovers each one as it comes up; ``result()`` ends the watch and returns the counts."""
 
-    def __init__(self, env: dict, seconds: float = CENSUS_SECONDS):
+    def __init__(self, env: dict, seconds: float = CENSUS_MAX_SECONDS):
         self._process = subprocess.Popen(
             [sys.executable, '-m', 'snn_tools.loop_bench', '--census', str(seconds)], env=env,
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-        self._seconds = seconds
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+        self._process.stdout.readline()  # 'ready': its participant is up
 
     def result(self) -> dict[str, int] | None:
         try:
-            out, _ = self._process.communicate(timeout=self._seconds + 30)
+            out, _ = self._process.communicate(timeout=30)  # closes its stdin: the run ended
         except subprocess.TimeoutExpired:
             self._process.kill()
             self._process.communicate()
             return None
         try:
-            return {topic.lstrip('/'): n for topic, n in json.loads(out).items()}
-        except ValueError:
+            return {topic.lstrip('/'): n for topic, n in json.loads(out.splitlines()[-1]).items()}
+        except (ValueError, IndexError):
             return None
 
 
@@ -245,21 +258,22 @@ def bench_run(run_dir: Path, estimator: str, duration: float, pin_cpus: bool = T
     """One lockstep run; returns its real-time factor, CPU, wake-ups and deliveries per step."""
     from .bag_tools import read_bag, summarize
 
-    samplers, censuses = [], []
+    samplers = []
 
     def watch(pipeline: Pipeline) -> None:
         samplers.append(CpuSampler(pipeline))
         samplers[-1].start()
-        censuses.append(Census(pipeline.env))
 
+    env = pipeline_env(domain_id)  # the domain the pipeline will use, for the census beside it
+    census = Census(env)
     try:
         result = run_pipeline(run_dir, estimator, 'lockstep', duration=duration, on_start=watch,
                               pin_cpus=pin_cpus, scheduling=scheduling, plant=plant,
-                              domain_id=domain_id, single_process=single_process)
+                              domain_id=int(env['ROS_DOMAIN_ID']), single_process=single_process)
     finally:
         for sampler in samplers:
             sampler.stop()
-    subscribers = censuses[0].result() if censuses else None
+        subscribers = census.result()
     run = read_bag(result['bag'])
     summary = summarize(run)
     stepping_end = float(run.last_diagnostics(f'{plant}_plant').get('finished_unix_time', 0.0))

@@ -100,7 +100,8 @@ def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
     assert deliveries['by_topic']['clock'] == run['subscribers']['clock'] >= 4
     assert deliveries['by_topic']['truth'] == pytest.approx(2.0, abs=0.05)  # sensor and recorder
     assert deliveries['by_topic']['applied_control'] == run['subscribers']['applied_control'] == 1  # estimator
-    assert run['critical_path_hops'] == 3
+    assert deliveries['by_topic']['measurement'] == pytest.approx(3.0, abs=0.05)  # estimator, controller, recorder
+    assert run['critical_path_hops'] == 2  # provisional steps: the plant's report is off the path
 
 
 def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
