@@ -34,9 +34,14 @@ DISCOVERY = 0.5
 QUIET = 0.1
 
 
+def resolved_history(node, topic: str) -> str:
+    """``topic``'s history as its publisher names it: beside the topic remapped (qos.HistoryPublisher)."""
+    return qos.history_topic(node.resolve_topic_name(topic))
+
+
 def keeping_publishers(node, topic: str) -> int:
     """Publishers of ``topic``'s history for late joiners (transient local)."""
-    return sum(1 for info in node.get_publishers_info_by_topic(node.resolve_topic_name(qos.history_topic(topic)))
+    return sum(1 for info in node.get_publishers_info_by_topic(resolved_history(node, topic))
                if info.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL)
 
 
@@ -58,7 +63,7 @@ def read_history(node, topics: dict, wait: float) -> dict[str, list[bytes]]:
             for topic in topics:
                 if topic not in readers and keeping_publishers(node, topic):
                     readers[topic] = node.create_subscription(
-                        topics[topic], qos.history_topic(topic), lambda _: None, HISTORY_QOS, raw=True,
+                        topics[topic], resolved_history(node, topic), lambda _: None, HISTORY_QOS, raw=True,
                         event_callbacks=quiet_events)
                     matched_since = None
             if _take(node, readers, samples):

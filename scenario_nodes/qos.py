@@ -129,8 +129,10 @@ class HistoryPublisher:
 
     def __init__(self, node, events: QosEvents, message_type, topic: str, profile: QoSProfile | None = None):
         self.topic = publisher(node, events, message_type, topic, profile=profile)
+        # beside the topic as resolved, remappings included (a suite's sensor publishes
+        # 'measurement' remapped to its own name: its history goes with it)
         self.history = node.create_publisher(
-            message_type, history_topic(topic),
+            message_type, history_topic(self.topic.topic_name),
             _profile(ReliabilityPolicy.RELIABLE, DurabilityPolicy.TRANSIENT_LOCAL, HISTORY_DEPTHS[topic]))
 
     def publish(self, data) -> None:

@@ -8,7 +8,8 @@ go backwards. SIGINT/SIGTERM close the bag cleanly.
 
 Samples published before the recorder's subscription matched their publisher (discovery on a
 loaded machine can take longer than the plant's start_delay) are not lost: for the topics whose
-publishers keep a ``<topic>/history`` (measurement, control, estimate: qos.HISTORY_DEPTHS), the
+publishers keep a ``<topic>/history`` (measurement, control, estimate: qos.HISTORY_DEPTHS; a suite's
+sensor on the topic named after it, found in the graph: SENSOR_TYPES), the
 recorder also reads that transient-local history and writes, under the topic itself, every
 sample whose stamp it has not recorded yet (counted as ``backfilled``).
 
@@ -55,6 +56,11 @@ KNOWN_TYPES = {
 #: Range): taken from the graph, as for any other topic; the known type is the bag's connection
 #: when no publisher ever showed up.
 TYPE_FROM_GRAPH = frozenset({qos.MEASUREMENT})
+#: The sensors' message types (scenario_nodes.conversions.MEASUREMENT_CLASSES): a topic found in
+#: the graph with one of them is a sensor's (a suite's sensors publish on topics named after
+#: them), whose ``<topic>/history`` the recorder reads as well.
+SENSOR_TYPES = frozenset({'geometry_msgs/msg/PointStamped', 'sensor_msgs/msg/Range',
+                          'geometry_msgs/msg/Vector3Stamped'})
 
 _ZERO = QosTime(sec=0, nsec=0)
 _STAMP = struct.Struct('<iI')  # header.stamp after the 4-byte CDR encapsulation header
@@ -149,11 +155,12 @@ class RecorderNode(ProcessHooks, Node):
                                f"({p['storage']})")
 
     def _record(self, topic: str, type_name: str, profile: QoSProfile, offered: QoSProfile,
-                hold: bool = False) -> bool:
+                hold: bool = False, backfill: bool | None = None) -> bool:
         """Subscribe with ``profile`` (``hold``: later, :meth:`_release_truth`); metadata.yaml
         states ``offered`` (the publishers' QoS), which ``ros2 bag play`` republishes with. False,
         with an error logged, when the type cannot be recorded: the bag needs its definition
-        from the typestore."""
+        from the typestore. ``backfill``: also read ``<topic>/history`` (default: for the
+        pipeline topics that keep one, qos.HISTORY_DEPTHS)."""
         try:
             message_type = message_class(type_name)
         except (ImportError, AttributeError) as error:
@@ -165,7 +172,9 @@ class RecorderNode(ProcessHooks, Node):
             return self._skip(topic, type_name, f'not in the rosbags Jazzy typestore ({error})')
         self.counts[topic] = 0
         base = topic.rsplit('/', 1)[-1]
-        seen = self._seen.setdefault(topic, {}) if base in qos.HISTORY_DEPTHS else None
+        if backfill is None:
+            backfill = base in qos.HISTORY_DEPTHS
+        seen = self._seen.setdefault(topic, {}) if backfill else None
 
         def on_message(raw: bytes, connection=connection, topic=topic) -> None:
             if seen is not None:
@@ -269,7 +278,9 @@ class RecorderNode(ProcessHooks, Node):
                 profiles = ((adapted_qos(publishers), publishers[0].qos_profile) if publishers
                             else (qos.RECORDER_QOS, qos.PUBLISHER_QOS))
                 del self._waiting[name]
-                if self._record(name, types[name][0], *profiles):
+                backfill = (name.rsplit('/', 1)[-1] in qos.HISTORY_DEPTHS or types[name][0] in SENSOR_TYPES
+                            or qos.history_topic(name) in types)
+                if self._record(name, types[name][0], *profiles, backfill=backfill):
                     self.get_logger().info(f'found {name} ({types[name][0]}): recording')
         if not self._waiting:
             self._discovery.cancel()

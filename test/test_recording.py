@@ -173,6 +173,36 @@ def test_samples_published_before_the_recorder_matched_are_backfilled_from_the_h
     np.testing.assert_allclose(data.measurement[:, 0], 70.0 - np.arange(60))
 
 
+def test_a_suite_sensor_on_its_own_topic_keeps_its_history_beside_it_and_is_backfilled(tmp_path):
+    """A suite's sensor publishes 'measurement' remapped to its name ('lidar'): its history goes
+    with the remap (/lidar/history; it went to /measurement/history, shared by both sensors of a
+    fused run, so the recorder had nothing to backfill a sensor from), and the recorder, finding
+    the topic in the graph, writes what it published before the match from there."""
+    from geometry_msgs.msg import PointStamped
+
+    from scenario_nodes.codec import encode_point
+
+    with ros_context() as (context, executor, nodes):
+        talker = Node('lidar', context=context, cli_args=['--ros-args', '-r', 'measurement:=lidar'])
+        executor.add_node(talker)
+        nodes.append(talker)
+        measurement = qos.HistoryPublisher(talker, qos.QosEvents(talker), PointStamped, qos.MEASUREMENT)
+        assert measurement.history.topic_name == '/lidar/history'
+        step = 100_000_000
+        for k in range(40):  # before any recorder exists
+            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
+        recorder = make(RecorderNode, context, executor, nodes, 'recorder', use_sim_time=False,
+                        topics=['lidar'], output=str(tmp_path / 'bag'))
+        assert spin_until(executor, lambda: recorder.backfilled.get('/lidar') == 40)
+        assert spin_until(executor, lambda: measurement.get_subscription_count() > 0)
+        for k in range(40, 60):  # live
+            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
+        assert spin_until(executor, lambda: recorder.counts['/lidar'] >= 60)
+        spin_until(executor, lambda: False, timeout=1.0)
+        recorder.close()
+    assert recorder.counts['/lidar'] == 60 and recorder.backfilled['/lidar'] == 40
+
+
 def _truth_subscribers(node) -> set:
     return {info.node_name for info in node.get_subscriptions_info_by_topic('/truth')}
 
