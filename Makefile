@@ -52,7 +52,7 @@ lint: $(STAMP)
 
 test: lint
 	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
-	$(BIN)/python -m pytest -q -m slow test
+	$(BIN)/python -m pytest -q -m slow --durations=15 test
 
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 -m "not slow and not exhaustive" test

@@ -38,6 +38,9 @@ LIVE_VIEW = ('live_view', registry.node('live_view').module)
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).
 SCHEDULING = ('batch', 'normal')
+#: The policy by mode when none is asked for (docs/decisions.md, 39): lockstep runs for throughput,
+#: realtime for latency.
+SCHEDULING_BY_MODE = {'lockstep': 'batch', 'realtime': 'normal'}
 BATCH, NORMAL = getattr(os, 'SCHED_BATCH', None), getattr(os, 'SCHED_OTHER', None)
 
 
@@ -231,13 +234,15 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  real_time_factor: float | None = None, domain_id: int | None = None,
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
-                 scheduling: str = 'batch', plant: str = 'cw', live_view: bool = False,
+                 scheduling: str | None = None, plant: str = 'cw', live_view: bool = False,
                  single_process: bool = False, sensor: str = 'position') -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
-    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameters.sensor_suites."""
+    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameters.sensor_suites.
+    ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE)."""
+    scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
     plant_values = {'mode': mode, 'exit_when_done': True}
@@ -373,9 +378,11 @@ def main(argv=None) -> int:
     parser.add_argument('--no-report', action='store_true', help='skip the figures')
     parser.add_argument('--cpu-affinity', default='auto', choices=('auto', 'off'),
                         help='auto: estimator and controller on one CPU, the other nodes on the rest')
-    parser.add_argument('--scheduling', default='batch', choices=SCHEDULING,
+    parser.add_argument('--scheduling', choices=SCHEDULING,
                         help='Linux policy of the node processes: batch (SCHED_BATCH, no wakeup '
-                             'preemption; faster lockstep) or normal (SCHED_OTHER)')
+                             'preemption: faster lockstep) or normal (SCHED_OTHER: a woken node '
+                             'runs sooner, a lower latency tail in realtime); default: batch in '
+                             'lockstep, normal in realtime')
     parser.add_argument('--live-view', action='store_true',
                         help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
     parser.add_argument('--single-process', action='store_true',

@@ -1,7 +1,8 @@
 """snn_latency_bench: wall-clock latency from a measurement to its estimate and to its control, in realtime mode.
 
 Runs the demo pipeline (every node its own process, recorder included, the demo's CPU plan and
-scheduling) in realtime mode, where the plant steps on a wall-clock timer and the sensor
+its realtime scheduling, the normal policy; ``10x_batch``: SCHED_BATCH) in realtime mode,
+where the plant steps on a wall-clock timer and the sensor
 publishes one measurement per step: 10 Hz at ``1x`` and 100 Hz at ``10x`` (the plant's
 ``real_time_factor``). A probe process subscribes to ``measurement``, ``estimate`` and ``control``
 (raw CDR, best effort, the pipeline's executor) and takes each message's receive time at the
@@ -61,8 +62,12 @@ CASES = {
     # no CPU plan: every node may run on either CPU (the demo pins them for lockstep throughput)
     '1x_unpinned': (1.0, {}, {}, {'pin_cpus': False}),
     '10x_unpinned': (10.0, {}, {}, {'pin_cpus': False}),
+    # SCHED_BATCH, the lockstep policy (realtime runs the normal one, decision 39): no wakeup
+    # preemption, so a woken controller waits for the estimator's callback to end on their CPU
+    '1x_batch': (1.0, {}, {}, {'scheduling': 'batch'}),
+    '10x_batch': (10.0, {}, {}, {'scheduling': 'batch'}),
 }
-DEFAULT_CASES = ('1x', '10x', '10x_gc_frozen', '10x_log_warn', '10x_unpinned', '10x_wait')
+DEFAULT_CASES = ('1x', '10x', '10x_batch', '10x_gc_frozen', '10x_log_warn', '10x_unpinned', '10x_wait')
 #: Paths measured: name -> topic whose receive time ends it (each starts at the measurement).
 PATHS = {'measurement_to_estimate': 'estimate', 'measurement_to_control': 'control'}
 PROBE_TOPICS = ('measurement', 'estimate', 'control')

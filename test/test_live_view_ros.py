@@ -149,8 +149,9 @@ def test_a_foxglove_client_receives_the_published_estimates_during_a_demo(tmp_pa
     port = free_port()
     client = FoxgloveClient(port, seconds=120.0)
     client.start()
-    run_pipeline(tmp_path / 'run', mode='realtime', real_time_factor=10.0, duration=20.0, live_view=True,
-                 extra={'live_view': {'port': port, 'publish_rate': 20.0}})
+    result = run_pipeline(tmp_path / 'run', mode='realtime', real_time_factor=10.0, duration=20.0, live_view=True,
+                          extra={'live_view': {'port': port, 'publish_rate': 20.0}})
+    assert result['scheduling'] == 'normal'  # realtime runs the normal policy by default (decision 39)
     client.join(30.0)
     assert client.error is None, client.error
     assert client.subprotocol == SUBPROTOCOL
