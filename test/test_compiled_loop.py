@@ -51,7 +51,7 @@ def test_the_compiled_loop_on_basilisk_truth_equals_the_python_loop(kind):
 
 
 @pytest.mark.parametrize('kind, changes', [
-    ('snn_emsif', {'membrane_noise': 0.05}),
+    ('snn_emsif', {'membrane_noise': 0.01}),  # 0.05 drives N = 200 to the spike cap within 8 steps
     ('snn_ekf', {'gain_schedule': 'steady_state'}),
     ('snn_emsif_weighted', {'network_coding': 'deviation'}),
     ('snn_emsif', {'spike_rule': 'all_above'}),
