@@ -141,32 +141,42 @@ def test_a_topic_of_a_type_rosbags_does_not_know_is_skipped_and_the_others_recor
         assert {c.topic: c.msgcount for c in reader.connections} == {'/truth': recorder.counts['/truth']}
 
 
+def _publish_before_and_after_a_recorder(tmp_path, topic: str, cli_args=()):
+    """40 points published on a sensor's history-keeping ``measurement`` before a recorder of
+    ``topic`` exists (they must come from the history), then 20 live; returns the recorder
+    and the name of the sensor's history topic."""
+    from geometry_msgs.msg import PointStamped
+
+    from scenario_nodes.codec import encode_point
+
+    name = '/' + topic
+    with ros_context() as (context, executor, nodes):
+        talker = Node('sensor', context=context, cli_args=list(cli_args))
+        executor.add_node(talker)
+        nodes.append(talker)
+        measurement = qos.HistoryPublisher(talker, qos.QosEvents(talker), PointStamped, qos.MEASUREMENT)
+        history = measurement.history.topic_name
+        step = 100_000_000
+        for k in range(40):  # before any recorder exists
+            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
+        recorder = make(RecorderNode, context, executor, nodes, 'recorder', use_sim_time=False,
+                        topics=[topic], output=str(tmp_path / 'bag'))
+        assert spin_until(executor, lambda: recorder.backfilled.get(name) == 40)
+        assert spin_until(executor, lambda: measurement.get_subscription_count() > 0)
+        for k in range(40, 60):  # live
+            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
+        assert spin_until(executor, lambda: recorder.counts[name] >= 60)
+        spin_until(executor, lambda: False, timeout=1.0)  # the history's copies of the live samples
+        recorder.close()
+    return recorder, history
+
+
 def test_samples_published_before_the_recorder_matched_are_backfilled_from_the_history(tmp_path):
     """A sensor that publishes before the recorder's subscription matched it (discovery on a
     loaded machine took longer than the plant's start_delay: CI once lost the first 176
     measurements of a run): the recorder writes them from the sensor's transient-local
     ``measurement/history``, once each, and the series reads in stamp order."""
-    from geometry_msgs.msg import PointStamped
-
-    from scenario_nodes.codec import encode_point
-
-    with ros_context() as (context, executor, nodes):
-        talker = Node('sensor', context=context)
-        executor.add_node(talker)
-        nodes.append(talker)
-        measurement = qos.HistoryPublisher(talker, qos.QosEvents(talker), PointStamped, qos.MEASUREMENT)
-        step = 100_000_000
-        for k in range(40):  # before any recorder exists
-            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
-        recorder = make(RecorderNode, context, executor, nodes, 'recorder', use_sim_time=False,
-                        topics=['measurement'], output=str(tmp_path / 'bag'))
-        assert spin_until(executor, lambda: recorder.backfilled.get('/measurement') == 40)
-        assert spin_until(executor, lambda: measurement.get_subscription_count() > 0)
-        for k in range(40, 60):  # live
-            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
-        assert spin_until(executor, lambda: recorder.counts['/measurement'] >= 60)
-        spin_until(executor, lambda: False, timeout=1.0)  # the history's copies of the live samples
-        recorder.close()
+    recorder, _ = _publish_before_and_after_a_recorder(tmp_path, 'measurement')
     assert recorder.counts['/measurement'] == 60 and recorder.backfilled['/measurement'] == 40
     data = read_bag(tmp_path / 'bag')
     assert np.allclose(data.measurement_t, 0.1 * np.arange(60)) and data.repeats.get('measurement', 0) == 0
@@ -178,28 +188,9 @@ def test_a_suite_sensor_on_its_own_topic_keeps_its_history_beside_it_and_is_back
     with the remap (/lidar/history; it went to /measurement/history, shared by both sensors of a
     fused run, so the recorder had nothing to backfill a sensor from), and the recorder, finding
     the topic in the graph, writes what it published before the match from there."""
-    from geometry_msgs.msg import PointStamped
-
-    from scenario_nodes.codec import encode_point
-
-    with ros_context() as (context, executor, nodes):
-        talker = Node('lidar', context=context, cli_args=['--ros-args', '-r', 'measurement:=lidar'])
-        executor.add_node(talker)
-        nodes.append(talker)
-        measurement = qos.HistoryPublisher(talker, qos.QosEvents(talker), PointStamped, qos.MEASUREMENT)
-        assert measurement.history.topic_name == '/lidar/history'
-        step = 100_000_000
-        for k in range(40):  # before any recorder exists
-            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
-        recorder = make(RecorderNode, context, executor, nodes, 'recorder', use_sim_time=False,
-                        topics=['lidar'], output=str(tmp_path / 'bag'))
-        assert spin_until(executor, lambda: recorder.backfilled.get('/lidar') == 40)
-        assert spin_until(executor, lambda: measurement.get_subscription_count() > 0)
-        for k in range(40, 60):  # live
-            measurement.publish(encode_point(np.array([70.0 - k, 30.0, -5.0]), (0, 1, 2), k * step, 'lvlh'))
-        assert spin_until(executor, lambda: recorder.counts['/lidar'] >= 60)
-        spin_until(executor, lambda: False, timeout=1.0)
-        recorder.close()
+    recorder, history = _publish_before_and_after_a_recorder(
+        tmp_path, 'lidar', cli_args=['--ros-args', '-r', 'measurement:=lidar'])
+    assert history == '/lidar/history'
     assert recorder.counts['/lidar'] == 60 and recorder.backfilled['/lidar'] == 40
 
 
