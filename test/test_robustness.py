@@ -582,6 +582,14 @@ def test_a_second_estimator_warm_starts_from_the_running_ones_estimates():
         assert np.abs(second.estimator.x_hat - first.estimator.x_hat).max() < 0.5
 
 
+def _control_answering(harness, x, k):
+    """Publish the estimate x at step k and return the controller's control for its stamp."""
+    harness.publish(qos.ESTIMATE, state_to_odometry(x, None, k * DT, 'lvlh', 'c'))
+    assert spin_until(harness.executor, lambda: any(stamp_to_ns(m.header.stamp) == k * DT
+                                                    for m in harness.received[qos.CONTROL]))
+    return [m for m in harness.received[qos.CONTROL] if stamp_to_ns(m.header.stamp) == k * DT][-1]
+
+
 def test_controller_safe_mode_covers_a_dead_sensor_and_reports_its_peers(controller_rig):
     """Estimates keep coming (predictions) but the measurements stopped: zero thrust, the
     'measurement' peer WARN in diagnostics; measurements back: LQR again, the level clears."""
@@ -595,10 +603,7 @@ def test_controller_safe_mode_covers_a_dead_sensor_and_reports_its_peers(control
         if measured:
             harness.publish(qos.MEASUREMENT, measurement_to_point(x[:3], (0, 1, 2), k * DT, 'lvlh'))
         spin_until(executor, lambda: False, timeout=settle)
-        harness.publish(qos.ESTIMATE, state_to_odometry(x, None, k * DT, 'lvlh', 'c'))
-        assert spin_until(executor, lambda: any(stamp_to_ns(m.header.stamp) == k * DT
-                                                for m in harness.received[qos.CONTROL]))
-        return [m for m in harness.received[qos.CONTROL] if stamp_to_ns(m.header.stamp) == k * DT][-1]
+        return _control_answering(harness, x, k)
 
     for k in range(1, 5):
         assert step(k, settle=0.05).accel.linear.x != 0.0
@@ -646,10 +651,7 @@ def test_controller_watches_every_sensor_topic_it_is_given_and_no_other():
             if 'measurement' in sensors:
                 harness.publish(qos.MEASUREMENT, measurement_to_point(x[:3], (0, 1, 2), k * DT, 'lvlh'))
             spin_until(executor, lambda: False, timeout=settle)
-            harness.publish(qos.ESTIMATE, state_to_odometry(x, None, k * DT, 'lvlh', 'c'))
-            assert spin_until(executor, lambda: any(stamp_to_ns(m.header.stamp) == k * DT
-                                                    for m in harness.received[qos.CONTROL]))
-            return [m for m in harness.received[qos.CONTROL] if stamp_to_ns(m.header.stamp) == k * DT][-1]
+            return _control_answering(harness, x, k)
 
         for k in range(1, 5):
             assert step(k, ('camera', 'lidar'), settle=0.05).accel.linear.x != 0.0
