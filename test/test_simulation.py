@@ -233,7 +233,11 @@ def test_a_network_that_reaches_its_spike_cap_has_diverged_there():
     import dataclasses
     scenario, runs, cap = dataclasses.replace(rendezvous_scenario(initial_state_dispersion=True), duration=20.0), 6, 150
     free = simulate(scenario, 'snn_ekf', runs=runs)
-    capped = simulate(scenario, 'snn_ekf', runs=runs, config=scenario.estimator.replace(max_spikes_per_step=cap))
+    late = {}  # each run's spike total and live neurons before two late steps
+    events = {k: (lambda est, k=k: late.__setitem__(k, (est.total_spikes.copy(), est.alive.any(axis=1))))
+              for k in (150, 199)}
+    capped = simulate(scenario, 'snn_ekf', runs=runs, config=scenario.estimator.replace(max_spikes_per_step=cap),
+                      events=events)
     first = [np.flatnonzero(free.spikes_per_step[b] >= cap) for b in range(runs)]
     expected = np.array([steps.size > 0 for steps in first])
     assert 0 < expected.sum() < runs and not free.diverged.any()
@@ -243,6 +247,10 @@ def test_a_network_that_reaches_its_spike_cap_has_diverged_there():
             assert capped.diverged_at[b] == first[b][0] and capped.extra['diverged_cause'][b] == 'spike_cap'
         else:
             np.testing.assert_array_equal(capped.estimate[b], free.estimate[b])
+    # a run that diverged stops firing (Estimator.retire): its network is silenced, not re-run at the cap
+    (total_150, _), (total_199, alive_199) = late[150], late[199]
+    np.testing.assert_array_equal(alive_199, ~expected)
+    np.testing.assert_array_equal(total_199[expected], total_150[expected])
 
 
 @pytest.mark.slow

@@ -96,6 +96,21 @@ class EstimatorState:
             for b in np.flatnonzero(chosen):  # its rates and potentials (and prediction) anew
                 self.encode(starts[b], run=b)
 
+    def retire(self, runs) -> None:
+        """Restart the runs ``runs`` (as :meth:`restart`) and, on a spiking filter, silence every
+        neuron of theirs for good: a run that diverged flies on unmeasured and its samples are
+        discarded, so its network need not fire. Without this a run that diverged at its spike
+        cap (membrane noise, a bad gain) would keep hitting the cap, at ~cap x N operations per
+        step, for the rest of the batch."""
+        self.restart(runs)
+        if self.spiking:
+            chosen = np.zeros(self.runs, dtype=bool)
+            chosen[np.asarray(runs).reshape(-1)] = True
+            net = self._network
+            net.alive[chosen] = False
+            net.r[chosen] = 0.0
+            net.v[chosen] = 0.0
+
     def _live_arrays(self) -> dict:
         """The arrays a step writes: estimate, covariance, gain, H (and its pseudo-inverse) of a
         nonlinear measurement, and the network's rates, potentials, spikes and prediction."""

@@ -492,8 +492,8 @@ class _Divergence:
     its control at k, or its estimate, covariance or truth after step k, is not finite (a filter
     whose P lost positive definiteness, ...), or when its network's spikes in step k reached
     max_spikes_per_step (1000 N by default: the network no longer follows the filter, its
-    estimate is what the cap left). From then on its filter is restarted
-    (Estimator.restart) and never measured, it flies with u = 0, and its samples from k + 1 on
+    estimate is what the cap left). From then on its filter is restarted with its network
+    silenced (Estimator.retire: it fires no more) and never measured, it flies with u = 0, and its samples from k + 1 on
     (controls, NIS and spikes from k) are discarded (NaN; :attr:`SimulationResult.diverged`).
     With no run diverged nothing here touches a number."""
 
@@ -538,7 +538,7 @@ class _Divergence:
         self.running = self.at < 0
         restart = new if broken is None else new | broken
         if restart.any():
-            estimator.restart(restart)
+            estimator.retire(restart)
         return int(new.sum())
 
 
