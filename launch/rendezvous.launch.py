@@ -96,10 +96,16 @@ def _nodes(context):
                     namespace=namespace, parameters=[params] + ([extra] if extra else []),
                     output='screen', prefix=prefix, **kwargs)
 
-    plant = node(plant_name, {
+    plant_params = {
         'mode': LaunchConfiguration('mode'), 'exit_when_done': end_with_plant,
         # typed: launch would pass real_time_factor:=10 as an integer, which a DOUBLE refuses
-        'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'), value_type=float)})
+        'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'), value_type=float)}
+    optional = [name for name in ('record', 'live_view')
+                if LaunchConfiguration(name).perform(context).lower() in ('true', '1')]
+    if optional:  # the first state waits for the sensor and each of these on 'truth' (the recorder
+        # subscribes last, once it hears the loop: counted, it is sure to record the start)
+        plant_params['min_truth_subscribers'] = 1 + len(optional)
+    plant = node(plant_name, plant_params)
     extra = {'estimator': {'filter_type': estimator} if estimator else None}
     options = {'recorder': {'condition': IfCondition(LaunchConfiguration('record'))},
                'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}

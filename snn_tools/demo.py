@@ -107,8 +107,11 @@ class Pipeline:
         self.sensor_nodes = tuple(sensor_nodes)
         if single_process and self.sensor_nodes != ('position_sensor',):
             raise ValueError('the single-process mode runs one position_sensor: not with several sensors')
-        truth_subscribers = len(self.sensor_nodes) + record
-        if truth_subscribers > 1:  # the first state waits until the sensors and the recorder match 'truth'
+        # the first state waits until the sensors, the recorder and the live view match 'truth': the
+        # recorder subscribes last (once it hears the loop), so an uncounted live view would let
+        # the plant start before it and the bag would lose the first truths
+        truth_subscribers = len(self.sensor_nodes) + record + live_view
+        if truth_subscribers > 1:
             overrides.setdefault(self.plant, {}).setdefault('min_truth_subscribers', truth_subscribers)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 

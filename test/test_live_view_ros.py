@@ -140,6 +140,18 @@ class FoxgloveClient(threading.Thread):
                 self.messages.setdefault(topic, []).append((log_time, message[13:]))
 
 
+def test_the_plant_waits_for_the_live_view_and_the_recorder_on_truth(tmp_path):
+    """The recorder subscribes to 'truth' last (once it hears the loop); the live view
+    subscribes at once. Counted only as sensor + recorder, the live view's subscription let the
+    plant start before the recorder's and the bag lost the first 17 s of truth."""
+    from snn_tools.demo import Pipeline, pipeline_env
+    from snn_tools.paths import config_file
+    for record, live_view, expected in ((True, True, 3), (True, False, 2), (False, True, 2)):
+        overrides = {}
+        Pipeline(tmp_path, config_file(), overrides, pipeline_env(), record=record, live_view=live_view)
+        assert overrides['cw_plant']['min_truth_subscribers'] == expected, (record, live_view)
+
+
 @pytest.mark.slow
 def test_a_foxglove_client_receives_the_published_estimates_during_a_demo(tmp_path):
     pytest.importorskip('websockets')

@@ -193,7 +193,7 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
     assert arguments['scheduling']['choices'] == ['normal', 'batch']
     assert arguments['scheduling']['default_value'] == 'normal'
     make_nodes = created['opaque'][0].kwargs['function']
-    base = {'keep_alive': 'false', 'plant': 'cw', 'estimator': ''}
+    base = {'keep_alive': 'false', 'plant': 'cw', 'estimator': '', 'record': 'false', 'live_view': 'false'}
     for context, prefix in (({'scheduling': 'normal'}, None),  # launch applies --launch-prefix itself
                             ({'scheduling': 'batch'}, 'chrt --batch 0'),
                             ({'scheduling': 'batch', 'launch-prefix': 'gdb -ex run --args'},
@@ -236,6 +236,14 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
     nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
     assert created['handler'] == [] and nodes['basilisk_plant']['parameters'][1]['exit_when_done'] is False
     assert nodes['estimator']['parameters'][1] == {'filter_type': 'snn_emsif_weighted'}
+    assert 'min_truth_subscribers' not in nodes['basilisk_plant']['parameters'][1]  # the file's (the sensor)
+    # the recorder subscribes to 'truth' last (once it hears the loop): the plant's first state
+    # waits for it, and for the live view, which would otherwise fill the count before it
+    for record, live_view, expected in (('true', 'false', 2), ('false', 'true', 2), ('true', 'true', 3)):
+        created['node'] = []
+        make_nodes(dict(base, scheduling='normal', record=record, live_view=live_view))
+        plant = next(n.kwargs for n in created['node'] if n.kwargs['executable'] == 'cw_plant')
+        assert plant['parameters'][1]['min_truth_subscribers'] == expected, (record, live_view)
 
 
 def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
