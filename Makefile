@@ -42,9 +42,7 @@ $(STAMP): setup.py pyproject.toml
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
 	# compile the spiking, Basilisk-step and closed-loop kernels once, into numba's cache: no node or
 	# Monte Carlo compiles at start-up
-	$(BIN)/python -c "from snn_estimator.filters.kernels import warm_up; warm_up()"
-	$(BIN)/python -c "from snn_estimator.offline.basilisk_truth import warm_up; warm_up()"
-	$(BIN)/python -c "from snn_estimator.offline.compiled_loop import warm_up; warm_up()"
+	$(BIN)/python -m snn_tools.warm_cache
 	touch $(STAMP)
 
 lint: $(STAMP)

@@ -21,7 +21,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
+import os
 import warnings
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -187,28 +190,40 @@ def _row(suite: str, label: str, kind: str, scenario, runs: int) -> tuple[dict, 
     return row, result
 
 
-def suite_rows(runs: int) -> list[dict]:
+def _case(suite: str, label: str, kind: str, changes: dict, count: int) -> tuple[dict, np.ndarray]:
+    """One filter or variant on one suite: its row, and per run the mean over the last 60 s of
+    |position error|^2 (NaN for a diverged run), which the twin ratio compares."""
+    row, result = _row(suite, label, kind, SUITES[suite](**{'initial_state_dispersion': True, **changes}), count)
+    error = result.error[:, result.window(60.0), :3]
+    return row, np.mean(np.sum(error * error, axis=2), axis=1)
+
+
+def suite_rows(runs: int, workers: int = 1) -> list[dict]:
     """Every filter kind and the variants on each sensor suite, ``runs`` dispersed runs each (the
-    N = 2000 network: at most BIG_NETWORK_RUNS). A spiking filter's twin ratio is over the runs
-    both kept: sqrt of the mean over runs and the last 60 s of |position error|^2, spiking over twin."""
-    rows = []
-    for suite, make in SUITES.items():
-        cases = [(kind, kind, {}) for kind in FILTER_KINDS] + variants(suite)
-        squares = {}
-        for label, kind, changes in cases:
+    N = 2000 network: at most BIG_NETWORK_RUNS), on ``workers`` processes (each case is
+    independent and seeded: the rows are the same for any number). A spiking filter's twin ratio
+    is over the runs both kept: sqrt of the mean over runs and the last 60 s of |position
+    error|^2, spiking over twin."""
+    cases = []
+    for suite in SUITES:
+        for label, kind, changes in [(kind, kind, {}) for kind in FILTER_KINDS] + variants(suite):
             count = min(runs, BIG_NETWORK_RUNS) if changes.get('neuron_count', 0) > 1000 else runs
-            label = label if count == runs else f'{label} ({count} runs)'
-            row, result = _row(suite, label, kind, make(**{'initial_state_dispersion': True, **changes}), count)
-            error = result.error[:, result.window(60.0), :3]
-            squares[label] = np.mean(np.sum(error * error, axis=2), axis=1)  # NaN for a diverged run
-            del result
-            twin = squares.get(TWIN_OF.get(kind))
-            row['twin_ratio'] = None
-            if twin is not None:
-                both = np.isfinite(squares[label]) & np.isfinite(twin[:count])
-                if both.any():
-                    row['twin_ratio'] = float(np.sqrt(squares[label][both].mean() / twin[:count][both].mean()))
-            rows.append(row)
+            cases.append((suite, label if count == runs else f'{label} ({count} runs)', kind, changes, count))
+    if workers > 1:
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context('spawn')) as pool:
+            done = list(pool.map(_case, *zip(*cases)))
+    else:
+        done = [_case(*case) for case in cases]
+    squares = {(case[0], case[1]): square for case, (_, square) in zip(cases, done)}
+    rows = []
+    for (suite, _, kind, _, count), (row, square) in zip(cases, done):
+        twin = squares.get((suite, TWIN_OF.get(kind)))
+        row['twin_ratio'] = None
+        if twin is not None:
+            both = np.isfinite(square) & np.isfinite(twin[:count])
+            if both.any():
+                row['twin_ratio'] = float(np.sqrt(square[both].mean() / twin[:count][both].mean()))
+        rows.append(row)
     return rows
 
 
@@ -512,13 +527,17 @@ def main(argv=None) -> int:
     parser.add_argument('--runs', type=int, default=100, help='dispersed runs per filter and suite (default 100)')
     parser.add_argument('--out', type=Path, default=Path('results'),
                         help='folder for sensors.json and sensors.md (and REPORT.md, if there, between its markers)')
+    parser.add_argument('--workers', type=int, default=min(os.cpu_count() or 1, 4),
+                        help='processes for the cases (default: the CPUs, at most 4; 1: this process)')
     parser.add_argument('--no-doc', dest='doc', action='store_false',
                         help='do not rewrite the tables of docs/sensors.md')
     args = parser.parse_args(argv)
     if args.runs < 1:
         parser.error('--runs must be >= 1')
+    if args.workers < 1:
+        parser.error('--workers must be >= 1')
     results = {'commit': code_version(), 'runs': args.runs, 'duration_s': D.RENDEZVOUS_DURATION,
-               'suites': suite_rows(args.runs), 'demo': demo_rows(), 'angles_only': angles_rows()}
+               'suites': suite_rows(args.runs, args.workers), 'demo': demo_rows(), 'angles_only': angles_rows()}
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / 'sensors.json').write_text(json.dumps(results, indent=2) + '\n')
     tables = markdown(results)
