@@ -14,6 +14,7 @@ from snn_estimator import (
     simulate,
     van_der_pol_scenario,
 )
+from snn_estimator.filters import kernels
 from snn_estimator.filters.reference import DenseSpikingFilter
 from snn_estimator.models import VanDerPol
 from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
@@ -718,8 +719,53 @@ def test_the_kernels_entry_point_sees_any_input_as_the_dispatcher_would(kind):
         inputs = (z, wide[:, 0], [70 - k, 30, -5])[k % 3]  # plain first, then a non-contiguous column, ints
         clean.step(z, np.zeros(3), 0.1)
         odd.step(inputs, readonly if k % 2 else [0, 0, 0], 0.1)
-    assert odd._step_entry is not odd._kernel  # the fast path is the one in use
+    assert odd._step_entry is not odd._packed_kernel  # the fast path is the one in use
     np.testing.assert_array_equal(odd.x_hat, clean.x_hat)
+
+
+@pytest.mark.parametrize('kind', ['emsif', 'snn_emsif'])
+def test_the_packed_step_is_the_kernel_on_the_three_tuples_bit_for_bit(kind):
+    """A single filter passes its constants, state and network as one PackedRef (one pointer to
+    unbox per call, not ~23 arrays): the same kernel inside, so every step equals the kernel
+    called on the three tuples of a twin filter, to the bit, also when dt changes every step
+    (the dt constants are written in place, the PackedRef is kept, not rebuilt)."""
+    config = EstimatorConfig(neuron_count=30)
+    packed, tuples = make_estimator(kind, config), make_estimator(kind, config)
+    rng = np.random.default_rng(3)
+    for k in range(60):
+        dt = 0.1 if k < 20 else float(rng.uniform(0.05, 0.15))  # jittered stamps from step 20
+        z, u = np.array([[70.0 - k, 30.0, -5.0]]) + rng.normal(0.0, 0.1, (1, 3)), rng.normal(0.0, 1e-3, (1, 3))
+        packed.step(z, u, dt)
+        if k == 20:
+            ref = packed._packed.ref
+        if dt != tuples._call_dt:
+            tuples.prepare(dt)
+        dynamics, drift = tuples._dynamics(tuples._x_hat, u, dt)
+        p = tuples._packed
+        status, _ = tuples._kernel(p.constants, p.state, p.network, tuples._all_measured, dt, dynamics, drift,
+                                   z, u, tuples._network.zero_noise)
+        assert status == kernels.STATUS_OK
+        np.testing.assert_array_equal(packed._x_hat, tuples._x_hat)
+        np.testing.assert_array_equal(packed._p, tuples._p)
+    assert packed._packed.ref is ref  # 40 steps of other dts: no rebuild
+    if packed.spiking:
+        np.testing.assert_array_equal(packed.spikes, tuples.spikes)
+
+
+def test_packed_writes_the_dt_constants_in_place_and_rebuilds_for_the_others():
+    """Packed keeps private copies of the constants a dt changes (the caller's arrays are
+    never written) and updates them in place; any other constant gets a new tuple and PackedRef."""
+    estimator = make_estimator('ekf', EstimatorConfig())
+    packed = estimator._packed
+    given = np.eye(3) * 2.0
+    before = packed.ref
+    packed.update(r_density=given)
+    assert packed.ref is before and packed.constants[3] is not given
+    np.testing.assert_array_equal(packed.constants[3], given)
+    packed.update(r_density=np.eye(3) * 5.0)
+    np.testing.assert_array_equal(given, np.eye(3) * 2.0)  # the caller's array as it was
+    packed.update(leak=0.5)
+    assert packed.ref is not before and packed.constants[9] == 0.5
 
 
 def _snapshot_cases():

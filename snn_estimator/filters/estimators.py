@@ -259,10 +259,11 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
                              'network_coding state with precision loihi or gain_schedule switched')
         self.has_covariance = self.has_covariance and self._chip is None  # the chip computes no P
         self._packed = self._pack()
-        self._kernel = kernels.step_kernel(self.gain_law if not self.constant_gain else 'fixed', self.covariance_law,
-                                           self.spiking, s.spike_rule, drift=not (model.is_linear or linearized),
-                                           coding=self.coding)
-        self._step_entry = None  # the kernel's entry point for the step's argument types (see _advance)
+        composition = (self.gain_law if not self.constant_gain else 'fixed', self.covariance_law, self.spiking,
+                       s.spike_rule, not (model.is_linear or linearized), self.coding)
+        self._kernel = kernels.step_kernel(*composition)  # the packed tuples (the compiled loop's)
+        self._packed_kernel = kernels.step_kernel(*composition, packed=True)  # one PackedRef (step's)
+        self._step_entry = None  # the packed kernel's entry point for the step's argument types (see _advance)
         self._call_dt: float | None = None
         self.reset()
 
@@ -303,9 +304,8 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         """Compile (or load from numba's cache) this filter's kernels without stepping: a node
         calls this at configure so that its first step is not its slowest."""
         n, n_u = self.model.n_state, self.model.n_input
-        kernels.compile_for(self._kernel, self._packed.constants, self._packed.state, self._packed.network,
-                            self._all_measured, 0.1, np.zeros((1, n, 2 * n + n_u)), self._dynamics.no_drift,
-                            self._no_measurement,
+        kernels.compile_for(self._packed_kernel, self._packed.ref, self._all_measured, 0.1,
+                            np.zeros((1, n, 2 * n + n_u)), self._dynamics.no_drift, self._no_measurement,
                             np.zeros((self.runs, n_u)), self._network.zero_noise)
         if self.spiking:
             net = self._network
@@ -451,11 +451,11 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
             self.steps += 1
             self.capped_steps = self._chip.capped_steps
             return self.x_hat
-        args = (self._packed.constants, self._packed.state, self._packed.network, measured, float(dt), dynamics,
-                drift, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(u, dtype=float), noise)
+        args = (self._packed.ref, measured, float(dt), dynamics, drift, np.ascontiguousarray(z, dtype=float),
+                np.ascontiguousarray(u, dtype=float), noise)
         if self._step_entry is None:  # the first step: through numba's dispatch, then its entry point
-            status, capped = self._kernel(*args)
-            self._step_entry = kernels.entry_point(self._kernel, args)
+            status, capped = self._packed_kernel(*args)
+            self._step_entry = kernels.entry_point(self._packed_kernel, args)
         else:
             status, capped = self._step_entry(*args)
         if status == kernels.STATUS_BAD_INPUT:
