@@ -172,6 +172,13 @@ SENSOR = MODEL + (
          'range, and every truth between two samples (measurement_period), as "nothing measured" '
          '(sensor_msgs/Range -inf/+inf as REP 117, a Vector3Stamped of NaN), so that the estimator '
          'predicts over it at once instead of waiting dropout_wait for it'),
+    Spec('min_measurement_subscribers', 0, "Subscriptions the measurement topic's publisher must have "
+         "matched before the sensor subscribes to 'truth' (the plant starts on matched truth "
+         'subscriptions, so after them). DDS may match a subscriber\'s end first, and what the '
+         'publisher sends before its end matched is lost to that subscriber (snn_demo: the '
+         'estimator, the controller and the recorder); 0: subscribe at once', low=0),
+    Spec('match_wait', 5.0, "Wall-clock s at most to wait for min_measurement_subscribers before "
+         "subscribing to 'truth' anyway (with a warning naming the count)", low=0.0, high=600.0),
 )
 
 CONTROLLER = MODEL + (

@@ -4,6 +4,7 @@ range_rate: docs/sensors.md)."""
 
 from __future__ import annotations
 
+import time
 from functools import partial
 
 import numpy as np
@@ -65,8 +66,13 @@ class SensorNode(ProcessHooks, Node):
         self._peers = PeerWatch([qos.TRUTH], p['peer_timeout'], log=ThrottledLog(self.get_logger()))
         self._diagnostics = DiagnosticsPublisher(self, self.get_name(), p['diagnostics_period'], self._events,
                                                  peers=self._peers)
-        self.create_timer(0.1, self._on_peer_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(0.1, self._on_peer_check, clock=steady)
+        self._hold_started = time.monotonic()
+        self._hold = (self.create_timer(0.02, self._subscribe_truth, clock=steady)
+                      if p['min_measurement_subscribers'] > 0 else None)
+        if self._hold is None:
+            self._subscribe_truth()
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         if model.message_form == 'point':
             self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
@@ -78,6 +84,27 @@ class SensorNode(ProcessHooks, Node):
                     f'measurement_noise gives {model.name} angles a standard deviation of '
                     f'{np.degrees(np.sqrt(angles.max())):.1f} deg: R is in rad^2 for angles '
                     '(the default 1e-2 is the position noise of Table 6; docs/sensors.md)')
+
+    def _subscribe_truth(self) -> None:
+        """Subscribe to 'truth' once the measurement publisher has matched
+        ``min_measurement_subscribers`` subscriptions (at once without it), or after
+        ``match_wait`` s with a warning: a subscriber that DDS matched on its side only would
+        lose the first samples (docs/decisions.md, 33)."""
+        if self._hold is not None:
+            wanted, matched = self._p['min_measurement_subscribers'], self._pub.get_subscription_count()
+            waited = time.monotonic() - self._hold_started
+            if matched < wanted and waited < self._p['match_wait']:
+                return
+            self.destroy_timer(self._hold)
+            self._hold = None
+            if matched < wanted:
+                self.get_logger().warning(
+                    f"subscribing to '{qos.TRUTH}' after {waited:.1f} s with {matched} of {wanted} subscriptions "
+                    f"matched on '{self._pub.topic.topic_name}': they may miss the first samples")
+            else:
+                self.get_logger().info(f"'{self._pub.topic.topic_name}' matched {matched} subscriptions after "
+                                       f"{waited:.2f} s: subscribing to '{qos.TRUTH}'")
+        qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
 
     def _on_peer_check(self) -> None:
         if self._peers.check() and self._gate.last_ns is not None:

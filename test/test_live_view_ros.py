@@ -150,6 +150,8 @@ def test_the_plant_waits_for_the_live_view_and_the_recorder_on_truth(tmp_path):
         overrides = {}
         Pipeline(tmp_path, config_file(), overrides, pipeline_env(), record=record, live_view=live_view)
         assert overrides['cw_plant']['min_truth_subscribers'] == expected, (record, live_view)
+        # each sensor waits for its estimator, controller and recorder (test_nodes.py)
+        assert overrides['position_sensor']['min_measurement_subscribers'] == 2 + record
 
 
 @pytest.mark.slow

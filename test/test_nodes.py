@@ -226,6 +226,33 @@ def test_plant_publishes_the_first_state_only_once_enough_subscriptions_match_tr
         assert plant.values()['truth_published'] == 1 and stamp_to_ns(probe.received[qos.TRUTH][0].header.stamp) == 0
 
 
+def test_a_sensor_subscribes_to_truth_only_once_its_measurements_have_enough_matched_subscribers():
+    """min_measurement_subscribers: the sensor's 'truth' subscription (what the plant's start
+    waits for) comes only once its own publisher has matched that many subscriptions, so no
+    subscriber whose end DDS matched first loses the first samples; after match_wait it
+    subscribes anyway."""
+    from geometry_msgs.msg import PointStamped
+    from rclpy.node import Node
+    with ros_context() as (context, executor, nodes):
+        watcher = Node('truth_watcher', context=context)
+        executor.add_node(watcher)
+        nodes.append(watcher)
+        make(SensorNode, context, executor, nodes, 'position_sensor', min_measurement_subscribers=2,
+             match_wait=60.0)
+        listeners = []
+        for k in range(2):
+            assert not spin_until(executor, lambda: watcher.count_subscribers(qos.TRUTH) > 0, 0.5), k
+            listener = Node(f'measurement_listener_{k}', context=context)
+            executor.add_node(listener)
+            nodes.append(listener)
+            listener.create_subscription(PointStamped, qos.MEASUREMENT, lambda msg: None, qos.SUBSCRIPTION_QOS)
+            listeners.append(listener)
+        assert spin_until(executor, lambda: watcher.count_subscribers(qos.TRUTH) == 1)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=['--ros-args', '-r', '__node:=second'],
+             min_measurement_subscribers=5, match_wait=0.3)
+        assert spin_until(executor, lambda: watcher.count_subscribers(qos.TRUTH) == 2, 5.0)  # after 0.3 s
+
+
 @pytest.mark.parametrize('node_class, name, changes, message', [
     (EstimatorNode, 'estimator', {'neuron_count': 0}, 'neuron_count'),
     (EstimatorNode, 'estimator', {'leak_rate': -1.0}, 'leak_rate'),
