@@ -107,6 +107,8 @@ def _nodes(context):
         plant_params['min_truth_subscribers'] = 1 + len(optional)
     plant = node(plant_name, plant_params)
     extra = {'estimator': {'filter_type': estimator} if estimator else None}
+    if 'record' in optional:  # the sensor's publisher matches estimator, controller and recorder first
+        extra['position_sensor'] = {'min_measurement_subscribers': 3}  # (decisions.md, 33)
     options = {'recorder': {'condition': IfCondition(LaunchConfiguration('record'))},
                'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}
     actions = [node(entry.name, extra.get(entry.name), **options.get(entry.name, {}))

@@ -244,6 +244,8 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         make_nodes(dict(base, scheduling='normal', record=record, live_view=live_view))
         plant = next(n.kwargs for n in created['node'] if n.kwargs['executable'] == 'cw_plant')
         assert plant['parameters'][1]['min_truth_subscribers'] == expected, (record, live_view)
+        sensor = next(n.kwargs for n in created['node'] if n.kwargs['executable'] == 'position_sensor')
+        assert sensor['parameters'][1:] == ([{'min_measurement_subscribers': 3}] if record == 'true' else [])
 
 
 def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
