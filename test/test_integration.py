@@ -1,9 +1,13 @@
-"""Multi-process closed loop: every filter type as its own process, recorded, checked from the bag.
+"""Multi-process closed loop: a filter of each covariance law and the paper's two spiking filters,
+each as its own process, recorded, checked from the bag.
 
 Each run is the full 360 s scenario in lockstep, with the package's parameter file (the filter
 starts from a dispersed estimate, as a deployed one would); processes are always stopped
 (run_pipeline's finally). Speed is not asserted here (see `make bench` and the demo summary);
-numbers and equality with the offline simulator are.
+numbers and equality with the offline simulator are. Every other kind runs the same nodes and
+messages (the kernel differs, which the offline tests cover): test_nodes.py holds each kind's
+lockstep ROS run equal to the offline simulation in one process (300 steps), so this module,
+~9 s per kind, flies five (the CI's slow tier was 95 s for all ten).
 """
 
 import numpy as np
@@ -17,7 +21,9 @@ from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from snn_tools.demo import run_pipeline  # noqa: E402
 
 pytestmark = pytest.mark.slow
-KINDS = tuple(FILTER_KINDS)
+#: Riccati (EKF), no covariance (the literal ESIF, which never corrects the velocity), the gain's
+#: covariance (EMSIF-W), and the paper's SNN-EKF and SNN-EMSIF.
+KINDS = ('ekf', 'esif', 'emsif_weighted', 'snn_ekf', 'snn_emsif')
 
 
 @pytest.fixture(scope='module')

@@ -24,7 +24,7 @@ from scenario_nodes.conversions import (  # noqa: E402
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
-from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from snn_estimator import FILTER_KINDS, rendezvous_scenario, simulate  # noqa: E402
 from snn_estimator.offline.simulation import lqr_control, lqr_gain  # noqa: E402
 
 
@@ -51,11 +51,17 @@ def run_lockstep(kind, steps, plant_class=PlantNode, sensor_parameters=None, **e
         return estimates, truths
 
 
+_OTHER_KINDS = [k for k in FILTER_KINDS if k not in ('snn_emsif', 'ekf')]
+
+
 @pytest.mark.parametrize('kind, parameters', [('snn_emsif', {}), ('ekf', {}),
-                                              ('snn_ekf', {'network_coding': 'deviation'})],
-                         ids=['snn_emsif', 'ekf', 'snn_ekf_deviation_coding'])
+                                              ('snn_ekf', {'network_coding': 'deviation'})]
+                         + [(k, {}) for k in _OTHER_KINDS],
+                         ids=['snn_emsif', 'ekf', 'snn_ekf_deviation_coding'] + _OTHER_KINDS)
 def test_lockstep_ros_run_equals_the_offline_simulation(kind, parameters):
-    """Also the deviation coding (docs/decisions.md, 13b), set by its schema parameter alone."""
+    """Every filter kind (test_integration.py flies a representative few as processes for the
+    whole approach), and the deviation coding (docs/decisions.md, 13b), set by its schema
+    parameter alone."""
     steps = 300
     estimates, truths = run_lockstep(kind, steps, **parameters)
     scenario = rendezvous_scenario(initial_state_dispersion=True, **parameters)  # as config/rendezvous.yaml
