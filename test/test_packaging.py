@@ -266,3 +266,16 @@ def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
         assert pipeline_env()['FASTRTPS_DEFAULT_PROFILES_FILE'] == str(ROOT / 'config' / 'fastdds.xml')
     finally:
         os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] = saved
+
+
+def test_the_install_warm_up_covers_every_kind_and_names_a_part_that_fails():
+    """make's warm-up (python -m snn_tools.warm_cache) compiles each filter kind's kernels and loop
+    on worker processes, the longest parts first; a part that fails comes back as its traceback
+    (named, the others go on), not as a crash of the install."""
+    from snn_estimator import FILTER_KINDS
+    from snn_tools import warm_cache
+    parts = warm_cache.parts()
+    assert sorted(parts) == sorted([*FILTER_KINDS, 'basilisk truth'])
+    spiking = [FILTER_KINDS[p].spiking for p in parts if p in FILTER_KINDS]
+    assert spiking == sorted(spiking, reverse=True)  # the spiking kinds (the longest) first
+    assert 'unknown filter kinds' in warm_cache.warm('ukf')

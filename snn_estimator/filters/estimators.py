@@ -532,18 +532,20 @@ def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedC
                                               settings.boundary_layer, kalman))
 
 
-def warm_up_all(share: int = 0, shares: int = 1) -> None:
-    """Compile (or load) the kernels of every filter kind, gain schedule and spike rule (and of
+def warm_up_all(kinds=None) -> None:
+    """Compile (or load) the kernels of every filter kind (or of ``kinds``: processes can share
+    the work, as ``python -m snn_tools.warm_cache`` does), gain schedule and spike rule (and of
     network_coding deviation with the greedy rule) on small filters of the CW model (linear) and
-    Van der Pol (nonlinear: the direct filters' drift). ``share`` of ``shares``: only every
-    ``shares``-th filter kind from the ``share``-th, so that processes can split the work
-    (each kind's kernels are its own; ``make`` runs two)."""
+    Van der Pol (nonlinear: the direct filters' drift)."""
     from snn_estimator.models import ClohessyWiltshire
     from snn_estimator.offline.simulation import van_der_pol_scenario
-    if not 0 <= share < shares:
-        raise ValueError(f'share {share} of {shares}: expected 0 <= share < shares')
+    unknown = set(kinds or ()) - set(FILTER_KINDS)
+    if unknown:
+        raise ValueError(f'unknown filter kinds {sorted(unknown)}; choose from {", ".join(FILTER_KINDS)}')
     linear, nonlinear = ClohessyWiltshire(), van_der_pol_scenario()
-    for kind, spec in list(FILTER_KINDS.items())[share::shares]:
+    for kind, spec in FILTER_KINDS.items():
+        if kinds is not None and kind not in kinds:
+            continue
         for rule in (kernels.SPIKE_RULES if spec.spiking else ('greedy',)):
             # the deviation coding (Decision 13b) with the default rule only: the other rules
             # compile on first use, which keeps make's warm-up from growing by half

@@ -495,10 +495,10 @@ def _plant_root(plant, dt: float) -> np.ndarray:
     return root
 
 
-def warm_up() -> None:
-    """Compile (or load from numba's cache) the loop of every filter kind at its default
-    settings, and the sample writer of the Basilisk truth when Basilisk is installed (``make``
-    calls this at install)."""
+def warm_up(kinds=None, basilisk: bool = True) -> None:
+    """Compile (or load from numba's cache) the loop of every filter kind (or of ``kinds``) at
+    its default settings, and with ``basilisk`` the loop on the Basilisk truth when Basilisk is
+    installed (``make`` calls this at install, python -m snn_tools.warm_cache)."""
     import dataclasses
 
     from snn_estimator.filters.estimators import FILTER_KINDS
@@ -506,8 +506,10 @@ def warm_up() -> None:
     from .simulation import rendezvous_scenario, simulate
     scenario = rendezvous_scenario()
     scenario = dataclasses.replace(scenario, duration=scenario.dt, metric_window=scenario.dt)
-    for kind in FILTER_KINDS:
+    for kind in FILTER_KINDS if kinds is None else kinds:
         simulate(scenario, kind, engine='compiled')
+    if not basilisk:
+        return
     basilisk = rendezvous_scenario(plant='basilisk')
     try:
         simulate(dataclasses.replace(basilisk, duration=basilisk.dt, metric_window=basilisk.dt), 'ekf',
