@@ -104,8 +104,10 @@ def test_a_short_realtime_run_answers_a_measurement_within_the_step_and_waiting_
             assert figures['samples'] >= 30, (name, figures)  # the first ones may precede discovery
             assert 0 < figures['p50_ms'] <= figures['p99_ms'] <= figures['max_ms'] < 1000
             assert math.isfinite(figures['steady_max_ms'])
-        # the control answers the estimate: it cannot arrive sooner, sample by sample in the median
-        assert case['measurement_to_control']['p50_ms'] >= case['measurement_to_estimate']['p50_ms']
+        # the control answers the estimate: it cannot arrive much sooner. Not exactly: the probe
+        # stamps arrival in its callbacks, and when both wait in its executor the control's may run
+        # first (a CI run: control p50 1.0799 ms, estimate 1.0877 ms), so a tenth of a millisecond
+        assert case['measurement_to_control']['p50_ms'] >= case['measurement_to_estimate']['p50_ms'] - 0.1
     print({name: case['measurement_to_estimate']['p50_ms'] for name, case in cases.items()})
     assert cases['1x']['measurement_to_estimate']['p50_ms'] < 50.0
     assert cases['1x']['measurement_to_control']['p50_ms'] < 50.0
