@@ -20,6 +20,7 @@ import math
 import platform
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,43 @@ def time_filterpy(scenario, zs, us) -> float | None:
     return best_median(lambda: FilterpyStep(scenario), zs, us, scenario.dt)
 
 
+@contextmanager
+def filter_doing_nothing():
+    """Within: simulate's compiled loop steps a filter that does nothing (its state stays as
+    set up, the step returns OK at once) around the same truth, sensor, noise draws, LQR,
+    metrics and bookkeeping: the loop's own cost, what no filter can take below it."""
+    import numba
+
+    from snn_estimator.offline import compiled_loop
+
+    @numba.njit(cache=True)
+    def nothing_step(consts, state, network, running, dt, dynamics, drift, z, u, noise):
+        return 0, 0  # kernels.STATUS_OK, no run capped
+
+    original = compiled_loop.loop_kernel
+    compiled_loop.loop_kernel = lambda step: original(nothing_step)
+    try:
+        yield
+    finally:
+        compiled_loop.loop_kernel = original
+
+
+def noise_draw_cost(scenario, runs: int) -> float:
+    """CPU seconds of the loop's Gaussian draws for ``runs`` runs of ``scenario`` (the plant's
+    and the sensor's, from one generator per run, in the compiled loop's chunks)."""
+    from snn_estimator.offline.compiled_loop import CHUNK
+    generators = [np.random.default_rng(b) for b in range(2 * runs)]
+    widths = (scenario.model.n_state, scenario.measurement_noise.shape[0])
+    clock = time.thread_time()
+    for first in range(0, scenario.steps, CHUNK):
+        count = min(CHUNK, scenario.steps - first)
+        for width, half in zip(widths, (generators[:runs], generators[runs:])):
+            out = np.empty((runs, count, width))
+            for b, generator in enumerate(half):
+                out[b] = generator.standard_normal((count, width))
+    return time.thread_time() - clock
+
+
 def closed_loop_costs(scenario, kind: str, runs: int = 100, passes: int = 3) -> dict:
     """us per run-step at ``runs`` runs of the whole closed loop, compiled (keeping the
     trajectories, and only the window's sums as campaigns do) and reference (simulate's
@@ -93,19 +131,26 @@ def closed_loop_costs(scenario, kind: str, runs: int = 100, passes: int = 3) -> 
     rng = np.random.default_rng(0)
     zs = first.truth[:, :-1, :3] + rng.standard_normal((runs, steps, 3)) * np.sqrt(scenario.measurement_noise[0, 0])
     zs, us = np.ascontiguousarray(zs.transpose(1, 0, 2)), np.ascontiguousarray(first.control.transpose(1, 0, 2))
-    best = dict.fromkeys(('compiled', 'compiled_sums', 'reference', 'filter_step'), math.inf)
+    with filter_doing_nothing():
+        simulate(scenario, kind, runs=2, engine='compiled', trajectories=False)  # compile (or load) it
+    best = dict.fromkeys(('compiled', 'compiled_sums', 'reference', 'filter_step', 'loop_around_nothing',
+                          'noise_draws'), math.inf)
     for _ in range(passes):
         for name, engine, trajectories in (('compiled', 'compiled', True), ('compiled_sums', 'compiled', False),
                                            ('reference', 'reference', True)):
             result = simulate(scenario, kind, runs=runs, engine=engine, trajectories=trajectories)
             best[name] = min(best[name], result.extra['cpu_time'])
+        with filter_doing_nothing():
+            result = simulate(scenario, kind, runs=runs, engine='compiled', trajectories=False)
+        best['loop_around_nothing'] = min(best['loop_around_nothing'], result.extra['cpu_time'])
+        best['noise_draws'] = min(best['noise_draws'], noise_draw_cost(scenario, runs))
         estimator = make_estimator(kind, scenario.estimator, scenario.model, runs=runs, seeds=list(range(runs)))
         clock = time.thread_time()
         for k in range(steps):
             estimator.step(zs[k], us[k], scenario.dt)
         best['filter_step'] = min(best['filter_step'], time.thread_time() - clock)
     costs = {name: round(1e6 * seconds / (runs * steps), 3) for name, seconds in best.items()}
-    for name in ('compiled', 'compiled_sums', 'reference'):
+    for name in ('compiled', 'compiled_sums', 'reference', 'loop_around_nothing'):
         costs[f'{name}_over_filter_step'] = round(best[name] / best['filter_step'], 2)
     return costs
 
@@ -160,9 +205,11 @@ def main(argv=None) -> int:
         print(line)
     print(f'\n{args.mc_runs}-run rendezvous Monte Carlo (360 s each, dispersed start), us of CPU per run-step: '
           'the closed loop compiled (with trajectories; with the sums only, as campaigns run) and in Python '
-          "(simulate engine=compiled | reference) against the filter's own batched step (goal: loop <= 1.25x the step)")
+          "(simulate engine=compiled | reference) against the filter's own batched step "
+          "(goal: loop <= 1.25x the step); 'nothing': the sums loop around a filter that does nothing "
+          "(the loop's own cost; the goal needs it <= 0.25x the step), 'draws' the Gaussian draws within it")
     print(f'{"filter":<20}{"loop":>8}{"sums":>8}{"python":>9}{"step":>8}{"loop/step":>11}{"sums/step":>11}'
-          f'{"python/step":>13}{"wall s":>8}')
+          f'{"python/step":>13}{"wall s":>8}{"nothing":>9}{"draws":>7}{"nothing/step":>14}')
     monte_carlo, wall = {}, {}
     dispersed = rendezvous_scenario(initial_state_dispersion=True)
     for kind in track(FILTER_KINDS, 'filters', 'Monte Carlo'):
@@ -171,7 +218,8 @@ def main(argv=None) -> int:
         print(f'{kind:<20}{costs["compiled"]:>8.2f}{costs["compiled_sums"]:>8.2f}{costs["reference"]:>9.2f}'
               f'{costs["filter_step"]:>8.2f}{costs["compiled_over_filter_step"]:>10.2f}x'
               f'{costs["compiled_sums_over_filter_step"]:>10.2f}x{costs["reference_over_filter_step"]:>12.2f}x'
-              f'{wall[kind]:>8.2f}')
+              f'{wall[kind]:>8.2f}{costs["loop_around_nothing"]:>9.2f}{costs["noise_draws"]:>7.2f}'
+              f'{costs["loop_around_nothing_over_filter_step"]:>13.2f}x')
         sys.stdout.flush()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=2) + '\n')

@@ -188,6 +188,21 @@ def test_the_bench_states_the_loop_against_the_filters_own_step():
         assert 0 < costs[name] < 1e4, costs
     assert costs['compiled_over_filter_step'] == pytest.approx(costs['compiled'] / costs['filter_step'], rel=0.02)
     assert costs['reference_over_filter_step'] == pytest.approx(costs['reference'] / costs['filter_step'], rel=0.02)
+    assert 0 < costs['noise_draws'] and 0 < costs['loop_around_nothing'] < 1e4, costs
+
+
+def test_the_bench_loop_around_a_filter_doing_nothing_leaves_the_estimate_and_restores_the_filter():
+    """The loop's own cost (make bench's 'nothing' column) is the same loop, truth, sensor and
+    control around a step that changes nothing; afterwards simulate flies the real filter again."""
+    from snn_tools.bench import filter_doing_nothing
+    scenario = short(rendezvous_scenario(initial_state_dispersion=True), 5.0)
+    real = simulate(scenario, 'ekf', runs=2, engine='compiled')
+    with filter_doing_nothing():
+        idle = simulate(scenario, 'ekf', runs=2, engine='compiled')
+    np.testing.assert_array_equal(idle.estimate, np.repeat(idle.estimate[:, :1], idle.estimate.shape[1], axis=1))
+    np.testing.assert_array_equal(idle.truth[:, 0], real.truth[:, 0])
+    assert not np.allclose(idle.truth[:, -1], real.truth[:, -1])  # flown on the unchanging estimate
+    assert_same_run(simulate(scenario, 'ekf', runs=2, engine='compiled'), real)
 
 
 def _poison_covariance(estimator):
