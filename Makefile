@@ -82,7 +82,7 @@ bench-loop: $(STAMP)
 	$(BIN)/snn_loop_bench --runs $(if $(RUNS),$(RUNS),5) --single-process \
 		--out results/loop_bench_single_process.json $(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
-# realtime latency measurement -> estimate / control, 1x and 10x (10000 samples: ~25 min)
+# realtime latency measurement -> estimate / control, 1x and 10x, ten cases (10000 samples: ~55 min)
 bench-latency: $(STAMP)
 	$(BIN)/snn_latency_bench --out results/latency.json $(if $(SAMPLES),--samples $(SAMPLES)) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))

@@ -109,6 +109,11 @@ def _nodes(context):
     extra = {'estimator': {'filter_type': estimator} if estimator else None}
     if 'record' in optional:  # the sensor's publisher matches estimator, controller and recorder first
         extra['position_sensor'] = {'min_measurement_subscribers': 3}  # (decisions.md, 33)
+    # the controller's controls reach the estimator, the plant and the optional nodes before it
+    # subscribes to estimates, and the estimates the controller and those before the estimator
+    # subscribes to measurements: the plant starts with every link matched (decisions.md, 41)
+    extra['lqr_controller'] = {'min_control_subscribers': 2 + len(optional)}
+    extra['estimator'] = {**(extra['estimator'] or {}), 'min_estimate_subscribers': 1 + len(optional)}
     options = {'recorder': {'condition': IfCondition(LaunchConfiguration('record'))},
                'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}
     actions = [node(entry.name, extra.get(entry.name), **options.get(entry.name, {}))

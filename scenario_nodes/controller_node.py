@@ -26,7 +26,7 @@ from . import qos
 from .codec import MessageError, decode_stamp, encode_accel, read_input, seconds_to_ns
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import CONTROLLER, cw_model, declare
-from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
+from .runtime import Answers, MatchHold, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}
 
@@ -77,7 +77,10 @@ class ControllerNode(ProcessHooks, Node):
         self._pub = qos.HistoryPublisher(self, self._events, AccelStamped, qos.CONTROL)
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events,
                                                  peers=self._peers)
-        qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)
+        # estimates only once the controls reach min_control_subscribers (docs/decisions.md, 41)
+        self._hold = MatchHold(self, self._pub.get_subscription_count, p['min_control_subscribers'],
+                               p['match_wait'], self._subscribe_estimate, self._pub.topic.topic_name,
+                               f"subscribing to '{qos.ESTIMATE}'")
         # any sensor model's message (PointStamped, Vector3Stamped, Range): only its stamp is read
         self._measurements = [qos.PublishedTypeSubscription(self, self._events, topic,
                                                             partial(self._on_measurement, topic))
@@ -87,6 +90,9 @@ class ControllerNode(ProcessHooks, Node):
         self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self._safe_timer = None  # a simulated-time timer, only while in safe mode
         self._log_gain()
+
+    def _subscribe_estimate(self) -> None:
+        qos.subscription(self, self._events, Odometry, qos.ESTIMATE, self._on_estimate)
 
     @property
     def gain(self) -> np.ndarray:

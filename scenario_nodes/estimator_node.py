@@ -62,7 +62,7 @@ from .parameters import (
     read,
     silenced_set,
 )
-from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
+from .runtime import Answers, MatchHold, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 from .sensor_inputs import FusedInputs, declare_sensors
 
 #: Parameters applied between steps through the parameter services (the tables' read_only=False).
@@ -95,17 +95,25 @@ class Inputs:
         #: several sensors (`sensors`): their own subscriptions, assembled per stamp
         self.fused = (FusedInputs(node, runner, outputs, sensors, report, runner.settings.dropout_wait, self._refuse)
                       if sensors else None)
-        if self.fused is None:
-            measurement_type = (PointStamped if self._model is None
-                                else MEASUREMENT_CLASSES[self._model.message_form])
-            measurements = [qos.subscription(node, events, measurement_type, qos.MEASUREMENT, self.on_measurement,
-                                             qos.INPUT_QOS)]
-        else:
-            measurements = self.fused.subscriptions
-        self.subscriptions = measurements + [
+        #: the measurements' subscriptions come with subscribe_measurements() (the node may hold
+        #: them until its estimates reach the controller: min_estimate_subscribers)
+        self.subscriptions = [
             qos.subscription(node, events, AccelStamped, qos.CONTROL, self.on_control, qos.INPUT_QOS),
             qos.subscription(node, events, AccelStamped, qos.APPLIED_CONTROL, self.on_applied, qos.INPUT_QOS),
             qos.subscription(node, events, Odometry, qos.SET_STATE, self.on_set_state)]
+        self.measuring = False
+
+    def subscribe_measurements(self) -> None:
+        """Subscribe to the measurement topic (or to every sensor's), once."""
+        if self.measuring:
+            return
+        self.measuring = True
+        if self.fused is not None:
+            self.subscriptions += self.fused.subscribe()
+            return
+        measurement_type = PointStamped if self._model is None else MEASUREMENT_CLASSES[self._model.message_form]
+        self.subscriptions.append(qos.subscription(self._node, self._node.events, measurement_type, qos.MEASUREMENT,
+                                                   self.on_measurement, qos.INPUT_QOS))
 
     def on_measurement(self, data: bytes) -> None:
         self._node.peers.saw(qos.MEASUREMENT)
@@ -269,6 +277,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self._runner: FilterRunner | None = None
         self._out: Outputs | None = None
         self._owned_subscriptions: list = []
+        self._measurement_hold = None  # MatchHold while the measurements wait (min_estimate_subscribers)
         self._watchdog = None
         self._active = self._announce = False
         self._announced = None  # (stamp, subscribers) of the estimate announced on activation
@@ -356,6 +365,11 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         p = self._p
         self._inputs = Inputs(self, self._runner, self._out, p, self._publish_diagnostics, self._sensors)
         self._owned_subscriptions = self._inputs.subscriptions
+        # measurements at once, or (min_estimate_subscribers, a node that activates itself) once
+        # its estimates reach the controller: on_activate (docs/decisions.md, 41)
+        self._measurement_hold = None
+        if p['min_estimate_subscribers'] <= 0 or p['standby'] or not p['autostart']:
+            self._inputs.subscribe_measurements()
         self._watchdog = self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         # who else publishes estimates, by their liveliness (a standby waits for them to go, an
         # active estimator yields to another by the rule of snn_estimator.loop.runner.Standby)
@@ -366,6 +380,14 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     def on_activate(self, state) -> TransitionCallbackReturn:
         super().on_activate(state)  # enables the lifecycle publishers
         self._out.open()
+        if not self._inputs.measuring and self._measurement_hold is None:
+            estimate, p = self._out.estimate, self._p
+
+            def others() -> int:  # not counting this node's own liveliness monitor on `estimate`
+                return estimate.get_subscription_count() - 1
+            self._measurement_hold = MatchHold(self, others, p['min_estimate_subscribers'],
+                                               p['match_wait'], self._inputs.subscribe_measurements,
+                                               estimate.topic.topic_name, 'subscribing to the measurements')
         self._active, self._standing_by = True, False
         # a filter already running (hot swap, standby) publishes its current estimate as soon as
         # a subscriber matched (watchdog); one that waits for its first measurement publishes then
@@ -376,6 +398,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
 
     def on_deactivate(self, state) -> TransitionCallbackReturn:
         super().on_deactivate(state)
+        self._stop_holding()
         self._out.close()
         self._active = self._announce = False
         self.get_logger().info('inactive: the filter keeps running, nothing is published')
@@ -391,9 +414,19 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
     def on_error(self, state) -> TransitionCallbackReturn:
         return self._release()
 
+    def _stop_holding(self) -> None:
+        """Subscribe to the measurements now if still waiting for the estimate's subscribers (an
+        inactive estimator keeps its filter running on them)."""
+        if self._measurement_hold is not None and not self._measurement_hold.done:
+            self._measurement_hold.cancel()
+            self._inputs.subscribe_measurements()
+
     def _release(self) -> TransitionCallbackReturn:
         """Destroy every endpoint and timer and drop the filter."""
         self._active = False
+        if self._measurement_hold is not None:
+            self._measurement_hold.cancel()
+            self._measurement_hold = None
         if self._out is not None:
             self._out.close()
         for publisher in self._out.publishers if self._out else ():

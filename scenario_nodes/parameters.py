@@ -207,6 +207,13 @@ CONTROLLER = MODEL + (
          choices=('lqr', 'snn_lqr')),
     Spec('snn_lqr_neurons', 100, 'N, LIF neurons of the snn_lqr network', low=1, high=100000),
     Spec('snn_lqr_leak', 0.001, 'lambda, leak of the snn_lqr membranes and trains, 1/s', low=0.0),
+    Spec('min_control_subscribers', 0, "Subscriptions the control topic's publisher must have matched "
+         "before the controller subscribes to `estimate` (the estimator, the sensor and then the plant "
+         'wait for their own, so the plant starts only once controls reach the estimator and the plant: '
+         'DDS may match a subscriber\'s end first, and what is sent before the publisher\'s end matched '
+         'is lost to it; snn_demo: the estimator, the plant and the recorder); 0: subscribe at once', low=0),
+    Spec('match_wait', 5.0, 'Wall-clock s at most to wait for min_control_subscribers before subscribing '
+         'to `estimate` anyway (with a warning naming the count)', low=0.0, high=600.0),
 )
 
 #: One sensor of an estimator with `sensors`: declared as <name>.<parameter> at configure.
@@ -286,6 +293,14 @@ ESTIMATOR = MODEL + (
          "answer z_k at once with the controller's u_k and correct the estimate (published again under its "
          'stamp) if the report differs; false: wait for the report (in realtime one tick later). At most '
          '8 steps are held for their reports (grid measurement_timing only; docs/decisions.md, 22b)'),
+    Spec('min_estimate_subscribers', 0, "Subscriptions the `estimate` publisher must have matched (not "
+         'counting its own liveliness monitor), once active, before the estimator subscribes to its '
+         'measurements (the sensor and then the plant wait for their own, so the plant starts only once '
+         'estimates reach the controller: DDS may match a subscriber\'s end first, and estimates sent '
+         'before the publisher\'s end matched are lost to it; snn_demo: the controller and the '
+         'recorder); a standby subscribes at once; 0: at once', low=0),
+    Spec('match_wait', 5.0, 'Wall-clock s at most to wait for min_estimate_subscribers before subscribing '
+         'to the measurements anyway (with a warning naming the count)', low=0.0, high=600.0),
     Spec('history_wait', 1.0, 'Wall-clock s at most to read the history that publishers keep on '
          '`estimate`, `measurement` and `control` when configured (no wait when none keeps any)', low=0.0),
     Spec('initial_fit_window', D.INITIAL_FIT_WINDOW, 'Seconds of measurement history a least-squares '

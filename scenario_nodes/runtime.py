@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import struct
 import sys
 import time
 from typing import Callable
@@ -127,6 +128,55 @@ class StopFlag:
         signal.signal(signal.SIGTERM, self)
 
 
+class MatchHold:
+    """Do ``then`` once a publisher has matched ``wanted`` subscriptions on its own side, or
+    after ``match_wait`` wall seconds with a warning naming the count; at once when ``wanted``
+    is 0. DDS matches the two ends of a pair separately, and what a publisher sends before its
+    end matched is lost to that subscriber (best effort, volatile). A node of the loop therefore
+    subscribes to its input only once its output reaches the nodes after it, so the plant, which
+    starts on matched 'truth' subscriptions, starts only once the chain is matched downstream
+    (docs/decisions.md, 33 and 41). ``count`` reads the matched subscriptions (None while the
+    publisher does not exist); ``topic`` and ``action`` name them in the log."""
+
+    def __init__(self, node, count: Callable[[], int | None], wanted: int, match_wait: float, then: Callable[[], None],
+                 topic: str, action: str):
+        self._node, self._count, self._wanted, self._match_wait = node, count, int(wanted), float(match_wait)
+        self._then, self._topic, self._action = then, topic, action
+        self._started = time.monotonic()
+        self._timer = None
+        self.done = False
+        if self._wanted <= 0:
+            self._finish()
+        else:
+            from rclpy.clock import Clock, ClockType
+            self._timer = node.create_timer(0.02, self._check, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _check(self) -> None:
+        matched = self._count() or 0
+        waited = time.monotonic() - self._started
+        if matched < self._wanted and waited < self._match_wait:
+            return
+        if matched < self._wanted:
+            self._node.get_logger().warning(
+                f"{self._action} after {waited:.1f} s with {matched} of {self._wanted} subscriptions matched on "
+                f"'{self._topic}': they may miss the first samples")
+        else:
+            self._node.get_logger().info(f"'{self._topic}' matched {matched} subscriptions after {waited:.2f} s: "
+                                         f'{self._action}')
+        self._finish()
+
+    def _finish(self) -> None:
+        self.cancel()
+        self.done = True
+        self._then()
+
+    def cancel(self) -> None:
+        """Stop waiting (``then`` is not done)."""
+        if self._timer is not None:
+            self._node.destroy_timer(self._timer)
+            self._timer = None
+
+
 def flush(node, timeout: float = 5.0) -> None:
     """Wait until every subscriber acknowledged what the node published: a reliable sample
     still unacknowledged when the process exits would be lost (e.g. to a lagging recorder).
@@ -176,16 +226,65 @@ def make_executor():
     return SingleThreadedExecutor()
 
 
+#: The kernel's CPU latency QoS request (Documentation/power/pm_qos_interface.rst): while a
+#: process holds it open with an s32 written, no CPU enters an idle state slower to leave.
+CPU_LATENCY_DEVICE = '/dev/cpu_dma_latency'
+_held_requests: list[int] = []  # file descriptors held for the process's lifetime
+
+
+def hold_cpu_wake_latency(microseconds: int, device: str | None = None) -> str | None:
+    """Ask the kernel to keep every CPU able to wake within ``microseconds`` (0: idle CPUs
+    poll instead of halting) for as long as this process lives, as real-time Linux set-ups do
+    (cyclictest's --latency). On a virtual machine a halted vCPU is woken through the host, which
+    is the 1x latency tail of docs/performance.md. Costs: idle CPUs busy-poll (power, the host's
+    time). Returns None when held, else why not (no device, no permission: the caller says so)."""
+    try:
+        descriptor = os.open(device or CPU_LATENCY_DEVICE, os.O_WRONLY)
+    except OSError as error:
+        return f'cannot open {device or CPU_LATENCY_DEVICE}: {error.strerror}'
+    try:
+        os.write(descriptor, struct.pack('i', int(microseconds)))
+    except OSError as error:
+        os.close(descriptor)
+        return f'cannot write {device or CPU_LATENCY_DEVICE}: {error.strerror}'
+    _held_requests.append(descriptor)  # closing it would withdraw the request
+    return None
+
+
 def tune_process(nodes) -> None:
-    """Measurement switches of the latency bench (snn_tools.latency_bench), off unless set:
-    ``SNN_GC=freeze`` moves every object made so far out of the collector's reach and turns
-    automatic collection off (gc.freeze, gc.disable); ``SNN_LOG_LEVEL=debug|info|warn|error``
-    sets the nodes' logger level."""
-    if os.environ.get('SNN_GC') == 'freeze':
+    """Real-time and measurement switches (snn_tools.latency_bench), off unless set:
+    ``SNN_CPU_WAKE_LATENCY_US=<us>`` holds the kernel's CPU latency request at that many
+    microseconds (:func:`hold_cpu_wake_latency`; 0 keeps idle CPUs polling);
+    the garbage collector (``SNN_GC``): by default (``freeze_startup``) every object made while
+    starting (the modules, the filter and its compiled kernels) is moved out of its reach once the
+    node has started (gc.freeze; collection goes on over what the run makes), so a full
+    collection no longer stalls a node for 30-50 ms (docs/decisions.md, 42); ``freeze`` also turns
+    automatic collection off (gc.disable; a measurement switch); ``none`` leaves it as Python sets it;
+    ``SNN_LOG_LEVEL=debug|info|warn|error``
+    sets the nodes' logger level. A bad value is reported on stderr and ignored."""
+    wake = os.environ.get('SNN_CPU_WAKE_LATENCY_US')
+    if wake:
+        try:
+            microseconds = int(wake)
+            if microseconds < 0:
+                raise ValueError
+        except ValueError:
+            print(f'SNN_CPU_WAKE_LATENCY_US={wake!r} ignored: expected microseconds, an integer >= 0',
+                  file=sys.stderr)
+        else:
+            why_not = hold_cpu_wake_latency(microseconds)
+            if why_not:
+                print(f'SNN_CPU_WAKE_LATENCY_US={wake}: not held, {why_not}', file=sys.stderr)
+    collector = os.environ.get('SNN_GC') or 'freeze_startup'
+    if collector not in ('freeze_startup', 'freeze', 'none'):
+        print(f'SNN_GC={collector!r} ignored: expected freeze_startup, freeze or none', file=sys.stderr)
+        collector = 'freeze_startup'
+    if collector != 'none':
         import gc
         gc.collect()
         gc.freeze()
-        gc.disable()
+        if collector == 'freeze':
+            gc.disable()
     level = os.environ.get('SNN_LOG_LEVEL')
     if level:
         from rclpy.logging import LoggingSeverity

@@ -67,10 +67,13 @@ class FusedInputs:
         self.assembler = SampleAssembler(self._model, wait)
         self.gated = Counter()
         self.late = Counter()  # reports of a stamp already handed on that were not a resend
-        self.subscriptions = [
-            qos.subscription(node, node.events, MEASUREMENT_CLASSES[s.model.message_form], s.topic,
-                             partial(self.on_sample, i), qos.INPUT_QOS)
-            for i, s in enumerate(sensors)]
+        self._node = node
+
+    def subscribe(self) -> list:
+        """Subscribe to every sensor's topic; returns the subscriptions."""
+        return [qos.subscription(self._node, self._node.events, MEASUREMENT_CLASSES[s.model.message_form], s.topic,
+                                 partial(self.on_sample, i), qos.INPUT_QOS)
+                for i, s in enumerate(self.sensors)]
 
     def on_sample(self, index: int, data: bytes) -> None:
         sensor, runner = self.sensors[index], self._runner

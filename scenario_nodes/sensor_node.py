@@ -4,7 +4,6 @@ range_rate: docs/sensors.md)."""
 
 from __future__ import annotations
 
-import time
 from functools import partial
 
 import numpy as np
@@ -22,7 +21,7 @@ from .codec import MessageError, encode_measurement, encode_no_measurement, read
 from .conversions import MEASUREMENT_CLASSES
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import SENSOR, declare, measurement_model
-from .runtime import Answers, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
+from .runtime import Answers, MatchHold, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 #: An angle variance (rad^2) from which the node warns: 0.1 rad (5.7 deg) of noise.
 ANGLE_VARIANCE_WARNING = 1e-2
@@ -68,11 +67,9 @@ class SensorNode(ProcessHooks, Node):
                                                  peers=self._peers)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.1, self._on_peer_check, clock=steady)
-        self._hold_started = time.monotonic()
-        self._hold = (self.create_timer(0.02, self._subscribe_truth, clock=steady)
-                      if p['min_measurement_subscribers'] > 0 else None)
-        if self._hold is None:
-            self._subscribe_truth()
+        self._hold = MatchHold(self, self._pub.get_subscription_count, p['min_measurement_subscribers'],
+                               p['match_wait'], self._subscribe_truth, self._pub.topic.topic_name,
+                               f"subscribing to '{qos.TRUTH}'")
         self._jump = on_clock_jump_back(self, self._on_time_jump)
         if model.message_form == 'point':
             self.get_logger().info(f'measuring axes {self._axes} with R = {self._sensor.r.diagonal().tolist()} m^2')
@@ -90,20 +87,6 @@ class SensorNode(ProcessHooks, Node):
         ``min_measurement_subscribers`` subscriptions (at once without it), or after
         ``match_wait`` s with a warning: a subscriber that DDS matched on its side only would
         lose the first samples (docs/decisions.md, 33)."""
-        if self._hold is not None:
-            wanted, matched = self._p['min_measurement_subscribers'], self._pub.get_subscription_count()
-            waited = time.monotonic() - self._hold_started
-            if matched < wanted and waited < self._p['match_wait']:
-                return
-            self.destroy_timer(self._hold)
-            self._hold = None
-            if matched < wanted:
-                self.get_logger().warning(
-                    f"subscribing to '{qos.TRUTH}' after {waited:.1f} s with {matched} of {wanted} subscriptions "
-                    f"matched on '{self._pub.topic.topic_name}': they may miss the first samples")
-            else:
-                self.get_logger().info(f"'{self._pub.topic.topic_name}' matched {matched} subscriptions after "
-                                       f"{waited:.2f} s: subscribing to '{qos.TRUTH}'")
         qos.subscription(self, self._events, Odometry, qos.TRUTH, self._on_truth, qos.INPUT_QOS)
 
     def _on_peer_check(self) -> None:

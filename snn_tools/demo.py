@@ -118,6 +118,13 @@ class Pipeline:
         # (the recorder then lost a LIDAR's first 94 s in a CI run; docs/decisions.md, 33)
         for sensor in self.sensor_nodes:
             overrides.setdefault(sensor, {}).setdefault('min_measurement_subscribers', 2 + record)
+        # upstream of the sensors, the same: the controller subscribes to 'estimate' once its
+        # controls reach the estimator, the plant, the recorder (and the live view), and the
+        # estimator to the measurements once its estimates reach the controller, the recorder (and
+        # the live view), so the plant starts with every link matched on its publisher's side (a
+        # realtime run once flew its first 1.1 s without control: decisions.md, 41)
+        overrides.setdefault('lqr_controller', {}).setdefault('min_control_subscribers', 2 + record + live_view)
+        overrides.setdefault('estimator', {}).setdefault('min_estimate_subscribers', 1 + record + live_view)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
     def command(self, name: str, module: str, node_name: str | None = None, remaps=()) -> list[str]:
@@ -393,10 +400,18 @@ def main(argv=None) -> int:
                              'lockstep, normal in realtime')
     parser.add_argument('--live-view', action='store_true',
                         help='also start live_view: Foxglove at ws://localhost:8765, MarkerArray on markers')
+    parser.add_argument('--cpu-wake-latency-us', type=int, metavar='US',
+                        help='every node holds the kernel CPU latency request at US microseconds '
+                             '(/dev/cpu_dma_latency, root only; 0: idle CPUs poll, the realtime p99 '
+                             'of docs/performance.md; costs CPU time); sets SNN_CPU_WAKE_LATENCY_US')
     parser.add_argument('--single-process', action='store_true',
                         help='every node in one process and one executor (default: one process '
                              'per node); same results, see docs/performance.md')
     args = parser.parse_args(argv)
+    if args.cpu_wake_latency_us is not None:
+        if args.cpu_wake_latency_us < 0:
+            parser.error('--cpu-wake-latency-us must be >= 0')
+        os.environ['SNN_CPU_WAKE_LATENCY_US'] = str(args.cpu_wake_latency_us)  # the nodes inherit it
     sensor = '' if args.sensor == 'position' else f'_{args.sensor}'
     name = args.name or f"{args.estimator}{sensor}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     run_dir = (args.runs_dir / name).resolve()

@@ -16,9 +16,12 @@ probe's own delivery cost, the same on both ends, cancels to first order.
 Per case the tool reports p50 / p99 / max in milliseconds over ``--samples`` measurements
 (default 10,000; a 10x case then takes ~2 minutes, a 1x case ~17), plus the largest latency
 during the first second of stepping (start-up: the filter's first steps, caches) against the
-rest. The default cases name the causes of the tail by switching them off one at a time at 10x:
+rest. The default cases name the causes of the tail by switching them off one at a time:
+``1x_awake`` and ``10x_awake`` keep idle CPUs polling (every node holds the kernel's CPU latency
+request at 0 us, SNN_CPU_WAKE_LATENCY_US=0; a halted vCPU wakes through its host), and at 10x
 ``10x_gc_frozen`` runs every node with the garbage collector frozen and disabled after start-up
-(SNN_GC=freeze, see scenario_nodes.runtime.tune_process), ``10x_log_warn`` with the nodes'
+(SNN_GC=freeze, see scenario_nodes.runtime.tune_process), ``10x_gc_unfrozen`` with the collector
+as Python sets it (SNN_GC=none; the default freezes only the start-up's objects), ``10x_log_warn`` with the nodes'
 loggers at WARN (SNN_LOG_LEVEL), ``10x_unpinned`` without the demo's CPU plan (``1x_unpinned`` on
 request); ``10x_wait`` (and ``1x_wait``, not run by default) runs the
 estimator with ``provisional_steps: false``, waiting for the plant's report of the applied control
@@ -35,6 +38,7 @@ import json
 import math
 import os
 import random
+import shutil
 import signal
 import struct
 import subprocess
@@ -42,7 +46,7 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from tempfile import TemporaryDirectory
+from tempfile import mkdtemp
 
 import numpy as np
 
@@ -55,6 +59,9 @@ CASES = {
     '1x': (1.0, {}, {}, {}),
     '10x': (10.0, {}, {}, {}),
     '10x_gc_frozen': (10.0, {'SNN_GC': 'freeze'}, {}, {}),
+    # the collector as Python sets it: a full collection traverses the start-up's objects too (the
+    # default freezes them, decisions.md 42)
+    '10x_gc_unfrozen': (10.0, {'SNN_GC': 'none'}, {}, {}),
     '10x_log_warn': (10.0, {'SNN_LOG_LEVEL': 'warn'}, {}, {}),
     # the estimator waiting for the plant's applied_control report (the design before provisional steps)
     '1x_wait': (1.0, {}, {'estimator': {'provisional_steps': False}}, {}),
@@ -66,8 +73,13 @@ CASES = {
     # preemption, so a woken controller waits for the estimator's callback to end on their CPU
     '1x_batch': (1.0, {}, {}, {'scheduling': 'batch'}),
     '10x_batch': (10.0, {}, {}, {'scheduling': 'batch'}),
+    # idle CPUs kept polling (the kernel's CPU latency request held at 0 us by every node): a
+    # halted vCPU of a virtual machine wakes through its host (docs/performance.md)
+    '1x_awake': (1.0, {'SNN_CPU_WAKE_LATENCY_US': '0'}, {}, {}),
+    '10x_awake': (10.0, {'SNN_CPU_WAKE_LATENCY_US': '0'}, {}, {}),
 }
-DEFAULT_CASES = ('1x', '10x', '10x_batch', '10x_gc_frozen', '10x_log_warn', '10x_unpinned', '10x_wait')
+DEFAULT_CASES = ('1x', '1x_awake', '10x', '10x_awake', '10x_batch', '10x_gc_frozen', '10x_gc_unfrozen', '10x_log_warn',
+                 '10x_unpinned', '10x_wait')
 #: Paths measured: name -> topic whose receive time ends it (each starts at the measurement).
 PATHS = {'measurement_to_estimate': 'estimate', 'measurement_to_control': 'control'}
 PROBE_TOPICS = ('measurement', 'estimate', 'control')
@@ -186,6 +198,37 @@ def probe_main(out: Path) -> int:
     return run_node(Probe, [], 'latency_probe')
 
 
+#: node -> diagnostics keys a case reports from its bag: what the loop did while it was timed
+#: (an estimate waits for the plant's report when the controller's u_k is not there: one step late)
+PIPELINE_COUNTS = {
+    'cw_plant': ('late_controls', 'control_timeouts'),
+    'lqr_controller': ('controls_published', 'estimates_rejected', 'safe_mode_steps'),
+    'estimator': ('steps', 'provisional_steps', 'provisional_corrected', 'controls_missing',
+                  'measurements_rejected'),
+}
+
+
+def pipeline_counts(bag_dir: Path) -> dict:
+    """The nodes' own counters at the end of a case (their last diagnostics in its bag), with
+    ``steps_waiting_for_report``: estimator steps not taken provisionally, each answered a step
+    late. Empty when the bag cannot be read (the latencies stand without it)."""
+    from .bag_tools import read_bag
+    try:
+        run = read_bag(bag_dir)
+    except Exception as error:  # noqa: BLE001 - a diagnostic: never lose the latencies to it
+        print(f'snn_latency_bench: no pipeline counts from {bag_dir}: {error}', file=sys.stderr)
+        return {}
+    counts = {}
+    for node, keys in PIPELINE_COUNTS.items():
+        last = run.last_diagnostics(node)
+        for key in keys:
+            if key in last:
+                counts[f'{node}.{key}'] = int(float(last[key]))
+    if 'estimator.steps' in counts and 'estimator.provisional_steps' in counts:
+        counts['steps_waiting_for_report'] = counts['estimator.steps'] - counts['estimator.provisional_steps']
+    return counts
+
+
 @contextmanager
 def environment(values: dict):
     """os.environ with ``values`` set (the pipeline's node processes inherit it)."""
@@ -206,6 +249,13 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
     """One realtime run with the probe; returns the case's figures."""
     from .demo import pipeline_env, run_pipeline
     factor, env, parameters, options = CASES[case]
+    # the probe is one more subscriber of measurement, estimate and control: each publisher waits
+    # for it too (snn_tools.demo.Pipeline, decisions.md 33 and 41), so it cannot stand in for a node
+    parameters = {node: dict(values) for node, values in parameters.items()}
+    for node, key, count in (('position_sensor', 'min_measurement_subscribers', 4),
+                             ('estimator', 'min_estimate_subscribers', 3),
+                             ('lqr_controller', 'min_control_subscribers', 4)):
+        parameters.setdefault(node, {}).setdefault(key, count)
     run_dir.mkdir(parents=True, exist_ok=True)
     probe_file = run_dir / 'probe.npz'
     with environment(env):
@@ -235,6 +285,7 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
     for path, topic in PATHS.items():
         latencies = match_latencies(received['measurement'], received[topic], offset)[:samples]
         figures[path] = path_figures(latencies, min(samples, len(received['measurement'])))
+    figures['pipeline_counts'] = pipeline_counts(run_dir / 'bag')
     return figures
 
 
@@ -247,6 +298,8 @@ def main(argv=None) -> int:
     parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS))
     parser.add_argument('--out', type=Path, help='also write the figures as JSON here')
     parser.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or random)')
+    parser.add_argument('--keep-runs', action='store_true',
+                        help="keep every case's folder (bag, node logs, probe.npz; kept anyway when a case fails)")
     parser.add_argument('--probe', type=Path, help=argparse.SUPPRESS)  # (internal) the probe process
     args = parser.parse_args(argv)
     if args.probe is not None:
@@ -258,24 +311,38 @@ def main(argv=None) -> int:
         domain = int(os.environ.get('ROS_DOMAIN_ID') or random.randint(1, 100))
     print(f'snn_latency_bench: {args.estimator}, realtime, {args.samples} measurements per case, '
           f'{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}, ROS domain {domain}')
-    results = {}
-    with TemporaryDirectory(prefix='snn_latency_bench_') as folder:
-        for case in args.cases:
-            try:
-                figures = run_case(Path(folder) / case, case, args.samples, args.estimator, domain)
-            except (RuntimeError, ValueError) as error:
-                print(f'snn_latency_bench: case {case} failed: {error}', file=sys.stderr)
-                return 1
-            results[case] = figures
-            for path in PATHS:
-                print(format_line(case, path, figures[path]), flush=True)
-    if args.out:
+    results, failures = {}, {}
+    folder = Path(mkdtemp(prefix='snn_latency_bench_'))
+    for index, case in enumerate(args.cases):
+        run_dir = folder / f'{index:02d}_{case}'  # a case named twice runs twice, each in its own folder
+        try:
+            figures = run_case(run_dir, case, args.samples, args.estimator, domain)
+        except (RuntimeError, ValueError) as error:
+            print(f'snn_latency_bench: case {case} failed: {error}', file=sys.stderr)
+            failures[f'{index:02d}_{case}'] = str(error)
+            continue
+        results[case if case not in results else f'{case}_{index:02d}'] = figures
+        for path in PATHS:
+            print(format_line(case, path, figures[path]), flush=True)
+        waiting = figures.get('pipeline_counts', {}).get('steps_waiting_for_report', 0)
+        if waiting > 2:  # the first step and the last one wait by design
+            print(f'{case:<14} {waiting} estimator steps waited for the plant\'s report (the controller\'s '
+                  f'u_k was not there): each answered a step late', flush=True)
+    if failures:
+        print(f'snn_latency_bench: {len(failures)} case(s) failed; their logs are kept in {folder}', file=sys.stderr)
+    elif args.keep_runs:
+        print(f'snn_latency_bench: the runs are kept in {folder}')
+    else:
+        shutil.rmtree(folder, ignore_errors=True)
+    if args.out and results:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps({'estimator': args.estimator, 'samples': args.samples,
-                                        'cpus': os.cpu_count(), 'load_average_1min': os.getloadavg()[0],
-                                        'cases': results}, indent=2) + '\n')
-        print(f'wrote {args.out}')
-    return 0
+        report = {'estimator': args.estimator, 'samples': args.samples, 'cpus': os.cpu_count(),
+                  'load_average_1min': os.getloadavg()[0], 'cases': results}
+        if failures:
+            report['failed_cases'] = failures
+        args.out.write_text(json.dumps(report, indent=2) + '\n')
+        print(f'wrote {args.out}' + (' (the finished cases only)' if failures else ''))
+    return 1 if failures else 0
 
 
 if __name__ == '__main__':

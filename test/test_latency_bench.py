@@ -3,6 +3,7 @@ samples, and one short realtime run through the real pipeline (the JSON keys, fi
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -85,6 +86,36 @@ def test_a_path_without_answers_or_a_steady_part_is_reported_not_raised():
 
 
 @pytest.mark.slow
+def test_a_failed_case_keeps_the_finished_cases_and_its_logs_and_a_repeated_case_runs_in_its_own_folder(
+        tmp_path, monkeypatch, capsys):
+    """A case that fails (a node exiting early) must not lose the cases already measured, nor the
+    logs its error message points to; a case named twice runs twice (the recorder refuses a bag
+    folder that exists, so each run needs its own)."""
+    folders = []
+
+    def fake_run_case(run_dir, case, samples, estimator, domain_id):
+        assert run_dir not in folders
+        folders.append(run_dir)
+        run_dir.mkdir(parents=True)
+        (run_dir / 'logs').mkdir()
+        if case == '10x_batch':
+            raise RuntimeError(f'node(s) [\'recorder\'] exited early; see {run_dir / "logs"}')
+        path = {'p50_ms': 0.5, 'p99_ms': 1.0, 'max_ms': 2.0, 'samples': samples, 'unanswered': 0,
+                'start_max_ms': 2.0, 'steady_max_ms': 1.0, 'mean_ms': 0.6}
+        return {'real_time_factor': 10.0, 'measurement_to_estimate': path, 'measurement_to_control': path}
+
+    monkeypatch.setattr(latency_bench, 'run_case', fake_run_case)
+    monkeypatch.setattr(latency_bench, 'mkdtemp', lambda prefix: str(tmp_path / 'runs'))
+    out = tmp_path / 'latency.json'
+    assert latency_bench.main(['--samples', '40', '--cases', '10x', '10x_batch', '10x', '--out', str(out)]) == 1
+    report = json.loads(out.read_text())
+    assert sorted(report['cases']) == ['10x', '10x_02']
+    assert list(report['failed_cases']) == ['01_10x_batch']
+    assert len(set(folders)) == 3
+    assert (folders[1] / 'logs').is_dir()  # kept: the error message points there
+    assert 'kept in' in capsys.readouterr().err
+
+
 def test_a_short_realtime_run_answers_a_measurement_within_the_step_and_waiting_takes_one(tmp_path, capsys):
     """At 1x (100 ms of wall time per step): a loaded machine still answers every step; the
     10x cases of a 60-sample run last under a second, shorter than discovery under load. With
@@ -112,6 +143,44 @@ def test_a_short_realtime_run_answers_a_measurement_within_the_step_and_waiting_
     assert cases['1x']['measurement_to_estimate']['p50_ms'] < 50.0
     assert cases['1x']['measurement_to_control']['p50_ms'] < 50.0
     assert cases['1x_wait']['measurement_to_estimate']['p50_ms'] > 90.0
+    # the nodes' own counters, from the bag: with provisional steps no step waits for the plant's
+    # report but the first and the last (the controller's u_k was there: the chain was matched
+    # before the start, decisions.md 41); waiting for it, every step does
+    assert cases['1x']['pipeline_counts']['steps_waiting_for_report'] <= 2, cases['1x']['pipeline_counts']
+    assert cases['1x_wait']['pipeline_counts']['steps_waiting_for_report'] >= 40
+    assert cases['1x']['pipeline_counts']['lqr_controller.controls_published'] >= 40
+
+
+def test_the_cpu_wake_latency_switch_holds_the_kernels_request_open_and_reports_what_it_cannot(
+        monkeypatch, tmp_path, capsys):
+    """SNN_CPU_WAKE_LATENCY_US writes the microseconds as the s32 the kernel reads and keeps the
+    file open (closing it withdraws the request); a bad value or a device it cannot open is said
+    on stderr and the node goes on."""
+    import struct
+
+    pytest.importorskip('rclpy')
+    from scenario_nodes import runtime
+    device = tmp_path / 'cpu_dma_latency'
+    device.write_bytes(b'')
+    monkeypatch.setattr(runtime, 'CPU_LATENCY_DEVICE', str(device))
+    monkeypatch.setattr(runtime, '_held_requests', [])
+    monkeypatch.setenv('SNN_GC', 'none')  # this test's process: the collector left alone
+    monkeypatch.setenv('SNN_CPU_WAKE_LATENCY_US', '0')
+    runtime.tune_process([])
+    assert struct.unpack('i', device.read_bytes()) == (0,)
+    assert len(runtime._held_requests) == 1
+    os.fstat(runtime._held_requests[0])  # still open
+    assert capsys.readouterr().err == ''
+    for value, said in (('fast', 'ignored'), ('-5', 'ignored')):
+        monkeypatch.setenv('SNN_CPU_WAKE_LATENCY_US', value)
+        runtime.tune_process([])
+        assert said in capsys.readouterr().err
+    monkeypatch.setattr(runtime, 'CPU_LATENCY_DEVICE', str(tmp_path / 'absent' / 'device'))
+    monkeypatch.setenv('SNN_CPU_WAKE_LATENCY_US', '10')
+    runtime.tune_process([])
+    assert 'not held, cannot open' in capsys.readouterr().err
+    assert len(runtime._held_requests) == 1
+    os.close(runtime._held_requests[0])
 
 
 def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_one(monkeypatch, capsys):
@@ -132,9 +201,11 @@ def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_
             return self.logger
 
     node = Node()
+    monkeypatch.setenv('SNN_GC', 'none')
     monkeypatch.setenv('SNN_LOG_LEVEL', 'loud')
     tune_process([node])
     assert node.logger.level is None and 'SNN_LOG_LEVEL' in capsys.readouterr().err
+    assert gc.isenabled() and gc.get_freeze_count() == 0  # none: as Python sets it
     pytest.importorskip('rclpy')
     from rclpy.logging import LoggingSeverity
     monkeypatch.setenv('SNN_LOG_LEVEL', 'warn')
@@ -143,7 +214,37 @@ def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_
         tune_process([node])
         assert node.logger.level == LoggingSeverity.WARN
         assert not gc.isenabled() and gc.get_freeze_count() > 0
+        gc.unfreeze()
+        gc.enable()
+        # the default (also for a bad value, said): the start-up's objects frozen, collection on
+        for value, said in ((None, ''), ('later', 'SNN_GC')):
+            if value is None:
+                monkeypatch.delenv('SNN_GC')
+            else:
+                monkeypatch.setenv('SNN_GC', value)
+            tune_process([node])
+            assert gc.isenabled() and gc.get_freeze_count() > 0, value
+            assert said in capsys.readouterr().err
+            gc.unfreeze()
     finally:
         gc.unfreeze()
         gc.enable()
 
+
+
+def test_snn_demo_passes_the_cpu_wake_latency_to_every_node_and_refuses_a_negative_one(tmp_path, monkeypatch):
+    """--cpu-wake-latency-us reaches the nodes through the environment they inherit."""
+    from snn_tools import demo
+    seen = {}
+
+    def run_pipeline(*args, **kwargs):
+        seen['value'] = os.environ.get('SNN_CPU_WAKE_LATENCY_US')
+        raise RuntimeError('stopped here')
+
+    monkeypatch.setattr(demo, 'run_pipeline', run_pipeline)
+    monkeypatch.setenv('SNN_CPU_WAKE_LATENCY_US', '')  # restored after the test (main sets it)
+    with pytest.raises(SystemExit):
+        demo.main(['--cpu-wake-latency-us', '-1', '--runs-dir', str(tmp_path)])
+    assert 'value' not in seen
+    assert demo.main(['--cpu-wake-latency-us', '0', '--runs-dir', str(tmp_path), '--name', 'awake']) == 1
+    assert seen['value'] == '0'

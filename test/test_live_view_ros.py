@@ -152,6 +152,9 @@ def test_the_plant_waits_for_the_live_view_and_the_recorder_on_truth(tmp_path):
         assert overrides['cw_plant']['min_truth_subscribers'] == expected, (record, live_view)
         # each sensor waits for its estimator, controller and recorder (test_nodes.py)
         assert overrides['position_sensor']['min_measurement_subscribers'] == 2 + record
+        # and upstream: the controller's controls, then the estimator's estimates (decisions.md, 41)
+        assert overrides['lqr_controller']['min_control_subscribers'] == 2 + record + live_view
+        assert overrides['estimator']['min_estimate_subscribers'] == 1 + record + live_view
 
 
 @pytest.mark.slow

@@ -259,6 +259,61 @@ def test_a_sensor_subscribes_to_truth_only_once_its_measurements_have_enough_mat
         assert spin_until(executor, lambda: watcher.count_subscribers(qos.TRUTH) == 2, 5.0)  # after 0.3 s
 
 
+def _listener(context, executor, nodes, name, message_type, topic):
+    from rclpy.node import Node
+    listener = Node(name, context=context)
+    executor.add_node(listener)
+    nodes.append(listener)
+    listener.create_subscription(message_type, topic, lambda msg: None, qos.SUBSCRIPTION_QOS)
+    return listener
+
+
+def test_the_controller_subscribes_to_estimates_only_once_its_controls_have_enough_matched_subscribers():
+    """min_control_subscribers: upstream of the sensor's hold, the controller subscribes to
+    'estimate' only once its control publisher matched that many subscriptions (the estimator,
+    the plant, the recorder), so the chain the plant's start waits for is matched on each
+    publisher's side (a realtime run flew its first 1.1 s without control: decisions.md, 41);
+    after match_wait it subscribes anyway."""
+    from geometry_msgs.msg import AccelStamped
+    from rclpy.node import Node
+    with ros_context() as (context, executor, nodes):
+        watcher = Node('estimate_watcher', context=context)
+        executor.add_node(watcher)
+        nodes.append(watcher)
+        make(ControllerNode, context, executor, nodes, 'lqr_controller', min_control_subscribers=2, match_wait=60.0)
+        for k in range(2):
+            assert not spin_until(executor, lambda: watcher.count_subscribers(qos.ESTIMATE) > 0, 0.5), k
+            _listener(context, executor, nodes, f'control_listener_{k}', AccelStamped, qos.CONTROL)
+        assert spin_until(executor, lambda: watcher.count_subscribers(qos.ESTIMATE) == 1)
+        make(ControllerNode, context, executor, nodes, 'lqr_controller', cli_args=['--ros-args', '-r', '__node:=late'],
+             min_control_subscribers=5, match_wait=0.3)
+        assert spin_until(executor, lambda: watcher.count_subscribers(qos.ESTIMATE) == 2, 5.0)  # after 0.3 s
+
+
+def test_the_estimator_subscribes_to_measurements_only_once_its_estimates_reach_enough_subscribers():
+    """min_estimate_subscribers (its own liveliness monitor on 'estimate' not counted): the
+    estimator subscribes to 'measurement' only once its estimates reach the controller and the
+    recorder; a standby, which publishes nothing, and a node that does not activate itself
+    subscribe at once; after match_wait it subscribes anyway."""
+    from rclpy.node import Node
+    with ros_context() as (context, executor, nodes):
+        watcher = Node('measurement_watcher', context=context)
+        executor.add_node(watcher)
+        nodes.append(watcher)
+        make(EstimatorNode, context, executor, nodes, 'estimator', min_estimate_subscribers=2, match_wait=60.0)
+        for k in range(2):
+            assert not spin_until(executor, lambda: watcher.count_subscribers(qos.MEASUREMENT) > 0, 0.5), k
+            _listener(context, executor, nodes, f'estimate_listener_{k}', Odometry, qos.ESTIMATE)
+        assert spin_until(executor, lambda: watcher.count_subscribers(qos.MEASUREMENT) == 1)
+        for k, changes in enumerate(({'standby': True, 'match_wait': 60.0}, {'autostart': False, 'match_wait': 60.0},
+                                     {'match_wait': 0.3})):
+            node = make(EstimatorNode, context, executor, nodes, 'estimator',
+                        cli_args=['--ros-args', '-r', f'__node:=e{k}'], min_estimate_subscribers=5, **changes)
+            if not changes.get('autostart', True):
+                node.trigger_configure()  # a managed node: configured (ros2 lifecycle set), not activated
+            assert spin_until(executor, lambda k=k: watcher.count_subscribers(qos.MEASUREMENT) == 2 + k, 5.0), changes
+
+
 @pytest.mark.parametrize('node_class, name, changes, message', [
     (EstimatorNode, 'estimator', {'neuron_count': 0}, 'neuron_count'),
     (EstimatorNode, 'estimator', {'leak_rate': -1.0}, 'leak_rate'),

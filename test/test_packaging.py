@@ -207,7 +207,8 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
             assert n['package'] == PACKAGE and n['name'] == exe
             assert n['exec_name'] == exe  # log lines say [estimator-2], not [chrt-2]
             assert n.get('prefix') == prefix, (exe, context)
-        assert nodes['estimator']['parameters'][1:] == []  # the parameter file's filter_type
+        # the parameter file's filter_type (only the chain's matching count is added: decisions.md, 41)
+        assert nodes['estimator']['parameters'][1:] == [{'min_estimate_subscribers': 1}]
         plant = nodes['cw_plant']['parameters'][1]
         assert plant['mode'] == ('config', 'mode', None) and plant['exit_when_done'] is True
         # launch turns real_time_factor:=10 into an integer, which the DOUBLE parameter refuses
@@ -235,7 +236,7 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
                     plant='basilisk'))
     nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
     assert created['handler'] == [] and nodes['basilisk_plant']['parameters'][1]['exit_when_done'] is False
-    assert nodes['estimator']['parameters'][1] == {'filter_type': 'snn_emsif_weighted'}
+    assert nodes['estimator']['parameters'][1]['filter_type'] == 'snn_emsif_weighted'
     assert 'min_truth_subscribers' not in nodes['basilisk_plant']['parameters'][1]  # the file's (the sensor)
     # the recorder subscribes to 'truth' last (once it hears the loop): the plant's first state
     # waits for it, and for the live view, which would otherwise fill the count before it
@@ -246,6 +247,13 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         assert plant['parameters'][1]['min_truth_subscribers'] == expected, (record, live_view)
         sensor = next(n.kwargs for n in created['node'] if n.kwargs['executable'] == 'position_sensor')
         assert sensor['parameters'][1:] == ([{'min_measurement_subscribers': 3}] if record == 'true' else [])
+        # upstream the same (decisions.md, 41): controls reach estimator, plant and the optional
+        # nodes before the controller subscribes to estimates, estimates the controller and those
+        # before the estimator subscribes to measurements
+        optional = (record == 'true') + (live_view == 'true')
+        by_name = {n.kwargs['executable']: n.kwargs['parameters'][1:] for n in created['node']}
+        assert by_name['lqr_controller'] == [{'min_control_subscribers': 2 + optional}]
+        assert by_name['estimator'] == [{'min_estimate_subscribers': 1 + optional}]
 
 
 def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
