@@ -259,13 +259,25 @@ def test_a_sensor_subscribes_to_truth_only_once_its_measurements_have_enough_mat
         assert spin_until(executor, lambda: watcher.count_subscribers(qos.TRUTH) == 2, 5.0)  # after 0.3 s
 
 
-def _listener(context, executor, nodes, name, message_type, topic):
+def _plain_node(context, executor, nodes, name):
     from rclpy.node import Node
-    listener = Node(name, context=context)
-    executor.add_node(listener)
-    nodes.append(listener)
-    listener.create_subscription(message_type, topic, lambda msg: None, qos.SUBSCRIPTION_QOS)
-    return listener
+    node = Node(name, context=context)
+    executor.add_node(node)
+    nodes.append(node)
+    return node
+
+
+def _held_until_two_subscribe(context, executor, nodes, node_class, name, count, output, input_topic):
+    """Start ``node_class`` with ``count`` = 2; its ``input_topic`` subscription must come only
+    once two listeners subscribed to its ``output`` (type, topic). Returns the input's watcher."""
+    watcher = _plain_node(context, executor, nodes, f'{name}_input_watcher')
+    make(node_class, context, executor, nodes, name, match_wait=60.0, **{count: 2})
+    for k in range(2):
+        assert not spin_until(executor, lambda: watcher.count_subscribers(input_topic) > 0, 0.5), k
+        listener = _plain_node(context, executor, nodes, f'{name}_output_listener_{k}')
+        listener.create_subscription(*output, lambda msg: None, qos.SUBSCRIPTION_QOS)
+    assert spin_until(executor, lambda: watcher.count_subscribers(input_topic) == 1)
+    return watcher
 
 
 def test_the_controller_subscribes_to_estimates_only_once_its_controls_have_enough_matched_subscribers():
@@ -275,16 +287,9 @@ def test_the_controller_subscribes_to_estimates_only_once_its_controls_have_enou
     publisher's side (a realtime run flew its first 1.1 s without control: decisions.md, 41);
     after match_wait it subscribes anyway."""
     from geometry_msgs.msg import AccelStamped
-    from rclpy.node import Node
     with ros_context() as (context, executor, nodes):
-        watcher = Node('estimate_watcher', context=context)
-        executor.add_node(watcher)
-        nodes.append(watcher)
-        make(ControllerNode, context, executor, nodes, 'lqr_controller', min_control_subscribers=2, match_wait=60.0)
-        for k in range(2):
-            assert not spin_until(executor, lambda: watcher.count_subscribers(qos.ESTIMATE) > 0, 0.5), k
-            _listener(context, executor, nodes, f'control_listener_{k}', AccelStamped, qos.CONTROL)
-        assert spin_until(executor, lambda: watcher.count_subscribers(qos.ESTIMATE) == 1)
+        watcher = _held_until_two_subscribe(context, executor, nodes, ControllerNode, 'lqr_controller',
+                                            'min_control_subscribers', (AccelStamped, qos.CONTROL), qos.ESTIMATE)
         make(ControllerNode, context, executor, nodes, 'lqr_controller', cli_args=['--ros-args', '-r', '__node:=late'],
              min_control_subscribers=5, match_wait=0.3)
         assert spin_until(executor, lambda: watcher.count_subscribers(qos.ESTIMATE) == 2, 5.0)  # after 0.3 s
@@ -295,16 +300,9 @@ def test_the_estimator_subscribes_to_measurements_only_once_its_estimates_reach_
     estimator subscribes to 'measurement' only once its estimates reach the controller and the
     recorder; a standby, which publishes nothing, and a node that does not activate itself
     subscribe at once; after match_wait it subscribes anyway."""
-    from rclpy.node import Node
     with ros_context() as (context, executor, nodes):
-        watcher = Node('measurement_watcher', context=context)
-        executor.add_node(watcher)
-        nodes.append(watcher)
-        make(EstimatorNode, context, executor, nodes, 'estimator', min_estimate_subscribers=2, match_wait=60.0)
-        for k in range(2):
-            assert not spin_until(executor, lambda: watcher.count_subscribers(qos.MEASUREMENT) > 0, 0.5), k
-            _listener(context, executor, nodes, f'estimate_listener_{k}', Odometry, qos.ESTIMATE)
-        assert spin_until(executor, lambda: watcher.count_subscribers(qos.MEASUREMENT) == 1)
+        watcher = _held_until_two_subscribe(context, executor, nodes, EstimatorNode, 'estimator',
+                                            'min_estimate_subscribers', (Odometry, qos.ESTIMATE), qos.MEASUREMENT)
         for k, changes in enumerate(({'standby': True, 'match_wait': 60.0}, {'autostart': False, 'match_wait': 60.0},
                                      {'match_wait': 0.3})):
             node = make(EstimatorNode, context, executor, nodes, 'estimator',
