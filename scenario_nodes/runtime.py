@@ -17,7 +17,7 @@ import time
 from typing import Callable
 
 import rclpy
-from rclpy.clock import JumpThreshold
+from rclpy.clock import Clock, ClockType, JumpThreshold
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -148,7 +148,6 @@ class MatchHold:
         if self._wanted <= 0:
             self._finish()
         else:
-            from rclpy.clock import Clock, ClockType
             self._timer = node.create_timer(0.02, self._check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _check(self) -> None:
