@@ -139,6 +139,18 @@ BASILISK_PLANT = PLANT + (
 
 #: Where a sensor is and how it is turned: h(x) depends on these, so the sensor and the estimator
 #: that takes its measurements read the same values (docs/sensors.md, "Frames and angles").
+def _match_hold(count: str, publisher: str, input_: str, why: str, demo: str, note: str = '') -> tuple:
+    """The two parameters of a node that subscribes to its input only once its output's publisher
+    matched enough subscriptions (runtime.MatchHold; docs/decisions.md, 33 and 41)."""
+    return (
+        Spec(count, 0, f'Subscriptions the {publisher} publisher must have matched{note} before the node '
+             f"subscribes to {input_} ({why}). DDS may match a subscriber's end first, and what the "
+             'publisher sends before its end matched is lost to that subscriber (snn_demo: '
+             f'{demo}); 0: subscribe at once', low=0),
+        Spec('match_wait', 5.0, f'Wall-clock s at most to wait for {count} before subscribing to {input_} '
+             'anyway (with a warning naming the count)', low=0.0, high=600.0))
+
+
 SENSOR_GEOMETRY = (
     Spec('observer', 'chaser', 'Where the sensor is: on the chaser (sees the target at -position) or on '
          'the target (sees the chaser); not for position', choices=OBSERVERS),
@@ -172,13 +184,9 @@ SENSOR = MODEL + (
          'range, and every truth between two samples (measurement_period), as "nothing measured" '
          '(sensor_msgs/Range -inf/+inf as REP 117, a Vector3Stamped of NaN), so that the estimator '
          'predicts over it at once instead of waiting dropout_wait for it'),
-    Spec('min_measurement_subscribers', 0, "Subscriptions the measurement topic's publisher must have "
-         "matched before the sensor subscribes to 'truth' (the plant starts on matched truth "
-         'subscriptions, so after them). DDS may match a subscriber\'s end first, and what the '
-         'publisher sends before its end matched is lost to that subscriber (snn_demo: the '
-         'estimator, the controller and the recorder); 0: subscribe at once', low=0),
-    Spec('match_wait', 5.0, "Wall-clock s at most to wait for min_measurement_subscribers before "
-         "subscribing to 'truth' anyway (with a warning naming the count)", low=0.0, high=600.0),
+    *_match_hold('min_measurement_subscribers', "measurement topic's", "'truth'",
+                 'the plant starts on matched truth subscriptions, so after them',
+                 'the estimator, the controller and the recorder'),
 )
 
 CONTROLLER = MODEL + (
@@ -207,13 +215,10 @@ CONTROLLER = MODEL + (
          choices=('lqr', 'snn_lqr')),
     Spec('snn_lqr_neurons', 100, 'N, LIF neurons of the snn_lqr network', low=1, high=100000),
     Spec('snn_lqr_leak', 0.001, 'lambda, leak of the snn_lqr membranes and trains, 1/s', low=0.0),
-    Spec('min_control_subscribers', 0, "Subscriptions the control topic's publisher must have matched "
-         "before the controller subscribes to `estimate` (the estimator, the sensor and then the plant "
-         'wait for their own, so the plant starts only once controls reach the estimator and the plant: '
-         'DDS may match a subscriber\'s end first, and what is sent before the publisher\'s end matched '
-         'is lost to it; snn_demo: the estimator, the plant and the recorder); 0: subscribe at once', low=0),
-    Spec('match_wait', 5.0, 'Wall-clock s at most to wait for min_control_subscribers before subscribing '
-         'to `estimate` anyway (with a warning naming the count)', low=0.0, high=600.0),
+    *_match_hold('min_control_subscribers', "control topic's", '`estimate`',
+                 'the estimator, the sensor and then the plant wait for their own, so the plant starts '
+                 'only once controls reach the estimator and the plant',
+                 'the estimator, the plant and the recorder'),
 )
 
 #: One sensor of an estimator with `sensors`: declared as <name>.<parameter> at configure.
@@ -293,14 +298,10 @@ ESTIMATOR = MODEL + (
          "answer z_k at once with the controller's u_k and correct the estimate (published again under its "
          'stamp) if the report differs; false: wait for the report (in realtime one tick later). At most '
          '8 steps are held for their reports (grid measurement_timing only; docs/decisions.md, 22b)'),
-    Spec('min_estimate_subscribers', 0, "Subscriptions the `estimate` publisher must have matched (not "
-         'counting its own liveliness monitor), once active, before the estimator subscribes to its '
-         'measurements (the sensor and then the plant wait for their own, so the plant starts only once '
-         'estimates reach the controller: DDS may match a subscriber\'s end first, and estimates sent '
-         'before the publisher\'s end matched are lost to it; snn_demo: the controller and the '
-         'recorder); a standby subscribes at once; 0: at once', low=0),
-    Spec('match_wait', 5.0, 'Wall-clock s at most to wait for min_estimate_subscribers before subscribing '
-         'to the measurements anyway (with a warning naming the count)', low=0.0, high=600.0),
+    *_match_hold('min_estimate_subscribers', '`estimate`', 'its measurements',
+                 'the sensor and then the plant wait for their own, so the plant starts only once estimates '
+                 'reach the controller; a standby subscribes at once', 'the controller and the recorder',
+                 note=' (not counting its own liveliness monitor), once active,'),
     Spec('history_wait', 1.0, 'Wall-clock s at most to read the history that publishers keep on '
          '`estimate`, `measurement` and `control` when configured (no wait when none keeps any)', low=0.0),
     Spec('initial_fit_window', D.INITIAL_FIT_WINDOW, 'Seconds of measurement history a least-squares '

@@ -135,10 +135,10 @@ class MatchHold:
     end matched is lost to that subscriber (best effort, volatile). A node of the loop therefore
     subscribes to its input only once its output reaches the nodes after it, so the plant, which
     starts on matched 'truth' subscriptions, starts only once the chain is matched downstream
-    (docs/decisions.md, 33 and 41). ``count`` reads the matched subscriptions (None while the
-    publisher does not exist); ``topic`` and ``action`` name them in the log."""
+    (docs/decisions.md, 33 and 41). ``count`` reads the matched subscriptions; ``topic`` and
+    ``action`` name them in the log."""
 
-    def __init__(self, node, count: Callable[[], int | None], wanted: int, match_wait: float, then: Callable[[], None],
+    def __init__(self, node, count: Callable[[], int], wanted: int, match_wait: float, then: Callable[[], None],
                  topic: str, action: str):
         self._node, self._count, self._wanted, self._match_wait = node, count, int(wanted), float(match_wait)
         self._then, self._topic, self._action = then, topic, action
@@ -151,7 +151,7 @@ class MatchHold:
             self._timer = node.create_timer(0.02, self._check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _check(self) -> None:
-        matched = self._count() or 0
+        matched = self._count()
         waited = time.monotonic() - self._started
         if matched < self._wanted and waited < self._match_wait:
             return

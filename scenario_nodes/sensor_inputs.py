@@ -67,7 +67,6 @@ class FusedInputs:
         self.assembler = SampleAssembler(self._model, wait)
         self.gated = Counter()
         self.late = Counter()  # reports of a stamp already handed on that were not a resend
-        self._node = node
 
     def subscribe(self) -> list:
         """Subscribe to every sensor's topic; returns the subscriptions."""

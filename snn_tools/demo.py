@@ -79,7 +79,8 @@ class Pipeline:
 
     def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
                  namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw',
-                 live_view: bool = False, single_process: bool = False, sensor_nodes=('position_sensor',)):
+                 live_view: bool = False, single_process: bool = False, sensor_nodes=('position_sensor',),
+                 listeners: int = 0):
         if scheduling not in SCHEDULING:
             raise ValueError(f'scheduling {scheduling!r}: expected one of {SCHEDULING}')
         if plant not in PLANTS:
@@ -116,15 +117,18 @@ class Pipeline:
         # and each sensor subscribes to 'truth' only once its measurement publisher matched the
         # estimator, the controller and the recorder: DDS may match the subscriber's end first
         # (the recorder then lost a LIDAR's first 94 s in a CI run; docs/decisions.md, 33)
+        # (``listeners``: other subscribers of measurement, estimate and control, e.g. the latency
+        # bench's probe, counted in each so that they cannot stand in for a node of the loop)
         for sensor in self.sensor_nodes:
-            overrides.setdefault(sensor, {}).setdefault('min_measurement_subscribers', 2 + record)
+            overrides.setdefault(sensor, {}).setdefault('min_measurement_subscribers', 2 + record + listeners)
         # upstream of the sensors, the same: the controller subscribes to 'estimate' once its
         # controls reach the estimator, the plant, the recorder (and the live view), and the
         # estimator to the measurements once its estimates reach the controller, the recorder (and
         # the live view), so the plant starts with every link matched on its publisher's side (a
         # realtime run once flew its first 1.1 s without control: decisions.md, 41)
-        overrides.setdefault('lqr_controller', {}).setdefault('min_control_subscribers', 2 + record + live_view)
-        overrides.setdefault('estimator', {}).setdefault('min_estimate_subscribers', 1 + record + live_view)
+        overrides.setdefault('lqr_controller', {}).setdefault('min_control_subscribers',
+                                                              2 + record + live_view + listeners)
+        overrides.setdefault('estimator', {}).setdefault('min_estimate_subscribers', 1 + record + live_view + listeners)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
     def command(self, name: str, module: str, node_name: str | None = None, remaps=()) -> list[str]:
@@ -250,13 +254,14 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
                  scheduling: str | None = None, plant: str = 'cw', live_view: bool = False,
-                 single_process: bool = False, sensor: str = 'position') -> dict:
+                 single_process: bool = False, sensor: str = 'position', listeners: int = 0) -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
     ``sensor``: position (Table 6) or a suite of scenario_nodes.parameters.sensor_suites.
-    ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE)."""
+    ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE). ``listeners``: subscribers
+    of measurement, estimate and control besides the loop's (a probe), counted in each node's hold."""
     scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
@@ -281,7 +286,7 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
                         pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view,
-                        single_process=single_process, sensor_nodes=sensor_nodes)
+                        single_process=single_process, sensor_nodes=sensor_nodes, listeners=listeners)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)

@@ -249,13 +249,6 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
     """One realtime run with the probe; returns the case's figures."""
     from .demo import pipeline_env, run_pipeline
     factor, env, parameters, options = CASES[case]
-    # the probe is one more subscriber of measurement, estimate and control: each publisher waits
-    # for it too (snn_tools.demo.Pipeline, decisions.md 33 and 41), so it cannot stand in for a node
-    parameters = {node: dict(values) for node, values in parameters.items()}
-    for node, key, count in (('position_sensor', 'min_measurement_subscribers', 4),
-                             ('estimator', 'min_estimate_subscribers', 3),
-                             ('lqr_controller', 'min_control_subscribers', 4)):
-        parameters.setdefault(node, {}).setdefault(key, count)
     run_dir.mkdir(parents=True, exist_ok=True)
     probe_file = run_dir / 'probe.npz'
     with environment(env):
@@ -265,8 +258,10 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
         try:
             time.sleep(2.0)  # the probe's subscriptions are up before the first measurement
             duration = (samples + START_SAMPLES + 5) * time_step
+            # the probe is one more subscriber of measurement, estimate and control: each publisher
+            # waits for it too, so it cannot stand in for a node (decisions.md 33 and 41)
             run_pipeline(run_dir, estimator, 'realtime', duration=duration, real_time_factor=factor,
-                         domain_id=domain_id, extra=parameters, **options)
+                         domain_id=domain_id, extra=parameters, listeners=1, **options)
         finally:
             probe.send_signal(signal.SIGINT)
             try:

@@ -248,3 +248,18 @@ def test_snn_demo_passes_the_cpu_wake_latency_to_every_node_and_refuses_a_negati
     assert 'value' not in seen
     assert demo.main(['--cpu-wake-latency-us', '0', '--runs-dir', str(tmp_path), '--name', 'awake']) == 1
     assert seen['value'] == '0'
+
+
+def test_the_probe_is_counted_in_every_nodes_hold(tmp_path):
+    """The probe subscribes to measurement, estimate and control: each publisher of the loop waits
+    for one more subscription (listeners), so the probe cannot stand in for a node of the loop."""
+    from snn_tools.demo import Pipeline, pipeline_env
+    from snn_tools.paths import config_file
+    counts = {}
+    for listeners in (0, 1):
+        overrides = {}
+        Pipeline(tmp_path, config_file(), overrides, pipeline_env(), listeners=listeners)
+        counts[listeners] = (overrides['position_sensor']['min_measurement_subscribers'],
+                             overrides['estimator']['min_estimate_subscribers'],
+                             overrides['lqr_controller']['min_control_subscribers'])
+    assert counts == {0: (3, 2, 3), 1: (4, 3, 4)}
