@@ -84,7 +84,7 @@ bench-loop: $(STAMP)
 
 # realtime latency measurement -> estimate / control, 1x and 10x, ten cases (10000 samples: ~55 min)
 bench-latency: $(STAMP)
-	$(BIN)/snn_latency_bench --out results/latency.json $(if $(SAMPLES),--samples $(SAMPLES)) \
+	$(BIN)/snn_latency_bench --out results/latency.json --history results/latency_runs $(if $(SAMPLES),--samples $(SAMPLES)) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR))
 
 # every spiking kind under each network coding and unit, dispersed rendezvous, against its twin

@@ -293,6 +293,9 @@ def main(argv=None) -> int:
     parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS))
     parser.add_argument('--out', type=Path, help='also write the figures as JSON here')
     parser.add_argument('--domain-id', type=int, help='ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or random)')
+    parser.add_argument('--history', type=Path,
+                        help='also keep a copy of the JSON in this folder, named by the start time (UTC), '
+                             'so that runs compared later each have their file')
     parser.add_argument('--keep-runs', action='store_true',
                         help="keep every case's folder (bag, node logs, probe.npz; kept anyway when a case fails)")
     parser.add_argument('--probe', type=Path, help=argparse.SUPPRESS)  # (internal) the probe process
@@ -307,6 +310,7 @@ def main(argv=None) -> int:
     print(f'snn_latency_bench: {args.estimator}, realtime, {args.samples} measurements per case, '
           f'{os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}, ROS domain {domain}')
     results, failures = {}, {}
+    started = time.strftime('%Y%m%dT%H%MZ', time.gmtime())
     folder = Path(mkdtemp(prefix='snn_latency_bench_'))
     for index, case in enumerate(args.cases):
         run_dir = folder / f'{index:02d}_{case}'  # a case named twice runs twice, each in its own folder
@@ -329,14 +333,15 @@ def main(argv=None) -> int:
         print(f'snn_latency_bench: the runs are kept in {folder}')
     else:
         shutil.rmtree(folder, ignore_errors=True)
-    if args.out and results:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        report = {'estimator': args.estimator, 'samples': args.samples, 'cpus': os.cpu_count(),
-                  'load_average_1min': os.getloadavg()[0], 'cases': results}
-        if failures:
-            report['failed_cases'] = failures
-        args.out.write_text(json.dumps(report, indent=2) + '\n')
-        print(f'wrote {args.out}' + (' (the finished cases only)' if failures else ''))
+    report = {'estimator': args.estimator, 'samples': args.samples, 'cpus': os.cpu_count(),
+              'load_average_1min': os.getloadavg()[0], 'started_utc': started, 'cases': results}
+    if failures:
+        report['failed_cases'] = failures
+    for out in (args.out, args.history / f'latency_{started}.json' if args.history else None):
+        if out and results:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(report, indent=2) + '\n')
+            print(f'wrote {out}' + (' (the finished cases only)' if failures else ''))
     return 1 if failures else 0
 
 

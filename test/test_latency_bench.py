@@ -107,8 +107,12 @@ def test_a_failed_case_keeps_the_finished_cases_and_its_logs_and_a_repeated_case
     monkeypatch.setattr(latency_bench, 'run_case', fake_run_case)
     monkeypatch.setattr(latency_bench, 'mkdtemp', lambda prefix: str(tmp_path / 'runs'))
     out = tmp_path / 'latency.json'
-    assert latency_bench.main(['--samples', '40', '--cases', '10x', '10x_batch', '10x', '--out', str(out)]) == 1
+    history = tmp_path / 'latency_runs'
+    assert latency_bench.main(['--samples', '40', '--cases', '10x', '10x_batch', '10x', '--out', str(out),
+                               '--history', str(history)]) == 1
     report = json.loads(out.read_text())
+    (kept,) = history.glob('latency_*.json')  # the same report, named by its start
+    assert json.loads(kept.read_text()) == report and kept.name == f"latency_{report['started_utc']}.json"
     assert sorted(report['cases']) == ['10x', '10x_02']
     assert list(report['failed_cases']) == ['01_10x_batch']
     assert len(set(folders)) == 3
