@@ -372,11 +372,13 @@ def test_the_table_is_the_same_with_1_or_2_workers_or_an_external_cluster(tmp_pa
 
 @pytest.fixture(scope='module')
 def longer(tmp_path_factory):
-    """MEDIUM over the whole 360 s approach: a cell takes long enough (~0.2 s with the compiled
-    loop) that a Ctrl-C after two cells finds most of them still to do."""
+    """MEDIUM over the whole 360 s approach with 24 runs a cell: a cell takes long enough (~0.6 s
+    with the compiled loop) that a Ctrl-C after two cells finds most of them still to do. With 8
+    runs (~0.2 s a cell) a loaded machine once finished all 16 cells before the Ctrl-C landed."""
     folder = tmp_path_factory.mktemp('longer')
     path = folder / 'longer.yaml'
-    path.write_text(yaml.safe_dump({**MEDIUM, 'settings': {'duration': 360.0, 'metric_window': 10.0}}))
+    path.write_text(yaml.safe_dump({**MEDIUM, 'runs': 24, 'runs_per_task': 8,
+                                    'settings': {'duration': 360.0, 'metric_window': 10.0}}))
     return path, reference(load_spec(path))
 
 
