@@ -48,8 +48,11 @@ $(STAMP): setup.py pyproject.toml
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
+# the CPU-sensitive tests (golden numbers of the fast-math kernels) run again compiled for a generic
+# x86-64 CPU: the suite must pass on any CPU the wheels support (issue 36)
 test: lint
 	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
+	NUMBA_CPU_NAME=generic $(BIN)/python -m pytest -q -n 2 -m cpu_sensitive test
 	$(BIN)/python -m pytest -q -m slow --durations=15 test
 
 test-fast: $(STAMP)

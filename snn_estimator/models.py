@@ -167,15 +167,19 @@ def expm(matrix: np.ndarray) -> np.ndarray:
 
     Small arguments (max row sum <= 0.05, e.g. a Jacobian times a short step) use a degree-8
     Taylor polynomial, whose truncation error 0.05^9/9! < 1e-17 is below double precision and
-    which costs a few small products instead of scipy's general algorithm.
+    which costs a few small products instead of scipy's general algorithm. The choice is made
+    per matrix, so a run of a batch gets what it would get alone.
     """
     matrix = np.asarray(matrix, dtype=float)
-    if np.abs(matrix).sum(axis=-1).max() > 0.05:
+    large = np.abs(matrix).sum(axis=-1).max(axis=-1) > 0.05  # per matrix: a run's result is its own
+    if np.all(large):
         return scipy.linalg.expm(matrix)
     identity = np.eye(matrix.shape[-1])
     result = identity + matrix / 8.0
     for k in range(7, 0, -1):  # Horner: I + M (I + M/2 (I + ... (I + M/8)))
         result = identity + (matrix @ result) / k
+    if np.any(large):
+        result[large] = scipy.linalg.expm(matrix[large])
     return result
 
 

@@ -4,11 +4,14 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.integrate
+import scipy.linalg
 
 from snn_estimator import (
     FILTER_KINDS,
     TWIN_OF,
     EstimatorConfig,
+    gains,
     make_estimator,
     rendezvous_scenario,
     simulate,
@@ -20,6 +23,23 @@ from snn_estimator.models import VanDerPol
 from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
 
 SPIKING = [kind for kind, spec in FILTER_KINDS.items() if spec.spiking]
+
+
+def van_loan(a: np.ndarray, q: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Phi, Q_d): e^{A dt} and the covariance white noise of density Q adds over dt, from one
+    exponential of [[-A, Q], [0, A^T]] dt (Van Loan 1978), written here for the tests."""
+    n = a.shape[0]
+    block = scipy.linalg.expm(np.block([[-a, q], [np.zeros((n, n)), a.T]]) * dt)
+    phi = block[n:, n:].T
+    return phi, phi @ block[:n, n:]
+
+
+def sampled_kalman_step(p, c, phi, q_d, r_d):
+    """The textbook discrete Kalman step of a sample of variance r_d: K_d, then P' = Phi ((I -
+    K_d C) P (I - K_d C)^T + K_d R_d K_d^T) Phi^T + Q_d (Joseph update, then prediction)."""
+    k_d = p @ c.T @ np.linalg.inv(c @ p @ c.T + r_d)
+    i_kc = np.eye(len(p)) - k_d @ c
+    return k_d, phi @ (i_kc @ p @ i_kc.T + k_d @ r_d @ k_d.T) @ phi.T + q_d
 
 
 def rendezvous_inputs(steps=300, seed=0):
@@ -54,7 +74,9 @@ def test_network_weights_equal_the_papers_formulas():
     d = estimator.decoder
     a, b, c = model.system_matrix(model.mean_motion), model.input_matrix, model.measurement_matrix
     lam = scenario.estimator.leak_rate
-    kalman_gain = p_before @ c.T @ np.linalg.inv(estimator.settings.r_hat)
+    dt, phi = 0.1, np.eye(6) + 0.1 * a  # forward Euler (as_published): Phi = I + A dt
+    k_d = p_before @ c.T @ np.linalg.inv(c @ p_before @ c.T + estimator.settings.r_hat / dt)
+    kalman_gain = phi @ k_d / dt  # Eq. 5 as the sampled step's gain (Decision 43)
     np.testing.assert_allclose(w['F'], d.T @ b, atol=1e-15)                                # Eq. 16
     np.testing.assert_allclose(w['Omega_s'], d.T @ (a + lam * np.eye(6)) @ d, atol=1e-14)  # Eq. 17
     np.testing.assert_allclose(w['Omega_f'], -d.T @ d, atol=1e-15)                         # Eq. 18
@@ -120,7 +142,9 @@ def test_sif_gain_follows_the_innovation_eq_23_24():
     assert estimator.P is None
 
 
-def test_kalman_gain_and_riccati_step_follow_eq_5_and_6():
+def test_kalman_gain_and_covariance_are_the_sampled_step_of_eq_5_and_6():
+    """K = Phi K_d / dt and P' = Phi P+ Phi^T + Q_d, P+ the Joseph update with R_d = R_hat / dt
+    (R_hat a density, Eq. 5-6; Decision 43), and x' = Phi x + Gamma u + dt K (z - C x)."""
     scenario = rendezvous_scenario()
     model = scenario.model
     estimator = make_estimator('ekf', scenario.estimator)
@@ -129,43 +153,77 @@ def test_kalman_gain_and_riccati_step_follow_eq_5_and_6():
     z, u, dt = np.array([70.2, 29.8, -5.1]), np.array([0.01, 0.0, -0.01]), 0.1
     estimator.step(z, u, dt)
     a, c = model.system_matrix(model.mean_motion), model.measurement_matrix
-    r_inv = np.linalg.inv(estimator.settings.r_hat)
-    gain = p @ c.T @ r_inv
-    np.testing.assert_allclose(estimator.gain, gain, rtol=1e-12)
-    expected_p = p + dt * (a @ p + p @ a.T + estimator.settings.q_hat - p @ c.T @ r_inv @ c @ p)
-    np.testing.assert_allclose(estimator.P, expected_p, rtol=1e-12, atol=1e-20)
-    phi, gamma = model.discrete_matrices(dt)
-    np.testing.assert_allclose(estimator.x_hat, phi @ x + gamma @ u + dt * gain @ (z - c @ x), rtol=1e-12)
+    phi, q_d = van_loan(a, estimator.settings.q_hat, dt)
+    k_d, expected_p = sampled_kalman_step(p, c, phi, q_d, estimator.settings.r_hat / dt)
+    gain = phi @ k_d / dt
+    np.testing.assert_allclose(estimator.gain, gain, rtol=1e-10)
+    np.testing.assert_allclose(estimator.P, expected_p, rtol=1e-10, atol=1e-20)
+    phi_zoh, gamma = model.discrete_matrices(dt)
+    np.testing.assert_allclose(estimator.x_hat, phi_zoh @ x + gamma @ u + dt * gain @ (z - c @ x), rtol=1e-12)
 
 
-def test_ekf_tends_to_a_discrete_kalman_filter_as_dt_shrinks(double_integrator):
-    """Eq. 3-6 stepped at dt equal a discrete KF with Q_d = Q dt and R_d = R / dt as dt -> 0."""
+def test_the_ekf_tends_to_the_continuous_filter_of_eq_3_to_6_as_dt_goes_to_zero(double_integrator):
+    """The paper's filter is continuous (Eq. 3-6: x' = f + P C^T R^-1 (z - C x), P' = A P + P A^T
+    + Q - P C^T R^-1 C P). The sampled step with R_d = R / dt (Decision 43) must tend to it:
+    with z and u held over each step, as the sampled filter holds them, and solved to 1e-11 by
+    an ODE solver, the largest gap of the estimate and of P over 4 s falls linearly with dt."""
     model = double_integrator
     q, r = 0.5, 0.2
     config = EstimatorConfig(neuron_count=1, process_noise=q, measurement_noise=r,
                              process_noise_scale=1.0, measurement_noise_scale=1.0,
                              initial_covariance=(1.0, 1.0), initial_state=(0.0, 0.0),
                              boundary_layer=1.0, state_scale=None)
+    a, b, c = np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([0.0, 1.0]), np.array([[1.0, 0.0]])
+
+    def continuous(t, y, z, u):  # Eq. 3 and 6 with z and u held
+        x, p = y[:2], y[2:].reshape(2, 2)
+        gain = p @ c.T / r
+        x_dot = a @ x + b * u + gain @ (z - c @ x)
+        p_dot = a @ p + p @ a.T + q * np.eye(2) - gain @ c @ p
+        return np.concatenate([x_dot, p_dot.ravel()])
+
     gaps = []
     for dt in (0.02, 0.01, 0.005):
         estimator = make_estimator('ekf', config, model)
+        exact = np.concatenate([np.zeros(2), np.eye(2).ravel()])
+        gap = 0.0
+        for k in range(int(round(4.0 / dt))):
+            t = k * dt
+            z, u = np.array([np.sin(t)]), -np.sin(t)
+            estimator.step(z, np.array([u]), dt)
+            exact = scipy.integrate.solve_ivp(continuous, (t, t + dt), exact, args=(z, u), rtol=1e-11,
+                                              atol=1e-13).y[:, -1]
+            gap = max(gap, np.abs(estimator.x_hat - exact[:2]).max(),
+                      np.abs(estimator.P - exact[2:].reshape(2, 2)).max())
+        gaps.append(gap)
+    assert gaps[0] < 0.05
+    assert 0.4 < gaps[1] / gaps[0] < 0.6 and 0.4 < gaps[2] / gaps[1] < 0.6  # first order in dt
+
+
+def test_the_ekf_is_the_discrete_kalman_predictor_with_van_loans_q_and_r_over_dt(double_integrator):
+    """At any dt, Eq. 3-6 stepped (Decision 43) is the discrete Kalman filter of a sample of
+    variance R_d = R / dt with Q_d the exact process noise of the step: run beside the textbook
+    filter (update, then predict), to the rounding."""
+    model = double_integrator
+    q, r = 0.5, 0.2
+    config = EstimatorConfig(neuron_count=1, process_noise=q, measurement_noise=r,
+                             process_noise_scale=1.0, measurement_noise_scale=1.0,
+                             initial_covariance=(1.0, 1.0), initial_state=(0.0, 0.0),
+                             boundary_layer=1.0, state_scale=None)
+    for dt in (0.5, 0.01):
+        estimator = make_estimator('ekf', config, model)
         x_prior, p_prior = np.zeros(2), np.eye(2)
         phi, gamma = model.discrete_matrices(dt)
+        _, q_d = van_loan(np.array([[0.0, 1.0], [0.0, 0.0]]), q * np.eye(2), dt)
         c = model.measurement_matrix
-        gap = 0.0
         for k in range(int(round(4.0 / dt))):
             t = k * dt
             z, u = np.array([np.sin(t)]), np.array([-np.sin(t)])  # truth: p = sin t
             estimator.step(z, u, dt)
-            gain = p_prior @ c.T / (c @ p_prior @ c.T + r / dt)
-            x_post = x_prior + gain @ (z - c @ x_prior)
-            p_post = (np.eye(2) - gain @ c) @ p_prior
-            x_prior = phi @ x_post + gamma @ u
-            p_prior = phi @ p_post @ phi.T + q * dt * np.eye(2)
-            gap = max(gap, np.max(np.abs(estimator.x_hat - x_prior)))
-        gaps.append(gap)
-    assert gaps[0] < 0.05
-    assert gaps[1] < 0.6 * gaps[0] and gaps[2] < 0.6 * gaps[1]  # first-order convergence
+            gain, p_next = sampled_kalman_step(p_prior, c, phi, q_d, np.array([[r / dt]]))
+            x_prior, p_prior = phi @ (x_prior + gain @ (z - c @ x_prior)) + gamma @ u, p_next
+            np.testing.assert_allclose(estimator.x_hat, x_prior, rtol=1e-11, atol=1e-12)
+            np.testing.assert_allclose(estimator.P, p_prior, rtol=1e-11, atol=1e-14)
 
 
 # ---------------------------------------------------------------- the network
@@ -217,7 +275,8 @@ def test_compiled_network_equals_the_dense_network_with_a_per_sample_r_hat(kind)
 
 def test_a_per_sample_r_hat_enters_eq_5_and_6_as_r_hat_dt_and_eq_9_as_it_is():
     """EKF: per_sample R_hat is exactly the spectral density R_hat dt. MSIF: the innovation
-    covariance P^zz keeps the per-sample R_hat, only its Riccati step uses R_hat dt."""
+    covariance P^zz keeps the per-sample R_hat, and its covariance step takes R_hat as a
+    sample's variance (the density R_hat dt over dt)."""
     scenario, zs, us = rendezvous_inputs(steps=200)
     dt = scenario.dt
     base = scenario.estimator
@@ -236,30 +295,27 @@ def test_a_per_sample_r_hat_enters_eq_5_and_6_as_r_hat_dt_and_eq_9_as_it_is():
     np.testing.assert_allclose(msif.gain, np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / 0.1, 1.0)),
                                rtol=1e-12)
     a = scenario.model.system_matrix(scenario.model.mean_motion)
-    r_inv = np.linalg.inv(r_hat * dt)
-    expected_p = p0 + dt * (a @ p0 + p0 @ a.T + msif.settings.q_hat - p0 @ c.T @ r_inv @ c @ p0)
-    np.testing.assert_allclose(msif.P, expected_p, rtol=1e-12, atol=1e-20)
+    phi, q_d = van_loan(a, msif.settings.q_hat, dt)
+    _, expected_p = sampled_kalman_step(p0, c, phi, q_d, r_hat)  # R_d = (R_hat dt) / dt
+    np.testing.assert_allclose(msif.P, expected_p, rtol=1e-10, atol=1e-20)
 
 
-def test_a_step_that_would_make_p_indefinite_is_refused_before_it_is_taken():
-    """One Euler step of Eq. 6 removes dt P0 C^T R^-1 C P0 in the measured directions; removing
-    more than P0 makes P indefinite and the filter diverge, so such a step is refused before it
-    is taken, naming the fix."""
+def test_a_large_p0_or_a_long_step_keeps_p_positive_definite():
+    """dt C P0 C^T R^-1 above 1 made the old Euler step of Eq. 6 indefinite, so such a P0 or step
+    was refused; the sampled step (Decision 43) takes it: P stays positive definite, and it is
+    the textbook Kalman step."""
     scenario, zs, us = rendezvous_inputs(steps=5)
-    big_p0 = (0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4)  # R_hat = 0.05 m^2
-    per_sample = make_estimator('ekf', scenario.estimator.replace(
-        measurement_noise_units='per_sample', initial_covariance=big_p0))
-    with pytest.raises(ValueError, match='initial_covariance'):
-        per_sample.step(zs[0], us[0], 0.1)
-    assert per_sample.steps == 0
-    spectral = make_estimator('emsif', scenario.estimator.replace(initial_covariance=big_p0))
-    spectral.step(zs[0], us[0], 0.1)  # dt P0 / R_hat = 0.2: fine
-    assert np.all(np.linalg.eigvalsh(spectral.P) > 0)
-    with pytest.raises(ValueError, match='time step'):
-        spectral.step(zs[1], us[1], 1.0)  # 2.0 at dt = 1 s
-    with pytest.raises(ValueError, match='measurement_noise_scale'):
-        spectral.retune(measurement_noise_scale=0.1)  # R_hat = 1e-3: 10 at the step in use
-    assert spectral.settings.r_hat[0, 0] == pytest.approx(0.05)
+    model, c = scenario.model, scenario.model.measurement_matrix
+    a = model.system_matrix(model.mean_motion)
+    per_sample = make_estimator('ekf', scenario.estimator.replace(  # R_hat = 0.05 m^2 per sample
+        measurement_noise_units='per_sample', initial_covariance=(0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4)))
+    for dt in (0.1, 5.0):
+        p = per_sample.P.copy()
+        per_sample.step(zs[0], us[0], dt)
+        phi, q_d = van_loan(a, per_sample.settings.q_hat, dt)
+        np.testing.assert_allclose(per_sample.P, sampled_kalman_step(p, c, phi, q_d, per_sample.settings.r_hat)[1],
+                                   rtol=1e-9, atol=1e-18)
+        assert np.linalg.eigvalsh(per_sample.P).min() > 0.0
 
 
 @pytest.mark.parametrize('changes', [{}, {'network_coding': 'deviation'},
@@ -537,9 +593,8 @@ def test_predict_without_a_measurement_propagates_the_model_only(kind):
     phi, gamma = model.discrete_matrices(0.1)
     tolerance = 1e-12 if kind == 'ekf' else 5e-3  # spike quantisation of the network
     np.testing.assert_allclose(estimator.x_hat, phi @ x + gamma @ u, atol=tolerance)
-    a = model.system_matrix(model.mean_motion)
-    np.testing.assert_allclose(estimator.P, p + 0.1 * (a @ p + p @ a.T + estimator.settings.q_hat),
-                               rtol=1e-12)
+    phi, q_d = van_loan(model.system_matrix(model.mean_motion), estimator.settings.q_hat, 0.1)
+    np.testing.assert_allclose(estimator.P, phi @ p @ phi.T + q_d, rtol=1e-12, atol=1e-20)
     assert np.all(estimator.gain == 0.0)
 
 
@@ -616,43 +671,48 @@ def test_the_hybrid_gain_is_msif_on_the_measured_rows_and_kalman_on_the_others()
     c, s = hybrid.model.measurement_matrix, hybrid.settings
     sat = np.minimum(np.diag(c @ p @ c.T + s.r_hat) / s.boundary_layer, 1.0)
     np.testing.assert_allclose(hybrid.gain[:3], np.diag(sat), rtol=1e-12)
-    np.testing.assert_allclose(hybrid.gain[3:], (p @ c.T @ np.linalg.inv(s.r_hat))[3:], rtol=1e-12)
+    phi, _ = van_loan(hybrid.model.system_matrix(hybrid.model.mean_motion), s.q_hat, 0.1)
+    kalman = phi @ p @ c.T @ np.linalg.inv(c @ p @ c.T + s.r_hat / 0.1) / 0.1
+    np.testing.assert_allclose(hybrid.gain[3:], kalman[3:], rtol=1e-10)
 
 
 def test_the_gain_covariance_is_that_of_the_gain_used_and_equals_eq_6_for_the_kalman_gain():
-    """P' = (J - K C) P + P (J - K C)^T + Q + K R K^T; with K = P C^T R^-1 it is Eq. 6."""
+    """P' = (Phi - dt K C) P (Phi - dt K C)^T + dt^2 K R_d K^T + Q_d, the covariance of the gain
+    used; with the Kalman gain of the step it is the Kalman step (Eq. 6 sampled, Decision 43)."""
     from snn_estimator.filters.reference import written_out_covariance_step
     scenario = rendezvous_scenario()
     ekf = make_estimator('ekf', scenario.estimator)
     weighted = make_estimator('emsif_weighted', scenario.estimator)
     p = np.diag([0.02, 0.03, 0.01, 2e-4, 1e-4, 3e-4]) + 1e-5
-    jac = scenario.model.jacobian(np.zeros(6), np.zeros(3))
-    kalman = p @ scenario.model.measurement_matrix.T @ np.linalg.inv(ekf.settings.r_hat)
-    riccati = written_out_covariance_step(ekf, p, jac, kalman, 0.1)
+    c = scenario.model.measurement_matrix
+    phi, _ = van_loan(scenario.model.system_matrix(scenario.model.mean_motion), ekf.settings.q_hat, 0.1)
+    kalman = phi @ p @ c.T @ np.linalg.inv(c @ p @ c.T + ekf.settings.r_hat / 0.1) / 0.1
+    riccati = written_out_covariance_step(ekf, p, np.zeros(6), kalman, 0.1)
     assert weighted.covariance_law == 'gain'
-    np.testing.assert_allclose(written_out_covariance_step(weighted, p, jac, kalman, 0.1), riccati, rtol=1e-12)
+    np.testing.assert_allclose(written_out_covariance_step(weighted, p, np.zeros(6), kalman, 0.1), riccati,
+                               rtol=1e-10)
 
 
 @pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_hybrid', 'emsif_weighted'])
 @pytest.mark.parametrize('process_noise_scale', [0.9, 1e3])
 def test_the_steady_state_gain_equals_the_written_out_fixed_point_of_eq_6(kind, process_noise_scale):
-    """steady_state_gain (scipy's Schur CARE solver, the SIF's closed-form mean saturation)
-    against reference.py's own solution (Hamiltonian eigenvectors + Newton-Kleinman, quadrature),
-    for every gain law, with the paper's Q_hat and a larger one; the fixed point is checked by
-    its residual too."""
-    from snn_estimator.config import gain_noise_density
+    """steady_state_gain (scipy's Schur DARE solver, the SIF's closed-form mean saturation)
+    against reference.py's own solution (the doubling algorithm, quadrature), for every gain
+    law, with the paper's Q_hat and a larger one; the fixed point of the sampled step of Eq. 6
+    (Decision 43) is checked by its residual too."""
     from snn_estimator.filters.estimators import steady_state_gain
-    from snn_estimator.filters.reference import riccati_fixed_point, written_out_steady_state_gain
+    from snn_estimator.filters.reference import discrete_riccati_fixed_point, written_out_steady_state_gain
     scenario = rendezvous_scenario(process_noise_scale=process_noise_scale)
     estimator = make_estimator(kind, scenario.estimator)
     s, model = estimator.settings, scenario.model
     c, a = model.measurement_matrix, model.jacobian(np.zeros(6), np.zeros(3))
-    density = gain_noise_density(s, 0.1)
-    p = riccati_fixed_point(a, c, s.q_hat, density)
-    terms = (a @ p, p @ a.T, s.q_hat, p @ c.T @ np.linalg.inv(density) @ c @ p)
-    residual = terms[0] + terms[1] + terms[2] - terms[3]
-    assert np.abs(residual).max() < 1e-9 * max(np.abs(term).max() for term in terms)
-    assert np.all(np.linalg.eigvals(a - p @ c.T @ np.linalg.inv(density) @ c).real < 0)  # stabilising
+    phi, q_d = van_loan(a, s.q_hat, 0.1)
+    r_d = s.r_hat / 0.1
+    p = discrete_riccati_fixed_point(phi, c, q_d, r_d)
+    _, following = sampled_kalman_step(p, c, phi, q_d, r_d)
+    assert np.abs(following - p).max() < 1e-9 * np.abs(p).max()
+    k_d = p @ c.T @ np.linalg.inv(c @ p @ c.T + r_d)
+    assert np.all(np.abs(np.linalg.eigvals(phi @ (np.eye(6) - k_d @ c))) < 1.0)  # stabilising
     gain = steady_state_gain(estimator.gain_law, model, s, 0.1)
     np.testing.assert_allclose(gain, written_out_steady_state_gain(estimator, 0.1), rtol=1e-6, atol=1e-12)
 
@@ -695,12 +755,28 @@ def test_a_dispersed_start_is_drawn_from_p0_per_seed_and_the_same_alone_or_in_a_
 
 
 def test_innovation_nis_is_infinite_not_a_crash_when_the_innovation_covariance_is_singular():
-    # a P that is no covariance any more (here C P C^T = -R): the ROS estimator's per-step NIS
-    # check raised LinAlgError out of its subscription callback and the node died
+    # C P C^T + R singular (here R = -C P C^T): the ROS estimator's per-step NIS check raised
+    # LinAlgError out of its subscription callback and the node died
     estimator = make_estimator('ekf')
-    r = 1e-2 * np.eye(3)
-    estimator.set_state(np.zeros(6), np.diag([-1e-2, -1e-2, -1e-2, 1.0, 1.0, 1.0]))
-    assert np.isinf(estimator.innovation_nis(np.ones(3), r)[0])
+    estimator.set_state(np.zeros(6), np.eye(6))
+    assert np.isinf(estimator.innovation_nis(np.ones(3), -np.eye(3))[0])
+
+
+@pytest.mark.parametrize('covariance, message', [
+    (np.diag([-1e-2, -1e-2, -1e-2, 1.0, 1.0, 1.0]), 'positive definite'),
+    (np.eye(6) + np.triu(np.ones((6, 6)), 1), 'symmetric'),
+    (np.full((6, 6), np.inf), 'finite')])
+def test_a_covariance_that_is_none_is_refused_with_its_reason_and_nothing_changes(covariance, message):
+    """The covariance step keeps P positive definite (Decision 43), so it must start so: set_state
+    and reset refuse anything else, naming what is wrong."""
+    estimator = make_estimator('ekf')
+    before = (estimator.x_hat.copy(), estimator.P.copy())
+    with pytest.raises(ValueError, match=message):
+        estimator.set_state(np.zeros(6), covariance)
+    with pytest.raises(ValueError, match=message):
+        estimator.reset(np.zeros(6), covariance)
+    np.testing.assert_array_equal(estimator.x_hat, before[0])
+    np.testing.assert_array_equal(estimator.P, before[1])
 
 
 @pytest.mark.parametrize('kind', ['ekf', 'snn_emsif_weighted'])
@@ -759,13 +835,13 @@ def test_packed_writes_the_dt_constants_in_place_and_rebuilds_for_the_others():
     packed = estimator._packed
     given = np.eye(3) * 2.0
     before = packed.ref
-    packed.update(r_density=given)
-    assert packed.ref is before and packed.constants[3] is not given
-    np.testing.assert_array_equal(packed.constants[3], given)
-    packed.update(r_density=np.eye(3) * 5.0)
+    packed.update(r_sample=given)
+    assert packed.ref is before and packed.constants[gains.R_SAMPLE] is not given
+    np.testing.assert_array_equal(packed.constants[gains.R_SAMPLE], given)
+    packed.update(r_sample=np.eye(3) * 5.0)
     np.testing.assert_array_equal(given, np.eye(3) * 2.0)  # the caller's array as it was
     packed.update(leak=0.5)
-    assert packed.ref is not before and packed.constants[9] == 0.5
+    assert packed.ref is not before and packed.constants[gains.LEAK] == 0.5
 
 
 def _snapshot_cases():

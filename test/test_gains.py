@@ -50,7 +50,9 @@ def test_the_compiled_gain_of_each_law_equals_its_reference_form(kind):
     x = estimator.x_hat.copy()
     z = c @ x + np.array([0.3, -0.02, 0.4])
     estimator.step(z, np.zeros(3), 0.1)
-    expected = law.reference(p, c, z - c @ x, E.gain_noise_density(s, 0.1), s.r_hat, s.boundary_layer)
+    phi = np.eye(6) + 0.1 * estimator.model.linearized_increment(None, 0.1)[0]  # the exact ZOH transition
+    step = gains.SampledStep(phi, 0.1, E.gain_noise_density(s, 0.1) / 0.1)
+    expected = law.reference(p, c, z - c @ x, step, s.r_hat, s.boundary_layer)
     np.testing.assert_allclose(estimator.gain, expected, rtol=1e-10, atol=1e-14)
     assert np.abs(expected).max() > 1e-3  # a gain that says something
 
@@ -70,7 +72,7 @@ def test_the_cost_of_a_filter_adds_its_laws_own_products():
     for name, module in LAWS.items():
         parts = filter_macs(n, m, nu, name, 'riccati')
         assert parts['gain'] == base + module.macs(n, m)
-    assert sum(filter_macs(n, m, nu, 'kalman', 'riccati').values()) == 537
+    assert sum(filter_macs(n, m, nu, 'kalman', 'riccati').values()) == 1026
     with pytest.raises(ValueError, match="gain_law 'luenberger' is unknown; choose one of kalman"):
         CostModel(200, 6, 3, 3, gain_law='luenberger')
 

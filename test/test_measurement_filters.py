@@ -11,6 +11,7 @@ from snn_estimator import FILTER_KINDS, EstimatorConfig, make_estimator
 from snn_estimator import defaults as D
 from snn_estimator.filters.reference import DenseFilter, DenseSpikingFilter
 from snn_estimator.measurements import OUT_OF_VIEW, make_model
+from snn_estimator.measurements.spherical import RangeAzimuthElevation
 from snn_estimator.models import ClohessyWiltshire
 from snn_estimator.offline.blocks import MeasurementSensor, Plant
 from snn_estimator.offline.simulation import sensor_rendezvous_scenario, simulate
@@ -275,21 +276,37 @@ def test_the_lidar_close_approach_docks_with_the_default_filter():
         assert result.extra['unmeasured_steps'].min() > 0  # inside the minimum range: no sample
 
 
-def test_a_run_whose_covariance_overflows_does_not_stop_the_batch_in_the_weighted_gain():
-    """EMSIF-W inverts C P C^T inside the compiled step: a run whose P overflowed gets a NaN gain
-    (the step then reports a non-finite state, FloatingPointError) instead of an exception in
-    the middle of the batch; the other run took its step as alone."""
-    model = sensor('range_azimuth_elevation')
+class OverflowingLidar(RangeAzimuthElevation):
+    """A LIDAR whose H is 1e200 times too large beyond 1 km (extreme geometry: C P C^T overflows,
+    and the gain with it)."""
+
+    def jacobian(self, x):
+        far = np.asarray(x, dtype=float)[..., 0] > 1e3
+        jacobian = super().jacobian(x)
+        return np.where(far[..., None, None], 1e200 * jacobian, jacobian)
+
+
+@pytest.mark.parametrize('kind', ['ekf', 'emsif_weighted'])
+def test_a_run_whose_gain_overflows_is_caught_by_the_guard_and_does_not_stop_the_batch(kind):
+    """A run whose gain goes non-finite inside the compiled step (here H overflows; the step
+    cannot make a positive definite P indefinite) is caught by the step's guard: CovarianceLost
+    (a FloatingPointError) with the run marked in batch_fault, never an exception in the middle of
+    the batch; the other run took its step as alone."""
+    from snn_estimator.filters.estimators import CovarianceLost
+    model = OverflowingLidar([1e-2, 1e-6, 1e-6], mounting_rotation=MOUNTING)
     config = EstimatorConfig(measurement_noise=model.noise, initial_state=tuple(X0))
-    batch = make_estimator('emsif_weighted', config, runs=2, measurement=model)
-    alone = make_estimator('emsif_weighted', config, measurement=model)
-    batch.set_state(np.tile(X0, (2, 1)), P=np.stack([alone.P, np.full((6, 6), np.finfo(float).max)]))
-    z = model.h(X0) + np.array([0.05, 1e-3, -1e-3])
-    with np.errstate(all='ignore'), pytest.raises(FloatingPointError):
-        batch.step(np.tile(z, (2, 1)), np.zeros((2, 3)), 0.1)
-    alone.step(z, np.zeros(3), 0.1)
+    batch = make_estimator(kind, config, runs=2, measurement=model)
+    alone = make_estimator(kind, config, measurement=model)
+    far = X0 + np.array([5e3, 0.0, 0.0, 0.0, 0.0, 0.0])
+    batch.set_state(np.stack([X0, far]))
+    z = model.h(np.stack([X0, far])) + np.array([0.05, 1e-3, -1e-3])
+    with np.errstate(all='ignore'), pytest.raises(CovarianceLost):
+        batch.step(z, np.zeros((2, 3)), 0.1)
+    alone.step(z[0], np.zeros(3), 0.1)
     np.testing.assert_array_equal(batch.x_hat[0], alone.x_hat)
-    assert not np.isfinite(batch.x_hat[1]).all()
+    assert batch.batch_fault.tolist() == [False, True] and batch.covariance_faults == 1
+    batch.restart([1])
+    assert batch.batch_fault.tolist() == [False, False]
 
 
 def test_a_sensors_boundary_layer_is_table_6s_delta_in_sigma_or_in_variance_units():
@@ -357,22 +374,42 @@ def test_angles_only_the_range_is_observable_only_with_a_maneuver():
     assert final[True] < 0.006 and final[True] < final[False] / 3
 
 
-def test_a_step_that_would_overshoot_eq_6_is_split_into_held_sub_steps():
-    """At 3 m a LIDAR's angles give dt H P0 H^T R^-1 ~ 0.8 in one 0.1 s step (allowed: < 1, but
-    above MAX_STEP_INFORMATION = 0.5): the step is split in two sub-steps of 0.05 s with z held,
-    exactly as two steps of 0.05 s with the same sample (R a density: the same R either way)."""
+def test_an_informative_step_close_in_is_one_kalman_step_and_keeps_p_positive_definite():
+    """At 3 m a LIDAR's angles give dt H P0 H^T R^-1 ~ 0.8 in one 0.1 s step (the old Euler step
+    of Eq. 6 split it; above 1 it made P indefinite). The sampled step (Decision 43) takes it
+    whole: the textbook EKF update of H(x_hat) and the wrapped residual with R_d = R_hat / dt, then
+    the prediction, with P positive definite."""
     model = make_model('range_azimuth_elevation', [1e-2, 1e-6, 1e-6], mounting_rotation=MOUNTING)
     x = np.array([3.0, 0.2, -0.1, -0.01, 0.0, 0.0])
-    config = EstimatorConfig(measurement_noise=model.noise, initial_state=tuple(x + [0.0, 0.01, 0.01, 0, 0, 0]),
-                             initial_covariance=(7e-5, 7e-5, 7e-5, 1e-6, 1e-6, 1e-6), measurement_noise_scale=1.0)
+    x_hat = x + np.array([0.0, 0.01, 0.01, 0.0, 0.0, 0.0])
+    p0 = np.diag([7e-5, 7e-5, 7e-5, 1e-6, 1e-6, 1e-6])
+    config = EstimatorConfig(measurement_noise=model.noise, initial_state=tuple(x_hat),
+                             initial_covariance=tuple(np.diag(p0)), measurement_noise_scale=1.0)
+    estimator = make_estimator('ekf', config, measurement=model)
     z = model.h(x)
-    whole, halves = (make_estimator('ekf', config, measurement=model) for _ in range(2))
-    whole.step(z, np.zeros(3), 0.1)
-    halves.step(z, np.zeros(3), 0.05)
-    halves.step(z, np.zeros(3), 0.05)
-    assert (whole.split_steps, halves.split_steps, whole.steps) == (1, 0, 1)
-    np.testing.assert_allclose(whole.x_hat, halves.x_hat, rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(whole.P, halves.P, rtol=1e-12, atol=1e-18)
+    estimator.step(z, np.zeros(3), 0.1)
+    h = model.jacobian(x_hat)
+    gain = p0 @ h.T @ np.linalg.inv(h @ p0 @ h.T + np.asarray(model.noise) / 0.1)
+    x_post = x_hat + gain @ model.residual(z, model.h(x_hat))
+    p_post = (np.eye(6) - gain @ h) @ p0 @ (np.eye(6) - gain @ h).T + gain @ (np.asarray(model.noise) / 0.1) @ gain.T
+    cw = ClohessyWiltshire()
+    phi, _ = cw.discrete_matrices(0.1)
+    q_d = cw.process_noise_discrete(estimator.settings.q_hat, 0.1)  # Van Loan (test_models.py)
+    np.testing.assert_allclose(estimator.x_hat, phi @ x_post, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(estimator.P, phi @ p_post @ phi.T + q_d, rtol=1e-9, atol=1e-18)
+    assert np.linalg.eigvalsh(estimator.P).min() > 0.0
+
+
+def test_the_ekf_keeps_p_positive_definite_through_the_lidar_approach():
+    """issue 36: on the LIDAR scenario from a dispersed start the Euler step of Eq. 6 made the
+    EKF's P indefinite in every run (first near 55 s, at 2.5 m, where H grows as 1/range). The
+    sampled step keeps its smallest eigenvalue positive at every step of 90 s, in each of 4 runs."""
+    scenario = dataclasses.replace(sensor_rendezvous_scenario(initial_state_dispersion=True), duration=90.0)
+    smallest = []
+    record = lambda estimator: smallest.append(np.linalg.eigvalsh(estimator.batch_P).min())  # noqa: E731
+    result = simulate(scenario, 'ekf', runs=4, events={k: record for k in range(1, scenario.steps)})
+    assert not result.diverged.any()
+    assert min(smallest) > 0.0
 
 
 @pytest.mark.slow

@@ -319,8 +319,6 @@ def test_the_estimator_subscribes_to_measurements_only_once_its_estimates_reach_
     (EstimatorNode, 'estimator', {'initial_state': [1.0, 2.0]}, 'initial_state'),
     (EstimatorNode, 'estimator', {'initial_covariance': [1.0, 1.0, 1.0, 1.0, 1.0, -1.0]}, 'positive definite'),
     (EstimatorNode, 'estimator', {'filter_type': 'ukf'}, 'filter_type'),
-    (EstimatorNode, 'estimator', {'measurement_noise_units': 'per_sample',
-                                  'initial_covariance': [0.1, 0.1, 0.1, 1e-4, 1e-4, 1e-4]}, 'initial_covariance'),
     (EstimatorNode, 'estimator', {'model': 'range_azimuth_elevation', 'measurement_noise': [1.0, 2.0]},
      r'measurement_noise \(R of range_azimuth_elevation'),
     (EstimatorNode, 'estimator', {'model': 'line_of_sight', 'mounting_rotation': [0.0, 0.0, 2.0, 0.0]},

@@ -411,6 +411,34 @@ def make_lidar_runner(kind='ekf'):
     return runner, published, scenario
 
 
+def test_a_covariance_the_step_cannot_keep_reinitialises_the_filter_counted_and_never_published():
+    """The step's guard (docs/decisions.md, 43): a filter whose gain overflows (a LIDAR whose H
+    blows up beyond 1 km) raises CovarianceLost; the runner re-initialises it from the data,
+    counts it as reinitialisations.covariance_lost, and every estimate it publishes is finite
+    with a positive definite P."""
+    from test_measurement_filters import MOUNTING, OverflowingLidar
+    scenario = rendezvous_scenario()
+    model = OverflowingLidar([1e-2, 1e-6, 1e-6], mounting_rotation=MOUNTING)
+    estimator = make_estimator('ekf', scenario.estimator.replace(measurement_noise=model.noise), scenario.model,
+                               measurement=model)
+    published = []
+    runner = FilterRunner(estimator, RunnerSettings(time_step=0.1), model.noise,
+                          publish=lambda stamp: published.append((estimator.x_hat.copy(), estimator.P.copy())),
+                          wall_clock=Clock())
+    x = np.array([70.0, 30.0, -5.0, -1.7, -0.9, 0.25])
+    runner.start('auto')
+    for k in range(6):
+        if k == 3:  # the estimate thrown beyond 1 km: the next step's H overflows
+            runner.set_state(x + np.array([5e3, 0.0, 0.0, 0.0, 0.0, 0.0]), None)
+        with np.errstate(all='ignore'):
+            runner.measurement(k * DT, model.h(x))
+            runner.control(k * DT, np.zeros(3))
+    assert runner.events['reinitialisations.covariance_lost'] == 1
+    assert len(published) >= 6
+    for x_hat, covariance in published:
+        assert np.isfinite(x_hat).all() and np.linalg.eigvalsh(covariance).min() > 0.0
+
+
 def test_a_sample_the_sensor_could_not_measure_is_predicted_over_at_once_and_answered_again():
     """The LIDAR below its minimum range says "nothing measured" (docs/sensors.md): the filter
     predicts over that step as soon as its control is here, with no dropout wait (the wall

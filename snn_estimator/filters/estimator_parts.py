@@ -6,7 +6,6 @@ the network, the kernel's packed constants) and are not used on their own.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -25,10 +24,24 @@ class EstimatorSnapshot:
 
     owner: int
     arrays: dict        # name -> copy of the live array (EstimatorState._live_arrays)
-    counters: tuple     # steps, capped_steps, recovery_spikes, split_steps
+    counters: tuple     # steps, capped_steps, recovery_spikes, covariance_faults
     noise: tuple        # the membrane-noise generators' states
     chip: Any           # ChipNetwork.snapshot() or None
     call_dt: float | None
+
+
+def _covariance_or_error(p: np.ndarray, name: str) -> np.ndarray:
+    """``p`` (runs, n, n) if every run's is a covariance (finite, symmetric, positive definite),
+    else ValueError: the covariance step keeps P positive definite, so it must start so."""
+    if not np.isfinite(p).all():
+        raise ValueError(f'{name} must be finite')
+    if not np.allclose(p, np.swapaxes(p, 1, 2), rtol=1e-9, atol=0.0):
+        raise ValueError(f'{name} must be symmetric')
+    try:
+        np.linalg.cholesky(p)
+    except np.linalg.LinAlgError:
+        raise ValueError(f'{name} must be positive definite (a covariance)') from None
+    return p
 
 
 class EstimatorState:
@@ -60,16 +73,15 @@ class EstimatorState:
         if not np.isfinite(x0).all():
             raise ValueError('x_hat0 must be finite')
         p0 = self.settings.initial_covariance if P0 is None else np.asarray(P0, dtype=float)
-        p0 = np.broadcast_to(p0, (self.runs, n, n))
-        if not np.isfinite(p0).all():
-            raise ValueError('P0 must be finite')
+        p0 = _covariance_or_error(np.broadcast_to(p0, (self.runs, n, n)), 'P0')
         # in place: the kernel's packed arguments and the offline simulator hold these arrays
         self._p[:] = p0
         self._x_hat[:] = x0
         self._gain[:] = 0.0
+        self._fault[:] = False
         self.steps = self.capped_steps = self.recovery_spikes = 0
-        #: Steps split into sub-steps because one Euler step of Eq. 6 would overshoot (_parts).
-        self.split_steps = 0
+        #: Runs whose P stopped being positive definite (or gain finite) in a step, summed over steps.
+        self.covariance_faults = 0
         if self.spiking:
             self._network.clear()
             for b in range(self.runs):
@@ -92,6 +104,7 @@ class EstimatorState:
         self._p[chosen] = self.settings.initial_covariance
         self._x_hat[chosen] = starts[chosen]
         self._gain[chosen] = 0.0
+        self._fault[chosen] = False
         if self.spiking:
             for b in np.flatnonzero(chosen):  # its rates and potentials (and prediction) anew
                 self.encode(starts[b], run=b)
@@ -114,7 +127,7 @@ class EstimatorState:
     def _live_arrays(self) -> dict:
         """The arrays a step writes: estimate, covariance, gain, H (and its pseudo-inverse) of a
         nonlinear measurement, and the network's rates, potentials, spikes and prediction."""
-        arrays = {'x_hat': self._x_hat, 'p': self._p, 'gain': self._gain}
+        arrays = {'x_hat': self._x_hat, 'p': self._p, 'gain': self._gain, 'fault': self._fault}
         if self._linearize:
             arrays.update(c=self._c, c_pinv=self._c_pinv)
         if self.spiking:
@@ -132,7 +145,7 @@ class EstimatorState:
         rngs = tuple(g.bit_generator.state for g in self._network.noise_rngs) if self.spiking else ()
         return EstimatorSnapshot(
             owner=id(self), arrays={name: array.copy() for name, array in self._live_arrays().items()},
-            counters=(self.steps, self.capped_steps, self.recovery_spikes, self.split_steps), noise=rngs,
+            counters=(self.steps, self.capped_steps, self.recovery_spikes, self.covariance_faults), noise=rngs,
             chip=self._chip.snapshot() if self._chip is not None else None, call_dt=self._call_dt)
 
     def restore(self, snapshot: EstimatorSnapshot) -> None:
@@ -144,7 +157,7 @@ class EstimatorState:
             self._chip.restore(snapshot.chip)
         for name, array in self._live_arrays().items():
             array[...] = snapshot.arrays[name]
-        self.steps, self.capped_steps, self.recovery_spikes, self.split_steps = snapshot.counters
+        self.steps, self.capped_steps, self.recovery_spikes, self.covariance_faults = snapshot.counters
         for generator, state in zip(self._network.noise_rngs if self.spiking else (), snapshot.noise):
             generator.bit_generator.state = state
         if snapshot.call_dt is not None and snapshot.call_dt != self._call_dt:
@@ -183,9 +196,8 @@ class EstimatorState:
         x = np.broadcast_to(np.asarray(x_hat, dtype=float), (self.runs, n))
         if not np.isfinite(x).all():
             raise ValueError('x_hat must be finite')
-        covariance = None if P is None else np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n))
-        if covariance is not None and not np.isfinite(covariance).all():
-            raise ValueError('P must be finite')
+        covariance = (None if P is None else
+                      _covariance_or_error(np.broadcast_to(np.asarray(P, dtype=float), (self.runs, n, n)), 'P'))
         if self.spiking:
             for b in range(self.runs):
                 self.encode(x[b], run=b)  # raises before changing the run if x is not encodable
@@ -193,6 +205,7 @@ class EstimatorState:
             self._x_hat[:] = x
         if covariance is not None:
             self._p[:] = covariance
+            self._fault[:] = False
 
     def silence(self, neurons: Sequence[int]) -> None:
         """Silence exactly ``neurons`` (others revive). A silenced neuron stops firing and its
@@ -218,13 +231,8 @@ class EstimatorState:
 
 
 class MeasuredSteps:
-    """A step with a measurement model: H(x_hat) per run, the equivalent linear measurement,
-    the NIS of an innovation and the split of a step too informative for one Euler step."""
-
-    #: A step of Eq. 6 is split when dt lambda_max(H P H^T R^-1) exceeds this (see _parts).
-    MAX_STEP_INFORMATION = 0.5
-    #: At most this many sub-steps per step.
-    MAX_PARTS = 64
+    """A step with a measurement model: H(x_hat) per run, the equivalent linear measurement and
+    the NIS of an innovation."""
 
     @property
     def relinearises(self) -> bool:
@@ -259,49 +267,6 @@ class MeasuredSteps:
             return kernels.innovation_nis(z, self._x_hat, self._c[0], self._p, r, self.has_covariance)
         except np.linalg.LinAlgError:
             return np.full(self.runs, np.inf)
-
-    def _parts(self, dt: float, measured: np.ndarray) -> int:
-        """Sub-steps for this step: one Euler step of Eq. 6 removes dt H P H^T R^-1 of the
-        covariance along H, so once that reaches 1 P stops being a covariance and the filter
-        diverges. A position sensor never gets there (check_time_step bounds it at P0 and P only
-        shrinks along C), but H of an angle grows as 1/range: a LIDAR at 1 m gives 70^2 times the
-        information per step it gave at 70 m. Such a step is split into k equal sub-steps with z
-        held (the continuous filter of Eq. 3-6 sees the sample held over its interval), k such that
-        each removes at most MAX_STEP_INFORMATION; the R of Eq. 5-6 stays the sample's."""
-        if self.covariance_law != 'riccati' or not measured.any():
-            return 1
-        c = self._c[measured]
-        information = c @ self._p[measured] @ np.swapaxes(c, 1, 2) @ self._r_density_inv
-        if not np.isfinite(information).all():
-            return 1
-        largest = dt * float(np.max(np.linalg.eigvals(information).real))
-        return min(self.MAX_PARTS, max(1, math.ceil(largest / self.MAX_STEP_INFORMATION)))
-
-    def _step_in_parts(self, z, measured, u, dt: float, parts: int) -> np.ndarray:
-        """``parts`` sub-steps of dt / parts with ``z`` held, re-linearised before each; the
-        spikes of the step are the sum of the sub-steps'."""
-        self.split_steps += 1
-        sample_density = self._packed_density
-        part = dt / parts
-        spikes = np.zeros_like(self._network.spikes)
-        non_finite = None
-        self._set_step(part, density=sample_density)
-        try:
-            for _ in range(parts):
-                z_eq, valid = self._relinearize(z, measured)
-                try:
-                    self._advance(z_eq, valid, u, part)
-                except FloatingPointError as error:  # every run took this sub-step: finish the step
-                    non_finite = error
-                spikes += self._network.spikes
-                self.steps -= 1
-        finally:
-            self._set_step(dt)
-        self.steps += 1
-        self._network.spikes[:] = spikes
-        if non_finite is not None:
-            raise non_finite
-        return self.x_hat
 
     def _relinearize(self, z, measured):
         """Write H(x_hat) (and its pseudo-inverse) of every run into the kernel's C, and return

@@ -49,7 +49,7 @@ __doc__ = __doc__.format(kinds=kinds_table(), laws=gains.table())
 
 def _settings_constants(settings: ResolvedConfig) -> dict:
     """The kernel constants that follow the settings (what :meth:`Estimator.retune` changes)."""
-    return {'leak': settings.leak_rate, 'q_hat': settings.q_hat, 'max_spikes': settings.max_spikes_per_step,
+    return {'leak': settings.leak_rate, 'max_spikes': settings.max_spikes_per_step,
             'r_hat_diag': np.ascontiguousarray(np.diag(settings.r_hat)), 'delta': settings.boundary_layer}
 
 
@@ -61,9 +61,10 @@ def _read_only(array: np.ndarray) -> np.ndarray:
 
 
 class StepDynamics:
-    """The kernel's per-step model input: packed [A_d | B_d | J] (n x (2n + nu); one shared
-    block, cached per dt, for a linear model) plus the nonlinear drift a direct filter on a
-    nonlinear model integrates itself."""
+    """The kernel's per-step model input: packed [A_d | B_d] (n x (n + nu); one shared block,
+    cached per dt, for a linear model), with which a step is x + dt (A_d x + B_d u) and the
+    covariance's transition Phi = I + dt A_d, plus the nonlinear drift a direct filter on a
+    nonlinear model integrates itself (its A_d is then only the covariance's)."""
 
     def __init__(self, model: StateSpaceModel, method: str, runs: int, linearized: bool):
         #: ``linearized``: the network integrates A(x_hat) x_hat (Eq. 14, 17); otherwise the
@@ -78,23 +79,20 @@ class StepDynamics:
             cached = self._linear_cache.get(dt)
             if cached is None:
                 a_d, b_d = model.linearized_increment(None, dt, method)
-                jac = model.jacobian(np.zeros(model.n_state), np.zeros(model.n_input))
-                cached = np.ascontiguousarray(np.concatenate([a_d, b_d, jac], axis=1)[None])
+                cached = np.ascontiguousarray(np.concatenate([a_d, b_d], axis=1)[None])
                 if len(self._linear_cache) >= DT_CACHE_SIZE:
                     self._linear_cache.clear()
                 self._linear_cache[dt] = cached
             return cached, self.no_drift
         runs = self.runs
-        jac = model.jacobian(x_hat, u)
-        b_d = np.broadcast_to(model.input_matrix, (runs,) + model.input_matrix.shape)
+        a_d, b_d = model.linearized_increment(x_hat, dt, method)  # A(x_hat) held over the step (Eq. 17)
+        b_d = np.broadcast_to(b_d, (runs,) + b_d.shape[-2:])
+        packed = np.ascontiguousarray(np.concatenate([a_d, b_d], axis=2))
         if self.linearized:  # the network implements the linearised drift A(x_hat) x_hat (Eq. 17)
-            a_d, b_d = model.linearized_increment(x_hat, dt, method)
-            b_d = np.broadcast_to(b_d, (runs,) + b_d.shape[-2:])
-            return np.ascontiguousarray(np.concatenate([a_d, b_d, jac], axis=2)), self.no_drift
+            return packed, self.no_drift
         # the non-spiking twin (and a network with network_drive: nonlinear) integrates f itself
         drift = (model.transition(x_hat, u, dt, method) - x_hat) / dt
-        return (np.ascontiguousarray(np.concatenate([jac, b_d, jac], axis=2)),
-                np.ascontiguousarray(drift))
+        return packed, np.ascontiguousarray(drift)
 
 
 class EstimatorViews:
@@ -129,6 +127,12 @@ class EstimatorViews:
     def batch_P(self) -> np.ndarray | None:
         """Covariances of all runs, (runs, n, n), read-only view; None without a covariance."""
         return _read_only(self._p) if self.has_covariance else None
+
+    @property
+    def batch_fault(self) -> np.ndarray:
+        """True for each run whose last step left P not positive definite or its gain not
+        finite, shape (runs,), read-only view (the run must restart: :class:`CovarianceLost`)."""
+        return _read_only(self._fault)
 
     @property
     def batch_spikes(self) -> np.ndarray | None:
@@ -233,6 +237,8 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         self._all_measured = np.ones(self.runs, dtype=np.bool_)
         self._none_measured = np.zeros(self.runs, dtype=np.bool_)
         self._gain = np.zeros((self.runs, n, m))
+        self._fault = np.zeros(self.runs, dtype=np.bool_)
+        self._noise_steps: dict[float, np.ndarray] = {}
         self._no_measurement = np.zeros((self.runs, m))
         linearized = self.spiking and self.settings.network_drive == 'linearized'
         self._dynamics = StepDynamics(model, self.settings.discretization, self.runs, linearized)
@@ -294,18 +300,18 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         """The kernel's constants, filter state and network state, shape-checked once; the
         dt-dependent constants are set by :meth:`prepare` before the first step of a dt."""
         n, m, n_u = self.model.n_state, self.n_meas, self.model.n_input
-        dims = {'runs': self.runs, 'n': n, 'm': m, 'nu': n_u, 'N': self._network.r.shape[1], 'w': 2 * n + n_u}
+        dims = {'runs': self.runs, 'n': n, 'm': m, 'nu': n_u, 'N': self._network.r.shape[1], 'w': n + n_u}
         return kernels.Packed(
-            dims, c=self._c, c_pinv=self._c_pinv, r_density=np.eye(m),
-            r_density_inv=np.eye(m), **_settings_constants(self.settings), scale=self._scale,
-            fixed_gain=np.zeros((n, m)), x_hat=self._x_hat, p=self._p, gain=self._gain, **self._network.arrays)
+            dims, c=self._c, c_pinv=self._c_pinv, q_step=np.zeros((n, n)), r_sample=np.eye(m),
+            **_settings_constants(self.settings), scale=self._scale, fixed_gain=np.zeros((n, m)), x_hat=self._x_hat,
+            p=self._p, gain=self._gain, fault=self._fault, **self._network.arrays)
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) this filter's kernels without stepping: a node
         calls this at configure so that its first step is not its slowest."""
         n, n_u = self.model.n_state, self.model.n_input
         kernels.compile_for(self._packed_kernel, self._packed.ref, self._all_measured, 0.1,
-                            np.zeros((1, n, 2 * n + n_u)), self._dynamics.no_drift, self._no_measurement,
+                            np.zeros((1, n, n + n_u)), self._dynamics.no_drift, self._no_measurement,
                             np.zeros((self.runs, n_u)), self._network.zero_noise)
         if self.spiking:
             net = self._network
@@ -328,53 +334,37 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         if self._call_dt is not None:  # the step size in use must still work
             self.check_time_step(self._call_dt, settings)
         self.config, self.settings = config, settings
+        self._noise_steps.clear()
         self._packed.update(**_settings_constants(settings))
-        if self._call_dt is not None:  # R of Eq. 5-6 and a constant gain depend on the settings too
+        if self._call_dt is not None:  # Q_d, R_d and a constant gain depend on the settings too
             self._set_step(self._call_dt)
         if 'silenced_neurons' in changes and self.spiking:
             self.silence(settings.silenced_neurons)
 
     def check_time_step(self, dt: float, settings: ResolvedConfig | None = None) -> None:
-        """Raise ValueError when steps of ``dt`` cannot work: a network needs leak_rate * dt < 1
-        (Eq. 10-11), and one Euler step of Eq. 6 from P0 must remove less than P0 in the
-        measured directions (dt C P0 C^T R^-1 <= 1, R the density of Eq. 5-6), or P stops
-        being a covariance and the filter diverges."""
+        """Raise ValueError when steps of ``dt`` cannot work: dt must be finite and positive, and
+        a network needs leak_rate * dt < 1 (Eq. 10-11). The covariance step is exact at any dt
+        (docs/decisions.md, 43)."""
         s = settings or self.settings
         if not 0.0 < dt < math.inf:
             raise ValueError(f'dt must be a finite positive number of seconds, got {dt!r}')
         if self.spiking and s.leak_rate * dt >= 1.0:
             raise ValueError(f'leak_rate * dt must be < 1 (got {s.leak_rate} * {dt}); use a smaller step')
-        if not self.has_covariance:
-            return
-        c = self._c  # (1 or runs, m, n): H at the current estimate
-        step_gain = dt * c @ s.initial_covariance @ np.swapaxes(c, 1, 2) @ np.linalg.inv(gain_noise_density(s, dt))
-        largest = float(np.max(np.linalg.eigvals(step_gain).real))
-        if largest > 1.0 + 1e-9:
-            hint = (', or measurement_noise_units spectral_density'
-                    if s.measurement_noise_units == 'per_sample' else '')
-            raise ValueError(
-                f'dt C P0 C^T R^-1 reaches {largest:.3g} at dt = {dt} s (at most 1): the '
-                'Euler step of Eq. 6 would make P indefinite and the filter diverge. Lower '
-                f'initial_covariance (P0) on the measured axes, raise measurement_noise_scale{hint}, '
-                'or use a smaller time step')
 
     def prepare(self, dt: float) -> None:
         """Get ready for steps of ``dt``: check it (ValueError naming the fix, nothing changed)
-        and set what depends on it (the R of Eq. 5-6, a constant gain). ``step`` does this the
-        first time it sees a dt; calling it up front makes later :meth:`retune` calls check
-        against that step too."""
+        and set what depends on it (Q_d and R_d of the sampled step, a constant gain). ``step``
+        does this the first time it sees a dt; calling it up front makes later :meth:`retune`
+        calls check against that step too."""
         self.check_time_step(dt)
         self._set_step(dt)
 
-    def _set_step(self, dt: float, density: np.ndarray | None = None) -> None:
-        """What depends on a checked ``dt``: the R of Eq. 5-6 (``density``: a sample's, kept
-        over its sub-steps) and a constant gain."""
+    def _set_step(self, dt: float) -> None:
+        """What depends on a checked ``dt``: the process noise of a step Q_d, the variance of a
+        sample R_d = R / dt (R of Eq. 5-6) and a constant gain."""
         s = self.settings
-        density = gain_noise_density(s, dt) if density is None else density
-        self._packed_density = density
-        self._r_density_inv = np.linalg.inv(density)
-        changes = {'r_density': np.ascontiguousarray(density),
-                   'r_density_inv': np.ascontiguousarray(self._r_density_inv)}
+        changes = {'q_step': self._process_noise_step(dt),
+                   'r_sample': np.ascontiguousarray(gain_noise_density(s, dt) / dt)}
         if self.constant_gain:
             changes['fixed_gain'] = np.ascontiguousarray(steady_state_gain(self.gain_law, self.model, s, dt))
         self._packed.update(**changes)
@@ -382,10 +372,23 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         if self._chip is not None:
             self._chip.prepare(dt)
 
+    def _process_noise_step(self, dt: float) -> np.ndarray:
+        """Q_d, the covariance the process noise of density Q_hat adds over ``dt``: Van Loan's
+        integral for a linear model with discretization exact, Q_hat dt otherwise (cached per dt)."""
+        cached = self._noise_steps.get(dt)
+        if cached is None:
+            s = self.settings
+            exact = self.model.is_linear and s.discretization == 'exact'
+            cached = np.ascontiguousarray(self.model.process_noise_discrete(s.q_hat, dt) if exact else s.q_hat * dt)
+            if len(self._noise_steps) >= DT_CACHE_SIZE:
+                self._noise_steps.clear()
+            self._noise_steps[dt] = cached
+        return cached
+
     # ------------------------------------------------------------------ stepping
     def predict(self, u, dt: float) -> np.ndarray:
-        """Advance by ``dt`` without a measurement (sensor dropout): K = 0, and Eq. 6 without
-        its measurement term."""
+        """Advance by ``dt`` without a measurement (sensor dropout): K = 0, and the covariance
+        predicted only (Phi P Phi^T + Q_d)."""
         return self.step(None, u, dt)
 
     @property
@@ -404,8 +407,10 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         C = H(x_hat) (Eq. 3-9, 19-22) and the innovation is the model's wrapped residual
         z - h(x_hat) (Eq. 3-4).
 
-        Raises ValueError for non-finite input or a bad dt (the state is then unchanged) and
-        FloatingPointError if the state became non-finite (reset() before going on).
+        Raises ValueError for non-finite input or a bad dt (the state is then unchanged),
+        FloatingPointError if the state became non-finite and :class:`CovarianceLost` (a
+        FloatingPointError) if a run's P stopped being positive definite or its gain finite
+        (reset() or restart() those runs before going on: :attr:`batch_fault` marks them).
         """
         runs, m = self.runs, self._n_meas
         if z is None:
@@ -431,11 +436,7 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
                 raise ValueError('z and u must be finite')
             if dt != self._call_dt:
                 self.prepare(dt)
-            raw_z, raw_measured = z, measured
             z, measured = self._relinearize(z, measured)
-            parts = self._parts(dt, measured)
-            if parts > 1:
-                return self._step_in_parts(raw_z, raw_measured, u, dt, parts)
         elif dt != self._call_dt:
             self.prepare(dt)  # checks dt the first time it is used
         return self._advance(z, measured, u, dt)
@@ -464,6 +465,10 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         self.capped_steps += capped
         if status == kernels.STATUS_NON_FINITE:
             raise FloatingPointError(f'the {self.kind} state became non-finite; call reset()')
+        if status == kernels.STATUS_COVARIANCE:
+            self.covariance_faults += int(self._fault.sum())
+            raise CovarianceLost(f'the {self.kind} covariance stopped being positive definite (or its gain finite) '
+                                 f'in run(s) {np.flatnonzero(self._fault).tolist()}; restart them')
         return self.x_hat
 
     # ------------------------------------------------------------------ inspection
@@ -480,6 +485,12 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         c = self._c[0] if self._c.shape[0] == 1 else self._c[run]
         return weights(decoder, self._scale, a_d, b_d, gain, c, self.settings.leak_rate,
                        self._network.thresholds[run], self.coding)
+
+
+class CovarianceLost(FloatingPointError):
+    """A step left a run's P not symmetric positive definite, or its gain not finite (the
+    guard of the sampled step, docs/decisions.md, 43): the run must restart before it steps
+    again; the estimate it holds is not to be published."""
 
 
 def make_estimator(kind: str, config: EstimatorConfig | None = None,
@@ -510,26 +521,30 @@ def _check_measurement(measurement, model: StateSpaceModel):
 
 def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedConfig,
                       dt: float) -> np.ndarray:
-    """The constant gain of ``gain_law`` at the fixed point P_ss of Eq. 6 (the continuous
-    algebraic Riccati equation J P + P J^T + Q - P C^T R^-1 C P = 0, R the density of Eq. 5-6),
-    by the law's ``steady_state`` (snn_estimator.gains). Linear models only. ValueError when
-    the Riccati equation has no stabilising solution (e.g. Q_hat = 0 with undamped modes)."""
+    """The constant gain of ``gain_law`` at the fixed point P_ss of the sampled step of Eq. 6
+    (the discrete algebraic Riccati equation of the one-step predictor, P = Phi P Phi^T + Q_d -
+    Phi P C^T (C P C^T + R_d)^-1 C P Phi^T; docs/decisions.md, 43), by the law's ``steady_state``
+    (snn_estimator.gains). Linear models only. ValueError when the Riccati equation has no
+    stabilising solution (e.g. Q_hat = 0 with undamped modes)."""
     if not model.is_linear:
         raise ValueError('a steady-state gain needs a linear model')
     law = gains.law(gain_law)
     n = model.n_state
     c = model.measurement_matrix
-    jac = model.jacobian(np.zeros(n), np.zeros(model.n_input))
-    density = gain_noise_density(settings, dt)
+    a_d, _ = model.linearized_increment(None, dt, settings.discretization)
+    phi = np.eye(n) + dt * a_d
+    q_step = (model.process_noise_discrete(settings.q_hat, dt) if settings.discretization == 'exact'
+              else settings.q_hat * dt)
+    r_sample = gain_noise_density(settings, dt) / dt
     try:
-        p_ss = scipy.linalg.solve_continuous_are(jac.T, c.T, settings.q_hat, density)
+        p_ss = scipy.linalg.solve_discrete_are(phi.T, c.T, q_step, r_sample)
     except (np.linalg.LinAlgError, ValueError) as error:
         raise ValueError(f'no steady-state gain: the Riccati equation of Eq. 6 has no stabilising '
                          f'solution for this Q_hat and R ({error}); raise process_noise_scale or '
                          'use gain_schedule time_varying') from None
-    kalman = p_ss @ c.T @ np.linalg.inv(density)
-    return law.steady_state(gains.SteadyState(p_ss, c, np.linalg.pinv(c), density, settings.r_hat,
-                                              settings.boundary_layer, kalman))
+    step = gains.SampledStep(phi, dt, r_sample)
+    return law.steady_state(gains.SteadyState(p_ss, c, np.linalg.pinv(c), r_sample, settings.r_hat,
+                                              settings.boundary_layer, gains.sampled_kalman(p_ss, c, step)))
 
 
 def warm_up_all(kinds=None) -> None:

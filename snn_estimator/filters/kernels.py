@@ -42,24 +42,30 @@ _jit = numba.njit(fastmath=_FAST)
 STATUS_OK = 0
 STATUS_BAD_INPUT = 1     # non-finite z or u: nothing was changed
 STATUS_NON_FINITE = 2    # the state became non-finite: reset before stepping again
+STATUS_COVARIANCE = 3    # a run's P is not positive definite or its gain not finite (``fault``): reset it
 
 #: The packed arguments, in symbols: runs (batch), n (states), m (measurements), nu (inputs), N
 #: (neurons, 0 for a non-spiking filter), d (1, or runs: a linear model shares one dynamics
-#: block, a linear measurement one C), w (2 n + nu: the packed dynamics). Names in the order of
-#: each tuple. ``c`` and ``c_pinv`` are the measurement Jacobian H and its pseudo-inverse, one
-#: shared (1, m, n) for a linear measurement or one per run, re-linearised by the caller each
-#: step (written in place: the tuple is not rebuilt).
-CONSTANTS = (('c', ('d', 'm', 'n')), ('c_pinv', ('d', 'n', 'm')), ('q_hat', ('n', 'n')), ('r_density', ('m', 'm')),
-             ('r_density_inv', ('m', 'm')), ('r_hat_diag', ('m',)), ('delta', ('m',)), ('scale', ('n',)),
-             ('fixed_gain', ('n', 'm')), ('leak', ()), ('max_spikes', ()))
-STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')))
+#: block, a linear measurement one C), w (n + nu: the packed dynamics). Names in the order of
+#: each tuple; the constants in the order of gains.PIECE_CONSTANTS (the laws' pieces index
+#: them). ``c`` and ``c_pinv`` are the measurement Jacobian H and its pseudo-inverse, one shared
+#: (1, m, n) for a linear measurement or one per run, re-linearised by the caller each step
+#: (written in place: the tuple is not rebuilt). ``q_step`` is the covariance Q_d the
+#: process noise of density Q_hat adds over a step, ``r_sample`` the variance R_d = R / dt of a
+#: sample whose noise has the density R of Eq. 5-6 (docs/decisions.md, 43). ``fault`` is True
+#: for a run whose last step left P not positive definite or its gain not finite.
+_CONSTANT_SHAPES = {'c': ('d', 'm', 'n'), 'c_pinv': ('d', 'n', 'm'), 'q_step': ('n', 'n'), 'r_sample': ('m', 'm'),
+                    'r_hat_diag': ('m',), 'delta': ('m',), 'scale': ('n',), 'fixed_gain': ('n', 'm'), 'leak': (),
+                    'max_spikes': ()}
+CONSTANTS = tuple((name, _CONSTANT_SHAPES[name]) for name in gains.PIECE_CONSTANTS)
+STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')), ('fault', ('runs',)))
 NETWORK = (('decoder', ('runs', 'n', 'N')), ('gram', ('runs', 'N', 'N')), ('thresholds', ('runs', 'N')),
            ('alive', ('runs', 'N')), ('r', ('runs', 'N')), ('v', ('runs', 'N')), ('spikes', ('runs', 'N')),
            ('total_spikes', ('runs',)), ('reference', ('runs', 'n')))
 INPUTS = (('dynamics', ('d', 'n', 'w')), ('drift', ('d', 'n')), ('z', ('runs', 'm')), ('u', ('runs', 'nu')),
           ('noise', ('runs', 'N')), ('measured', ('runs',)))
 _SCALARS = {'leak': float, 'max_spikes': int}
-_DTYPES = {'alive': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64, 'measured': np.bool_}
+_DTYPES = {'alive': np.bool_, 'fault': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64, 'measured': np.bool_}
 #: Arguments whose leading axis is 1 (shared by every run) or runs.
 _SHARED_OR_PER_RUN = ('dynamics', 'drift', 'c', 'c_pinv')
 
@@ -87,7 +93,7 @@ structref.define_proxy(PackedRef, PackedType, ['constants', 'state', 'network'])
 #: Constants a step of another dt changes (Estimator.prepare): :meth:`Packed.update` writes them
 #: into the packed array (a private copy, made at the start) instead of replacing it, so a filter
 #: fed measurements at jittered stamps does not rebuild its :class:`PackedRef` every step.
-STEP_CONSTANTS = ('r_density', 'r_density_inv', 'fixed_gain')
+STEP_CONSTANTS = ('q_step', 'r_sample', 'fixed_gain')
 
 
 class Packed:
@@ -168,8 +174,8 @@ def _innovation(b, measured, z, c, x_hat, nu):
 
 
 @_jit
-def _p_terms(b, p, c, r_density_inv, pct, pctr):
-    """P C^T and P C^T R^-1 (the Kalman gain and Eq. 6's measurement term)."""
+def _p_terms(b, bd, measured, dt, dynamics, p, c, consts, pct, kalman, scratch):
+    """P C^T (the laws that read P but not the Kalman gain)."""
     n, m = pct.shape
     for i in range(n):
         for j in range(m):
@@ -177,16 +183,59 @@ def _p_terms(b, p, c, r_density_inv, pct, pctr):
             for k in range(n):
                 acc += p[b, i, k] * c[j, k]
             pct[i, j] = acc
-    for i in range(n):
-        for j in range(m):
-            acc = 0.0
-            for k in range(m):
-                acc += pct[i, k] * r_density_inv[k, j]
-            pctr[i, j] = acc
 
 
 @_jit
-def _no_p_terms(b, p, c, r_density_inv, pct, pctr):
+def _kalman_terms(b, bd, measured, dt, dynamics, p, c, consts, pct, kalman, scratch):
+    """P C^T and the Kalman gain of the sampled step as a rate (docs/decisions.md, 43):
+    K = (I / dt + A_d) P C^T (C P C^T + R_d)^-1 = Phi K_d / dt, with K_d the discrete Kalman
+    gain of a sample of variance R_d = R / dt; K -> P C^T R^-1 (Eq. 5) as dt -> 0. NaN when
+    C P C^T + R_d is not positive definite (the step reports it)."""
+    _p_terms(b, bd, measured, dt, dynamics, p, c, consts, pct, kalman, scratch)
+    n, m = pct.shape
+    if not measured:
+        for i in range(n):
+            for j in range(m):
+                kalman[i, j] = 0.0
+        return
+    r_sample, factor, k_d = consts[gains.R_SAMPLE], scratch[4], scratch[11]
+    for i in range(m):  # C P C^T + R_d = L L^T
+        for j in range(i + 1):
+            acc = r_sample[i, j]
+            for k in range(n):
+                acc += c[i, k] * pct[k, j]
+            for k in range(j):
+                acc -= factor[i, k] * factor[j, k]
+            if i == j:
+                if not acc > 0.0:
+                    for q in range(n):
+                        for r in range(m):
+                            kalman[q, r] = np.nan
+                    return
+                factor[i, i] = np.sqrt(acc)
+            else:
+                factor[i, j] = acc / factor[j, j]
+    for i in range(n):  # K_d = P C^T (L L^T)^-1, row by row
+        for j in range(m):
+            acc = pct[i, j]
+            for k in range(j):
+                acc -= factor[j, k] * k_d[i, k]
+            k_d[i, j] = acc / factor[j, j]
+        for j in range(m - 1, -1, -1):
+            acc = k_d[i, j]
+            for k in range(j + 1, m):
+                acc -= factor[k, j] * k_d[i, k]
+            k_d[i, j] = acc / factor[j, j]
+    for i in range(n):
+        for j in range(m):
+            acc = k_d[i, j] / dt
+            for k in range(n):
+                acc += dynamics[bd, i, k] * k_d[k, j]
+            kalman[i, j] = acc
+
+
+@_jit
+def _no_p_terms(b, bd, measured, dt, dynamics, p, c, consts, pct, kalman, scratch):
     """A law and covariance that read no P."""
 
 
@@ -216,63 +265,96 @@ def _drift_increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment):
         increment[i] = acc
 
 
-@_jit
-def _riccati(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch):
-    """P += dt (J P + P J^T + Q - P C^T R^-1 C P) (Eq. 6, forward Euler)."""
-    q_hat = consts[2]
-    jp = scratch[7]
-    n, m = pct.shape
-    w = dynamics.shape[2] - n
+@numba.njit
+def _positive_definite(p, b, factor):
+    """P of run b is symmetric positive definite (its Cholesky factor exists): compiled without
+    fast-math and run on the stored P, as _row_finite."""
+    n = p.shape[1]
     for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += dynamics[bd, i, w + k] * p[b, k, j]
-            jp[i, j] = acc
-    for i in range(n):
-        for j in range(i, n):
-            acc = jp[i, j] + jp[j, i] + q_hat[i, j]
-            if measured:
-                for k in range(m):
-                    acc -= pctr[i, k] * pct[j, k]
-            value = p[b, i, j] + dt * acc
-            p[b, i, j] = value
-            p[b, j, i] = value
+        for j in range(i + 1):
+            acc = p[b, i, j]
+            for k in range(j):
+                acc -= factor[i, k] * factor[j, k]
+            if i == j:
+                if not (acc > 0.0 and np.isfinite(acc)):
+                    return False
+                factor[i, i] = np.sqrt(acc)
+            else:
+                factor[i, j] = acc / factor[j, j]
+    return True
+
+
+@numba.njit
+def _gain_finite(gain, b):
+    """Every entry of run b's gain finite (no fast-math, as _row_finite)."""
+    for i in range(gain.shape[1]):
+        for j in range(gain.shape[2]):
+            if not np.isfinite(gain[b, i, j]):
+                return False
+    return True
 
 
 @_jit
-def _gain_covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch):
-    """P += dt ((J - K C) P + P (J - K C)^T + Q + K R K^T): the covariance of any gain K."""
-    c, q_hat, r_density = consts[0], consts[2], consts[3]
-    jp, closed = scratch[7], scratch[8]
-    n, m = pct.shape
-    w = dynamics.shape[2] - n
+def _joseph(b, bd, measured, dt, dynamics, p, rates, consts, scratch):
+    """P <- (Phi - G C) P (Phi - G C)^T + G R_d G^T + Q_d with G = dt ``rates`` (zero without a
+    measurement) and Phi = I + dt A_d: the exact covariance of the sampled step
+    x <- Phi x + Gamma u + G (z - C x) (Joseph's form, symmetric positive definite by
+    construction at any dt; docs/decisions.md, 43). Returns whether P stayed positive definite."""
+    c, q_step, r_sample = consts[gains.C], consts[gains.Q_STEP], consts[gains.R_SAMPLE]
+    product, closed, weighted = scratch[7], scratch[8], scratch[11]
+    n, m = p.shape[1], c.shape[0]
     for i in range(n):
         for k in range(n):
-            acc = dynamics[bd, i, w + k]
-            for j in range(m):
-                acc -= gain[b, i, j] * c[j, k]
+            acc = dt * dynamics[bd, i, k]
+            if i == k:
+                acc += 1.0
+            if measured:
+                for j in range(m):
+                    acc -= dt * rates[i, j] * c[j, k]
             closed[i, k] = acc
     for i in range(n):
         for j in range(n):
             acc = 0.0
             for k in range(n):
                 acc += closed[i, k] * p[b, k, j]
-            jp[i, j] = acc
+            product[i, j] = acc
+    if measured:
+        for i in range(n):
+            for j in range(m):
+                acc = 0.0
+                for k in range(m):
+                    acc += rates[i, k] * r_sample[k, j]
+                weighted[i, j] = dt * dt * acc
     for i in range(n):
         for j in range(i, n):
-            acc = jp[i, j] + jp[j, i] + q_hat[i, j]
-            for k in range(m):
-                for q in range(m):
-                    acc += gain[b, i, k] * r_density[k, q] * gain[b, j, q]
-            value = p[b, i, j] + dt * acc
-            p[b, i, j] = value
-            p[b, j, i] = value
+            acc = q_step[i, j]
+            for k in range(n):
+                acc += product[i, k] * closed[j, k]
+            if measured:
+                for k in range(m):
+                    acc += weighted[i, k] * rates[j, k]
+            p[b, i, j] = acc
+            p[b, j, i] = acc
+    return _positive_definite(p, b, product)
 
 
 @_jit
-def _no_covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, pctr, scratch):
+def _riccati(b, bd, measured, dt, dynamics, p, gain, consts, pct, kalman, scratch):
+    """Eq. 6 as a sampled step: the covariance of the Kalman gain (whatever gain the state
+    takes; Decision 3), in Joseph's form."""
+    return _joseph(b, bd, measured, dt, dynamics, p, kalman, consts, scratch)
+
+
+@_jit
+def _gain_covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, kalman, scratch):
+    """The covariance of the gain K the state takes, in Joseph's form."""
+    return _joseph(b, bd, measured, dt, dynamics, p, gain[b], consts, scratch)
+
+
+@_jit
+def _no_covariance(b, bd, measured, dt, dynamics, p, gain, consts, pct, kalman, scratch):
     """The SIF gain needs no P."""
+    return True
 
 
 # ---------------------------------------------------------------- spike rules (Eq. 18)
@@ -414,7 +496,7 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
     prediction (network_coding, the ``_drive`` and ``_decode`` pieces):
     v = (1 - lambda dt) v + D^T drive + noise, r = (1 - lambda dt) r, then spikes by the rule
     (r_i += 1, v -= D^T D_i), x_hat = S D r (Eq. 12; plus x_pred for the deviation)."""
-    scale, leak, max_spikes = consts[7], consts[9], consts[10]
+    scale, leak, max_spikes = consts[gains.SCALE], consts[gains.LEAK], consts[gains.MAX_SPIKES]
     x_hat, gain = state[0], state[2]
     decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network
     drive, input_current = scratch[9], scratch[10]
@@ -450,20 +532,20 @@ _terms = _gain = _increment = _covariance = _integrate = _fire = _drive = _decod
 def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, noise):
     """Advance every run by dt. Returns (status, runs whose spike loop hit max_spikes).
 
-    Per run b, with the estimate x_hat at t_k, z_k and u_k: nu = z - C x_hat; K by the law's
-    piece; increment = A_d x_hat + B_d u + K nu (or the given nonlinear drift + K nu): Eq. 3;
-    P by the covariance piece (forward Euler); then the direct or the network integration.
-    R in Eq. 5-6 is ``r_density`` (see config.gain_noise_density); P^zz of Eq. 9 uses the
-    per-sample ``r_hat_diag``. ``dynamics[b]`` packs [A_d | B_d | J] (n x (2n + nu)); a leading
-    axis of 1 is shared. C and C^+ (``consts[0]``, ``consts[1]``) are H(x_hat) and its
-    pseudo-inverse, shared (leading axis 1) or per run: every piece sees run b's own (a 2-D
-    C). A nonlinear h reaches the kernel as an equivalent linear measurement z = residual(z,
-    h(x_hat)) + H x_hat, so nu is the wrapped residual (Eq. 3-4) and the network's
-    F_k z + Omega_k r = D^T K nu (Eq. 14). Without a measurement for run b (``measured[b]``
-    False: a sensor dropout, no valid sample) its K = 0 and its z is not read.
+    Per run b, with x_hat at t_k, z_k and u_k: nu = z - C x_hat; K by the law's piece (a rate:
+    Phi K_d / dt for the Kalman law); increment = A_d x_hat + B_d u + K nu (or the nonlinear
+    drift + K nu): Eq. 3; P by the covariance piece (the sampled step in Joseph's form,
+    docs/decisions.md, 43); then x_hat += dt increment, directly or by the network. R_d =
+    ``r_sample`` is a sample's variance; P^zz of Eq. 9 uses ``r_hat_diag``. ``dynamics[b]``
+    packs [A_d | B_d] (Phi = I + dt A_d), C and C^+ are H(x_hat) and its pseudo-inverse; a
+    leading axis of 1 is shared. A nonlinear h arrives as the linear measurement residual(z,
+    h(x_hat)) + H x_hat, so nu is the wrapped residual (Eq. 3-4) and F_k z + Omega_k r =
+    D^T K nu (Eq. 14). A run not ``measured`` has K = 0 and its z is not read. A run whose P is
+    not positive definite after the step, or whose gain is not finite, is marked in ``fault``
+    (STATUS_COVARIANCE, the cause, takes precedence over a non-finite state, STATUS_NON_FINITE).
     """
-    c_all, c_pinv_all, r_density_inv = consts[0], consts[1], consts[4]
-    x_hat, p, gain = state
+    c_all, c_pinv_all = consts[gains.C], consts[gains.C_PINV]
+    x_hat, p, gain, fault = state
     runs, n = x_hat.shape
     m = z.shape[1]
     for b in range(runs):
@@ -476,9 +558,9 @@ def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, 
     nu = np.empty(m)
     increment = np.empty(n)
     pct = np.empty((n, m))
-    pctr = np.empty((n, m))
-    scratch = (nu, increment, pct, pctr, np.empty((m, m)), np.empty((m, m)), np.empty(m), np.empty((n, n)),
-               np.empty((n, n)), np.empty(n), np.empty(network[0].shape[2]))
+    kalman = np.empty((n, m))
+    scratch = (nu, increment, pct, kalman, np.empty((m, m)), np.empty((m, m)), np.empty(m), np.empty((n, n)),
+               np.empty((n, n)), np.empty(n), np.empty(network[0].shape[2]), np.empty((n, m)))
     capped = 0
     status = STATUS_OK
     for b in range(runs):
@@ -488,18 +570,21 @@ def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, 
         run_consts = (c, c_pinv_all[bc]) + consts[2:]
         measured_b = measured[b]
         _innovation(b, measured_b, z, c, x_hat, nu)
-        _terms(b, p, c, r_density_inv, pct, pctr)
-        _gain(b, gain, nu, pct, pctr, run_consts, scratch)
+        _terms(b, bd, measured_b, dt, dynamics, p, c, run_consts, pct, kalman, scratch)
+        _gain(b, gain, nu, pct, kalman, run_consts, scratch)
         if not measured_b:
             for i in range(n):
                 for j in range(m):
                     gain[b, i, j] = 0.0
         _increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment)
-        _covariance(b, bd, measured_b, dt, dynamics, p, gain, run_consts, pct, pctr, scratch)
+        healthy = _covariance(b, bd, measured_b, dt, dynamics, p, gain, run_consts, pct, kalman, scratch)
+        fault[b] = not (healthy and _gain_finite(gain, b))
         finite, _, hit_cap = _integrate(b, dt, increment, noise, run_consts, state, network, scratch)
         if hit_cap:
             capped += 1
-        if not finite:
+        if fault[b]:
+            status = STATUS_COVARIANCE
+        elif not finite and status == STATUS_OK:
             status = STATUS_NON_FINITE
     return status, capped
 
@@ -534,7 +619,7 @@ def _sources_digest() -> str:
     """A hash of every source a composed kernel is made of: this file and the files of the laws'
     compiled pieces, whole, so that a helper a gain calls counts too (numba's cache checks only
     the file of the function it caches)."""
-    digest = hashlib.sha256(Path(__file__).read_bytes())
+    digest = hashlib.sha256(Path(__file__).read_bytes() + Path(gains.__file__).read_bytes())
     for law in gains.laws().values():
         digest.update(Path(inspect.getsourcefile(law.gain)).read_bytes())
     return digest.hexdigest()[:12]
@@ -566,9 +651,9 @@ def _law_piece(law: str):
     base = _law_piece(module.BASE)
 
     @_jit
-    def chained(b, out, nu, pct, pctr, consts, scratch):
-        base(b, out, nu, pct, pctr, consts, scratch)
-        own(b, out, nu, pct, pctr, consts, scratch)
+    def chained(b, out, nu, pct, kalman, consts, scratch):
+        base(b, out, nu, pct, kalman, consts, scratch)
+        own(b, out, nu, pct, kalman, consts, scratch)
     return chained
 
 
@@ -601,9 +686,10 @@ def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'gre
     drive, decode = _CODING[coding]
     integrate = (_specialise(_spiking_template, f'network_{spike_rule}{tag}', _fire=_FIRE[spike_rule], _drive=drive,
                              _decode=decode) if spiking else _direct)
-    uses_p = module.USES_P or covariance == 'riccati'
+    terms = (_kalman_terms if module.USES_KALMAN or covariance == 'riccati' else
+             _p_terms if module.USES_P else _no_p_terms)
     return _specialise(
-        _step_template, name, _terms=_p_terms if uses_p else _no_p_terms, _gain=_law_piece(law),
+        _step_template, name, _terms=terms, _gain=_law_piece(law),
         _increment=_drift_increment if drift else _linear_increment,
         _covariance={'riccati': _riccati, 'gain': _gain_covariance, 'none': _no_covariance}[covariance],
         _integrate=integrate)

@@ -7,10 +7,13 @@ it (same spikes, same estimate) and timed beside it.
 
 It is written from the paper and textbooks, not from the code it checks: the zero-order-hold
 matrices come from scipy's matrix exponential (not models.zoh_matrices / linearized_increment),
-the nonlinear step is one classical RK4 step written out, and the steady-state gain solves the
-Riccati equation by the Hamiltonian's stable eigenvectors refined by Newton-Kleinman steps (not
-estimators.steady_state_gain and scipy's Schur solver); the SIF's mean saturation is a numerical
-integral over the innovation density (not the closed form).
+the process noise of a step is a quadrature of its integral (not Van Loan's exponential), the
+covariance step is the textbook two-stage Kalman step (Joseph update, then prediction) rather
+than the kernel's one-stage predictor form, the nonlinear step is one classical RK4 step
+written out, and the steady-state gain solves the discrete Riccati equation by the
+structure-preserving doubling algorithm (not estimators.steady_state_gain and scipy's Schur
+solver); the SIF's mean saturation is a numerical integral over the innovation density (not the
+closed form).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import scipy.linalg
 
 from snn_estimator import gains
 from snn_estimator.config import gain_noise_density
+from snn_estimator.models import DT_CACHE_SIZE
 
 from .estimators import Estimator
 
@@ -67,27 +71,57 @@ def filter_transition(model, x: np.ndarray, u: np.ndarray, dt: float, method: st
     return rk4_step(model.f, x, u, dt)
 
 
-def riccati_fixed_point(a: np.ndarray, c: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """P with A P + P A^T + Q - P C^T R^-1 C P = 0 (Eq. 6 at rest): the stable invariant subspace
-    [X; Y] of the Hamiltonian [[A^T, -C^T R^-1 C], [-Q, -A]] gives P = Y X^-1, then
-    Newton-Kleinman steps (a Lyapunov equation each) polish it."""
-    n = a.shape[0]
-    r_inv = np.linalg.inv(r)
-    hamiltonian = np.block([[a.T, -c.T @ r_inv @ c], [-q, -a]])
-    values, vectors = np.linalg.eig(hamiltonian)
-    stable = vectors[:, np.argsort(values.real)[:n]]
-    p = np.real(stable[n:] @ np.linalg.inv(stable[:n]))
-    p = 0.5 * (p + p.T)
-    for _ in range(20):
-        closed = a - p @ c.T @ r_inv @ c
-        # closed P' + P' closed^T = -(Q + P C^T R^-1 C P)
-        update = scipy.linalg.solve_continuous_lyapunov(closed, -(q + p @ c.T @ r_inv @ c @ p))
-        update = 0.5 * (update + update.T)
-        if np.abs(update - p).max() <= 1e-15 * max(np.abs(p).max(), 1e-300):
-            p = update
+def discrete_riccati_fixed_point(phi: np.ndarray, c: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """P with P = Phi P Phi^T + Q - Phi P C^T (C P C^T + R)^-1 C P Phi^T (the sampled step of
+    Eq. 6 at rest, the one-step predictor's covariance), by the structure-preserving doubling
+    algorithm (Chu, Fan, Lin & Wang 2004): A_{k+1} = A_k (I + G_k H_k)^-1 A_k, G_{k+1} = G_k +
+    A_k (I + G_k H_k)^-1 G_k A_k^T, H_{k+1} = H_k + A_k^T H_k (I + G_k H_k)^-1 A_k from A_0 =
+    Phi^T, G_0 = C^T R^-1 C, H_0 = Q; H_k -> P quadratically."""
+    n = phi.shape[0]
+    a, g, h = phi.T.copy(), c.T @ np.linalg.inv(r) @ c, q.copy()
+    for _ in range(100):
+        inverse = np.linalg.inv(np.eye(n) + g @ h)
+        a_next = a @ inverse @ a
+        g_next = g + a @ inverse @ g @ a.T
+        h_next = h + a.T @ h @ inverse @ a
+        converged = np.abs(h_next - h).max() <= 1e-15 * max(np.abs(h_next).max(), 1e-300)
+        a, g, h = a_next, 0.5 * (g_next + g_next.T), 0.5 * (h_next + h_next.T)
+        if converged:
             break
-        p = update
-    return p
+    return h
+
+
+_NOISE_STEPS: dict = {}
+
+
+def process_noise_step(a: np.ndarray, q: np.ndarray, dt: float) -> np.ndarray:
+    """Q_d = int_0^dt e^{A s} Q e^{A^T s} ds, the covariance white noise of density Q adds over
+    dt, by adaptive quadrature (the kernel takes Van Loan's exponential)."""
+    key = (a.tobytes(), q.tobytes(), dt)
+    cached = _NOISE_STEPS.get(key)
+    if cached is None:
+        integrand = lambda s: scipy.linalg.expm(a * s) @ q @ scipy.linalg.expm(a * s).T  # noqa: E731
+        cached, _ = scipy.integrate.quad_vec(integrand, 0.0, dt, epsabs=0.0, epsrel=1e-12)
+        cached = 0.5 * (cached + cached.T)
+        if len(_NOISE_STEPS) >= DT_CACHE_SIZE:
+            _NOISE_STEPS.clear()
+        _NOISE_STEPS[key] = cached
+    return cached
+
+
+def sampled_step(source: Estimator, x_hat: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Phi, Q_d, R_d) of a step of ``dt`` from ``x_hat``: Phi = I + dt A_d (the ZOH of the
+    Jacobian at x_hat, or I + A dt for euler), Q_d the process noise it adds (its integral for a
+    linear model with exact discretization, else Q_hat dt) and R_d = R / dt, a sample's
+    variance (R of Eq. 5-6)."""
+    s, model = source.settings, source.model
+    n = model.n_state
+    a_d, _ = drift_matrices(model, x_hat, dt, s.discretization)
+    if model.is_linear and s.discretization == 'exact':
+        q_step = process_noise_step(model.jacobian(np.zeros(n), np.zeros(model.n_input)), s.q_hat, dt)
+    else:
+        q_step = s.q_hat * dt
+    return np.eye(n) + dt * a_d, q_step, gain_noise_density(s, dt) / dt
 
 
 def mean_saturation(sigma: float, delta: float) -> float:
@@ -99,16 +133,16 @@ def mean_saturation(sigma: float, delta: float) -> float:
 
 
 def written_out_steady_state_gain(source: Estimator, dt: float) -> np.ndarray:
-    """The constant gain of ``source``'s law at the fixed point of Eq. 6 (Decision 28), from the
-    formulas: Kalman P C^T R^-1 (Eq. 5), MSIF C^+ sat(diag(C P C^T + R_hat)/delta) (Eq. 8-9),
-    SIF C^+ E[sat(|nu|/delta)] over nu ~ N(0, C P C^T + R_hat) (Eq. 7), weighted and hybrid."""
+    """The constant gain of ``source``'s law at the fixed point of the sampled step of Eq. 6
+    (Decision 28, 43), from the formulas: Kalman Phi P C^T (C P C^T + R_d)^-1 / dt (Eq. 5), MSIF
+    C^+ sat(diag(C P C^T + R_hat)/delta) (Eq. 8-9), SIF C^+ E[sat(|nu|/delta)] over
+    nu ~ N(0, C P C^T + R_hat) (Eq. 7), weighted and hybrid."""
     s, model = source.settings, source.model
     n = model.n_state
     c = model.measurement_matrix
-    a = model.jacobian(np.zeros(n), np.zeros(model.n_input))
-    density = gain_noise_density(s, dt)
-    p = riccati_fixed_point(a, c, s.q_hat, density)
-    kalman = p @ c.T @ np.linalg.inv(density)
+    phi, q_step, r_sample = sampled_step(source, np.zeros(n), dt)
+    p = discrete_riccati_fixed_point(phi, c, q_step, r_sample)
+    kalman = phi @ p @ c.T @ np.linalg.inv(c @ p @ c.T + r_sample) / dt
     if source.gain_law == 'kalman':
         return kalman
     c_pinv = np.linalg.pinv(c)
@@ -136,33 +170,39 @@ def measurement_terms(source: Estimator, x_hat: np.ndarray, z) -> tuple[np.ndarr
 
 
 def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, dt: float,
-                     c: np.ndarray | None = None) -> np.ndarray:
+                     c: np.ndarray | None = None, x_hat: np.ndarray | None = None) -> np.ndarray:
     """The gain of ``source``'s kind from the formulas: its law's ``reference`` (Eq. 5, 7, 8-9
-    and the remedies, written from the paper in snn_estimator.gains), or the steady state. ``c``:
-    the measurement Jacobian at the estimate (default: the model's C)."""
+    and the remedies, written from the paper in snn_estimator.gains; the Kalman gain that of the
+    sampled step from ``x_hat``), or the steady state. ``c``: the measurement Jacobian at the
+    estimate (default: the model's C)."""
     s = source.settings
     if source.constant_gain:
         return written_out_steady_state_gain(source, dt)
     c = source.model.measurement_matrix if c is None else c
-    return gains.law(source.gain_law).reference(p, c, innovation, gain_noise_density(s, dt), s.r_hat,
+    phi, _, r_sample = sampled_step(source, np.zeros(len(p)) if x_hat is None else x_hat, dt)
+    return gains.law(source.gain_law).reference(p, c, innovation, gains.SampledStep(phi, dt, r_sample), s.r_hat,
                                                 s.boundary_layer)
 
 
-def written_out_covariance_step(source: Estimator, p: np.ndarray, jac: np.ndarray, gain: np.ndarray,
+def written_out_covariance_step(source: Estimator, p: np.ndarray, x_hat: np.ndarray, gain: np.ndarray,
                                 dt: float, c: np.ndarray | None = None, measured: bool = True) -> np.ndarray:
-    """One forward-Euler step of the covariance law of ``source`` (Eq. 6, or that of the gain;
-    without a measurement, K = 0 and Eq. 6 without its measurement term)."""
-    s = source.settings
+    """One sampled step of the covariance law of ``source`` (Decision 43). Eq. 6 (riccati):
+    the Kalman update of a sample of variance R_d in Joseph's form, P+ = (I - K_d C) P
+    (I - K_d C)^T + K_d R_d K_d^T, K_d = P C^T (C P C^T + R_d)^-1, then the prediction
+    Phi P+ Phi^T + Q_d. The gain's (gain): the error e' = (Phi - dt K C) e + dt K v - w of the
+    step x' = Phi x + Gamma u + dt K (z - C x), so P' = (Phi - dt K C) P (Phi - dt K C)^T +
+    dt^2 K R_d K^T + Q_d. Without a measurement: Phi P Phi^T + Q_d."""
     c = source.model.measurement_matrix if c is None else c
-    if not measured:
-        c = np.zeros_like(c)
-    density = gain_noise_density(s, dt)
+    phi, q_step, r_sample = sampled_step(source, x_hat, dt)
+    n = len(p)
+    if not measured or source.covariance_law == 'none':
+        return p if source.covariance_law == 'none' else phi @ p @ phi.T + q_step
     if source.covariance_law == 'riccati':
-        return p + dt * (jac @ p + p @ jac.T + s.q_hat - p @ c.T @ np.linalg.inv(density) @ c @ p)  # Eq. 6
-    if source.covariance_law == 'gain':
-        closed = jac - gain @ c
-        return p + dt * (closed @ p + p @ closed.T + s.q_hat + gain @ density @ gain.T)
-    return p
+        k_d = p @ c.T @ np.linalg.inv(c @ p @ c.T + r_sample)
+        joseph = (np.eye(n) - k_d @ c) @ p @ (np.eye(n) - k_d @ c).T + k_d @ r_sample @ k_d.T
+        return phi @ joseph @ phi.T + q_step
+    closed = phi - dt * gain @ c
+    return closed @ p @ closed.T + dt * dt * gain @ r_sample @ gain.T + q_step
 
 
 class DenseSpikingFilter:
@@ -201,7 +241,7 @@ class DenseSpikingFilter:
         d, s_inv = self.decoder, 1.0 / self.scale
         x_hat = self.x_hat
         c, innovation = measurement_terms(self.source, x_hat, z)
-        k_gain = written_out_gain(self.source, self.P, innovation, dt, c)
+        k_gain = written_out_gain(self.source, self.P, innovation, dt, c, x_hat)
         a_d, b_d = drift_matrices(model, x_hat, dt, self.method)
         if self.source.settings.network_drive == 'nonlinear':  # f(x_hat, u) instead of A(x_hat) x_hat
             a_d = np.zeros_like(a_d)
@@ -215,7 +255,7 @@ class DenseSpikingFilter:
         omega_s = d.T @ (a_scaled + self.leak * np.eye(n)) @ d                 # Eq. 17
         omega_k = -d.T @ (s_inv[:, None] * k_gain) @ (c * self.scale[None, :]) @ d  # Eq. 19/21/23
         f_k = d.T @ (s_inv[:, None] * k_gain)                                  # Eq. 20/22/24
-        self.P = written_out_covariance_step(self.source, self.P, model.jacobian(x_hat, u), k_gain, dt, c)
+        self.P = written_out_covariance_step(self.source, self.P, x_hat, k_gain, dt, c)
         # Eq. 14's K (z - h(x_hat)) with a nonlinear h: F_k takes the linear measurement that
         # gives the same innovation against C x_hat
         z_linear = innovation + c @ x_hat
@@ -271,8 +311,7 @@ class DenseFilter:
             gain = np.zeros((self.x_hat.size, c.shape[0]))
             innovation = np.zeros(c.shape[0])
         else:
-            gain = written_out_gain(self.source, self.P, innovation, dt, c)
-        self.P = written_out_covariance_step(self.source, self.P, self.model.jacobian(self.x_hat, u), gain, dt, c,
-                                             measured=z is not None)
+            gain = written_out_gain(self.source, self.P, innovation, dt, c, self.x_hat)
+        self.P = written_out_covariance_step(self.source, self.P, self.x_hat, gain, dt, c, measured=z is not None)
         self.x_hat = filter_transition(self.model, self.x_hat, u, dt, self.method) + dt * gain @ innovation
         return self.x_hat

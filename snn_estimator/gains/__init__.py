@@ -23,15 +23,39 @@ from typing import NamedTuple
 
 import numpy as np
 
+#: The constants a law's compiled ``gain`` piece receives as ``consts``, in this order (the
+#: step kernel's, snn_estimator.filters.kernels.CONSTANTS, gives their shapes): H and its
+#: pseudo-inverse, the process noise of a step Q_d, a sample's variance R_d, diag(R_hat), delta,
+#: the network's state scale, a constant gain, the leak and the spike cap.
+PIECE_CONSTANTS = ('c', 'c_pinv', 'q_step', 'r_sample', 'r_hat_diag', 'delta', 'scale', 'fixed_gain', 'leak',
+                   'max_spikes')
+C, C_PINV, Q_STEP, R_SAMPLE, R_HAT_DIAG, DELTA, SCALE, FIXED_GAIN, LEAK, MAX_SPIKES = range(len(PIECE_CONSTANTS))
+
+
+class SampledStep(NamedTuple):
+    """What the Kalman gain of a sampled step needs (docs/decisions.md, 43): Phi over the step,
+    the step dt, and R_d, the variance of a sample (the R of Eq. 5-6 over dt)."""
+
+    phi: np.ndarray
+    dt: float
+    r_sample: np.ndarray
+
+
+def sampled_kalman(p: np.ndarray, c: np.ndarray, step: SampledStep) -> np.ndarray:
+    """The Kalman gain of a sampled step as a rate: Phi P C^T (C P C^T + R_d)^-1 / dt, the
+    one-step predictor's gain over dt; P C^T R^-1 (Eq. 5) as dt -> 0."""
+    return step.phi @ p @ c.T @ np.linalg.inv(c @ p @ c.T + step.r_sample) / step.dt
+
 
 class SteadyState(NamedTuple):
-    """What the steady-state forms need: P_ss (the fixed point of Eq. 6), C, C^+, the R of
-    Eq. 5-6 (a density), R_hat per sample, delta, and the Kalman gain P_ss C^T R^-1."""
+    """What the steady-state forms need: P_ss (the fixed point of the sampled step of Eq. 6),
+    C, C^+, a sample's variance R_d, R_hat per sample, delta, and the Kalman gain at P_ss (a
+    rate, :func:`sampled_kalman`)."""
 
     p: np.ndarray
     c: np.ndarray
     c_pinv: np.ndarray
-    density: np.ndarray
+    r_sample: np.ndarray
     r_hat: np.ndarray
     delta: np.ndarray
     kalman: np.ndarray

@@ -1,17 +1,20 @@
 """A constant gain: the steady-state gain of any law held fixed (``gain_schedule:
 steady_state``; constant network weights, what a neuromorphic chip holds)."""
 
+from . import FIXED_GAIN
+
 NAME = 'fixed'
 ORDER = 99
 FORMULA = 'K = K_ss (the steady state of the law above)'
 EQUATION = 'Eq. 6 at its fixed point'
 USES_P = False
+USES_KALMAN = False
 BASE = None
 COVARIANCE = 'gain'
 KINDS = {}  # a gain schedule of the other laws' kinds, not a kind itself
 
 
-def reference(p, c, innovation, density, r_hat, delta, constant=None):
+def reference(p, c, innovation, step, r_hat, delta, constant=None):
     """The constant itself (the steady state of the law it holds)."""
     return constant
 
@@ -24,8 +27,8 @@ def macs(n: int, m: int) -> int:
     return 0
 
 
-def gain(b, out, nu, pct, pctr, consts, scratch):
-    fixed = consts[8]
+def gain(b, out, nu, pct, kalman, consts, scratch):
+    fixed = consts[FIXED_GAIN]
     n, m = fixed.shape
     for i in range(n):
         for j in range(m):

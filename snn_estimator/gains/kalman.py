@@ -1,13 +1,15 @@
-"""The Kalman gain K = P C^T R^-1 (Eq. 5; the network's Eq. 19-20)."""
+"""The Kalman gain K = P C^T R^-1 (Eq. 5; the network's Eq. 19-20), taken as the gain of the
+sampled step, Phi P C^T (C P C^T + R_d)^-1 / dt (docs/decisions.md, 43), its limit as dt -> 0."""
 
-import numpy as np
+from . import sampled_kalman
 
 NAME = 'kalman'
 ORDER = 0
 FORMULA = 'K = P C^T R^-1'
 EQUATION = 'Eq. 5, 19-20'
-#: The piece reads P C^T and P C^T R^-1.
+#: The piece reads P C^T and the sampled Kalman gain.
 USES_P = True
+USES_KALMAN = True
 BASE = None
 #: The covariance its filters propagate: riccati (Eq. 6) | gain (that of the gain used) | none.
 COVARIANCE = 'riccati'
@@ -15,13 +17,13 @@ COVARIANCE = 'riccati'
 KINDS = {'ekf': ('EKF', 'extended Kalman filter (Eq. 3-6)'), 'snn_ekf': ('SNN-EKF', 'SNN-EKF (Eq. 14-20)')}
 
 
-def reference(p, c, innovation, density, r_hat, delta):
-    """Eq. 5 with R the density of Eq. 5-6."""
-    return p @ c.T @ np.linalg.inv(density)
+def reference(p, c, innovation, step, r_hat, delta):
+    """Eq. 5 for a sampled step (``step``: gains.SampledStep)."""
+    return sampled_kalman(p, c, step)
 
 
 def steady_state(ss):
-    """P_ss C^T R^-1."""
+    """The sampled Kalman gain at P_ss."""
     return ss.kalman
 
 
@@ -30,9 +32,9 @@ def macs(n: int, m: int) -> int:
     return 0
 
 
-def gain(b, out, nu, pct, pctr, consts, scratch):
-    """K = P C^T R^-1 (already formed as ``pctr``)."""
-    n, m = pctr.shape
+def gain(b, out, nu, pct, kalman, consts, scratch):
+    """K, the sampled Kalman gain (already formed as ``kalman`` by the kernel)."""
+    n, m = kalman.shape
     for i in range(n):
         for j in range(m):
-            out[b, i, j] = pctr[i, j]
+            out[b, i, j] = kalman[i, j]

@@ -3,11 +3,14 @@ P^zz = C P C^T + R_hat (Eq. 8-9, Eq. 9 corrected; the network's Eq. 21-22)."""
 
 import numpy as np
 
+from . import C_PINV, DELTA, R_HAT_DIAG, C
+
 NAME = 'msif'
 ORDER = 1
 FORMULA = 'K = C^+ sat(diag(C P C^T + R_hat) / delta)'
 EQUATION = 'Eq. 8-9, 21-22'
 USES_P = True
+USES_KALMAN = False
 BASE = None
 #: The covariance its filters propagate: riccati (Eq. 6) | gain (that of the gain used) | none.
 COVARIANCE = 'riccati'
@@ -16,7 +19,7 @@ KINDS = {'emsif': ('EMSIF', 'extended modified sliding innovation filter as prin
          'snn_emsif': ('SNN-EMSIF', 'SNN-EMSIF (Eq. 21-22)')}
 
 
-def reference(p, c, innovation, density, r_hat, delta):
+def reference(p, c, innovation, step, r_hat, delta):
     p_zz = c @ p @ c.T + r_hat                                            # Eq. 9 (corrected)
     return np.linalg.pinv(c) @ np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))  # Eq. 8
 
@@ -31,9 +34,9 @@ def macs(n: int, m: int) -> int:
     return m * n + n * m                       # diag(C P C^T) (Eq. 9), C^+ sat(.) (Eq. 8)
 
 
-def gain(b, out, nu, pct, pctr, consts, scratch):
+def gain(b, out, nu, pct, kalman, consts, scratch):
     """C^+ sat(P^zz_jj / delta_j), the saturations kept in scratch[6] for the laws built on it."""
-    c, c_pinv, r_hat_diag, delta = consts[0], consts[1], consts[5], consts[6]
+    c, c_pinv, r_hat_diag, delta = consts[C], consts[C_PINV], consts[R_HAT_DIAG], consts[DELTA]
     sats = scratch[6]
     n, m = c_pinv.shape
     for j in range(m):

@@ -9,13 +9,14 @@ information. One sensor always takes the inverse (its numbers unchanged to the b
 
 import numpy as np
 
-from . import msif
+from . import C, msif
 
 NAME = 'msif_weighted'
 ORDER = 4
 FORMULA = 'K = P C^T (C P C^T)^-1 sat(...)'
 EQUATION = 'Eq. 8-9 (not in the paper)'
 USES_P = True
+USES_KALMAN = False
 #: The MSIF piece runs first (its saturations); this one replaces C^+ by P C^T (C P C^T)^-1.
 BASE = 'msif'
 #: The covariance its filters propagate: riccati (Eq. 6) | gain (that of the gain used) | none.
@@ -38,7 +39,7 @@ def _inverse(cpc):
     return np.linalg.inv(cpc)
 
 
-def reference(p, c, innovation, density, r_hat, delta):
+def reference(p, c, innovation, step, r_hat, delta):
     p_zz = c @ p @ c.T + r_hat                                             # Eq. 9
     saturation = np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))           # Eq. 8
     return p @ c.T @ _inverse(c @ p @ c.T) @ saturation
@@ -53,9 +54,9 @@ def macs(n: int, m: int) -> int:
     return msif.macs(n, m) + 2 * m * m * n + m ** 3 + n * m  # P C^T (C P C^T)^-1
 
 
-def gain(b, out, nu, pct, pctr, consts, scratch):
+def gain(b, out, nu, pct, kalman, consts, scratch):
     """Columns of P C^T (C P C^T)^-1 times the MSIF saturations."""
-    c = consts[0]
+    c = consts[C]
     sats, cpc = scratch[6], scratch[5]
     n, m = pct.shape
     for k in range(m):

@@ -5,11 +5,14 @@ import math
 
 import numpy as np
 
+from . import C_PINV, DELTA
+
 NAME = 'sif'
 ORDER = 2
 FORMULA = 'K = C^+ sat(|z - C x_hat| / delta)'
 EQUATION = 'Eq. 7, 23-24'
 USES_P = False
+USES_KALMAN = False
 BASE = None
 #: The covariance its filters propagate: riccati (Eq. 6) | gain (that of the gain used) | none.
 COVARIANCE = 'none'
@@ -18,7 +21,7 @@ KINDS = {'esif': ('ESIF', 'extended sliding innovation filter (Eq. 7)'),
          'snn_emsif_star': ('SNN-EMSIF*', 'SNN-EMSIF* (Eq. 23-24)')}
 
 
-def reference(p, c, innovation, density, r_hat, delta):
+def reference(p, c, innovation, step, r_hat, delta):
     return np.linalg.pinv(c) @ np.diag(np.minimum(np.abs(innovation) / delta, 1.0))  # Eq. 7
 
 
@@ -37,8 +40,8 @@ def macs(n: int, m: int) -> int:
     return n * m                               # C^+ sat(|nu| / delta) (Eq. 7)
 
 
-def gain(b, out, nu, pct, pctr, consts, scratch):
-    c_pinv, delta = consts[1], consts[6]
+def gain(b, out, nu, pct, kalman, consts, scratch):
+    c_pinv, delta = consts[C_PINV], consts[DELTA]
     n, m = c_pinv.shape
     for j in range(m):
         ratio = abs(nu[j]) / delta[j]

@@ -346,10 +346,7 @@ class FilterRunner(Gating, StartUp, Reporting, HeldMeasurements, Controls, Provi
                 self.recovery.trusted(stamp_ns)
         started = time.perf_counter()
         dt = self.settings.time_step if dt_ns is None or dt_ns == self._dt_ns else dt_ns / NS
-        try:
-            self.estimator.step(z, u, dt)
-        except FloatingPointError as error:
-            self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
+        self._filter_step(z, u, dt, stamp_ns)
         self.recovery.record(stamp_ns, z, u)
         if held is not None:
             self._hold(held, u, final)

@@ -12,6 +12,7 @@ from typing import Mapping
 import numpy as np
 
 from snn_estimator.catalog import START_MODES
+from snn_estimator.filters.estimators import CovarianceLost
 
 from .gates import NS, seconds_ahead, seconds_to_ns
 from .initialization import least_squares_start
@@ -301,16 +302,22 @@ class HeldMeasurements:
             self._step(z, self.time_ns, end - self.time_ns if last else span_ns // count,
                        continued=k > 0 and z is not None, publish=last or z is None)
 
+    def _filter_step(self, z: np.ndarray | None, u: np.ndarray, dt: float, stamp_ns: int) -> None:
+        """A filter step; a non-finite state or an indefinite P re-initialises it (never published)."""
+        try:
+            self.estimator.step(z, u, dt)
+        except CovarianceLost as error:
+            self._reinitialise(z, stamp_ns, str(error), 'covariance_lost')
+        except FloatingPointError as error:
+            self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
+
     def _continue_hold(self, z: np.ndarray, stamp_ns: int, dt_ns: int, publish: bool) -> None:
         """A later part of a held measurement's interval (measurement_timing any): the same z,
         the control in force, no new measurement counted."""
         u = self._control_for(stamp_ns)
         if u is None:
             u = self._in_force(stamp_ns)
-        try:
-            self.estimator.step(z, u, dt_ns / NS)
-        except FloatingPointError as error:
-            self._reinitialise(z, stamp_ns, str(error), 'non_finite_state')
+        self._filter_step(z, u, dt_ns / NS, stamp_ns)
         self.time_ns = stamp_ns + dt_ns
         if publish:
             self._publish(self.time_ns)

@@ -37,6 +37,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from snn_estimator import gains
 from snn_estimator.filters import kernels
 
 #: Steps per compiled call (and noise rows drawn at a time): the blocks of GaussianStream.
@@ -48,9 +49,10 @@ _jit = numba.njit(fastmath=_FAST)
 CONTROL_NONE, CONTROL_LQR, CONTROL_SCHEDULE = 0, 1, 2
 #: The loop's own statuses beside the step kernel's (kernels.STATUS_*): a running run's control
 #: is not finite (returned before step k: nothing of it was done), or a run diverged in step k
-#: (its estimate, covariance or truth is not finite, or its spikes reached max_spikes_per_step;
-#: returned after step k, samples written). simulate's _Divergence then marks and restarts it.
-STATUS_CONTROL_DIVERGED, STATUS_RUN_DIVERGED = 3, 4
+#: (its estimate, covariance or truth is not finite, its P not positive definite, or its spikes
+#: reached max_spikes_per_step; returned after step k, samples written). simulate's _Divergence
+#: then marks and restarts it.
+STATUS_CONTROL_DIVERGED, STATUS_RUN_DIVERGED = 5, 6
 #: The filter's step kernel, given to the loop template as a global by :func:`loop_kernel`.
 _step = None
 
@@ -240,10 +242,13 @@ def _controls_finite(u, running):
 
 @numba.njit(cache=True)
 def _any_diverged(state, network, x, max_spikes, covariance, spiking):
-    """Whether a run's estimate, covariance (``covariance``) or truth is not finite or its
-    spikes this step reached ``max_spikes`` (simulate's _Divergence.check; no fast-math)."""
-    x_hat, p, spikes = state[0], state[1], network[6]
+    """Whether a run's estimate, covariance (``covariance``) or truth is not finite, its step
+    tripped the covariance guard (``fault``) or its spikes this step reached ``max_spikes``
+    (simulate's _Divergence.check; no fast-math)."""
+    x_hat, p, fault, spikes = state[0], state[1], state[3], network[6]
     for b in range(x_hat.shape[0]):
+        if fault[b]:
+            return True
         for i in range(x_hat.shape[1]):
             if not (np.isfinite(x_hat[b, i]) and np.isfinite(x[b, i])):
                 return True
@@ -299,7 +304,7 @@ def _loop_template(step_args, membrane, truth, sensing, control, outputs, where)
             _propagate(b, j, truth, u, work_n)
         _record(sample_at + j, step_at + j, with_metrics, x, truth[6], state, network, outputs, factor_n,
                 work_n, error)
-        if _any_diverged(state, network, x, consts[10], with_covariance, spiking):
+        if _any_diverged(state, network, x, consts[gains.MAX_SPIKES], with_covariance, spiking):
             return STATUS_RUN_DIVERGED, j + 1, capped_total
         if status != kernels.STATUS_OK:
             return status, j + 1, capped_total

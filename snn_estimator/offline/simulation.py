@@ -489,8 +489,8 @@ class _Sensing:
 
 class _Divergence:
     """The runs of a batch that diverged, so that the others go on. A run diverges at step k when
-    its control at k, or its estimate, covariance or truth after step k, is not finite (a filter
-    whose P lost positive definiteness, ...), or when its network's spikes in step k reached
+    its control at k, or its estimate, covariance or truth after step k, is not finite, its P is
+    not positive definite (the step's guard, Estimator.batch_fault), or its network's spikes in step k reached
     max_spikes_per_step (1000 N by default: the network no longer follows the filter, its
     estimate is what the cap left). From then on its filter is restarted with its network
     silenced (Estimator.retire: it fires no more) and never measured, it flies with u = 0, and its samples from k + 1 on
@@ -517,15 +517,15 @@ class _Divergence:
         that diverged before and blew up again restarts again); returns how many runs were
         non-finite."""
         estimate = np.isfinite(estimator.batch_x_hat).all(axis=1)
-        covariance = (np.isfinite(estimator.batch_P).all(axis=(1, 2)) if estimator.has_covariance
-                      else estimate)
+        covariance = ~estimator.batch_fault & (np.isfinite(estimator.batch_P).all(axis=(1, 2))
+                                               if estimator.has_covariance else estimate)
         truth = np.isfinite(plant.x).all(axis=1)
         spikes = (estimator.batch_spikes.sum(axis=1) < estimator.settings.max_spikes_per_step if estimator.spiking
                   else truth)
         if estimate.all() and covariance.all() and truth.all() and spikes.all():
             return 0
-        cause = np.where(~estimate, 'estimate', np.where(~covariance, 'covariance', np.where(
-            ~truth, 'truth', np.where(~spikes, 'spike_cap', ''))))
+        cause = np.where(estimator.batch_fault, 'covariance', np.where(~estimate, 'estimate', np.where(
+            ~covariance, 'covariance', np.where(~truth, 'truth', np.where(~spikes, 'spike_cap', '')))))
         self._mark(k, cause, estimator, broken=~(estimate & covariance))
         return int((cause != '').sum())
 

@@ -220,21 +220,31 @@ def filter_macs(n: int, m: int, nu: int, gain_law: str, covariance_law: str,
                 constant_gain: bool = False) -> dict:
     """MACs of one step of the non-spiking filter (the step kernels), by part:
 
-    innovation z - C x_hat (m n); gain: P C^T and P C^T R^-1 (n^2 m + n m^2) when the law or
-    the covariance needs P, then the law's own products (its ``macs``) (none with a constant gain);
-    state: A_d x_hat + B_d u + K nu and the Euler step (n^2 + n nu + n m + n);
-    covariance: Eq. 6 (J P, then the upper triangle of P C^T R^-1 C P: n^3 + n(n+1)/2 m) or
-    that of the gain used ((J - K C) P and K R K^T: n^2 m + n^3 + n(n+1)/2 m^2).
+    innovation z - C x_hat (m n); gain: P C^T (n^2 m) when the law reads P, and for the Kalman
+    gain of the sampled step (the law's, or the covariance's with ``riccati``) also C P C^T + R_d
+    (its triangle, n m(m+1)/2), its Cholesky factor ((m^3 - m)/6), the solve (n m (m - 1)) and
+    (I / dt + A_d) K_d (n^2 m), then the law's own products (its ``macs``) (none with a constant
+    gain); state: A_d x_hat + B_d u + K nu and x_hat += dt increment (n^2 + n nu + n m + n);
+    covariance (Joseph's form of the sampled step, docs/decisions.md, 43): Phi - G C
+    (n^2 (m + 1)), (Phi - G C) P (n^3), its product with (Phi - G C)^T and G R_d G^T (upper
+    triangles: n(n+1)/2 (n + m), and G R_d: n m^2), and the guard's Cholesky factor of P
+    ((n^3 - n)/6).
 
-    For n = 6, m = 3, nu = 3 the EKF (kalman, riccati) takes 18 + 162 + 78 + 279 = 537.
+    For n = 6, m = 3, nu = 3 the EKF (kalman, riccati) takes 18 + 292 + 78 + 638 = 1026 (the
+    forward-Euler step of Eq. 6 it replaced took 537).
     """
     law = gains.law(gain_law)  # ValueError naming the laws
     if covariance_law not in COVARIANCE_LAWS:
         raise ValueError(f'covariance_law {covariance_law!r} is unknown; choose one of {", ".join(COVARIANCE_LAWS)}')
-    needs_p = law.USES_P or covariance_law == 'riccati'
-    gain = 0 if constant_gain else (n * n * m + n * m * m) * needs_p + law.macs(n, m)
     triangle = n * (n + 1) // 2
-    covariance = {'riccati': n ** 3 + triangle * m,
-                  'gain': n * n * m + n ** 3 + triangle * m * m,
-                  'none': 0}[covariance_law]
+    p_terms = n * n * m
+
+    def cholesky(k: int) -> int:
+        return (k ** 3 - k) // 6
+
+    kalman = p_terms + n * m * (m + 1) // 2 + cholesky(m) + n * m * (m - 1) + n * n * m
+    terms = kalman if law.USES_KALMAN or covariance_law == 'riccati' else p_terms if law.USES_P else 0
+    gain = 0 if constant_gain else terms + law.macs(n, m)
+    joseph = n * n * (m + 1) + n ** 3 + triangle * (n + m) + n * m * m + cholesky(n)
+    covariance = 0 if covariance_law == 'none' else joseph
     return {'innovation': m * n, 'gain': gain, 'state': n * n + n * nu + n * m + n, 'covariance': covariance}
