@@ -143,6 +143,30 @@ def test_the_foxglove_layout_file_is_what_its_generator_writes():
         assert f'"{path}"' in text, path
 
 
+def test_every_plot_of_the_layout_draws_against_the_messages_simulated_time():
+    """x = /plots.time (simulated s) over all messages, not the receive time: the 360 s of the
+    approach whatever the real-time factor."""
+    pytest.importorskip('foxglove')
+    import json
+
+    from snn_tools.live_layout import LAYOUT_FILE
+
+    def plots(node):
+        if isinstance(node, dict):
+            if 'paths' in node and 'xAxisVal' in node:
+                yield node
+            for value in node.values():
+                yield from plots(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from plots(value)
+    configs = list(plots(json.loads(LAYOUT_FILE.read_text())))
+    assert len(configs) == 9
+    for config in configs:
+        assert (config['xAxisVal'], config['xAxisPath'], config['timeRange']) == (
+            'custom', {'value': '/plots.time', 'enabled': True}, 'all')
+
+
 def test_the_foxglove_scene_update_carries_the_scene():
     pytest.importorskip('foxglove')
     from scenario_nodes.foxglove_view import arrow_pose, scene_update
