@@ -38,6 +38,7 @@ class FoxgloveClient(threading.Thread):
         self.channels: dict[int, dict] = {}
         self.messages: dict[str, list] = {}
         self.bytes: dict[str, int] = {}
+        self.received_at: dict[str, list] = {}  # topic -> [first, last] time.monotonic() of receipt
         self.count = 0
         self.subprotocol = None  # what the server answered
         self.subscribed_at = None  # time.monotonic() of the subscription
@@ -92,6 +93,7 @@ class FoxgloveClient(threading.Thread):
                 self.count += 1
                 topic = self.channels[subscription]['topic']
                 self.bytes[topic] = self.bytes.get(topic, 0) + len(message)
+                self.received_at.setdefault(topic, [time.monotonic(), 0.0])[1] = time.monotonic()
                 if self.keep:
                     self.messages.setdefault(topic, []).append((log_time, message[13:]))
 
