@@ -82,7 +82,7 @@ class SubprotocolGateway:
     def __init__(self, host: str, port: int, upstream_port: int, chunk: int = 65536):
         self._upstream_port, self._chunk = upstream_port, chunk
         self._loop = asyncio.new_event_loop()
-        self._writers: set[asyncio.StreamWriter] = set()
+        self._relays: set[asyncio.Task] = set()
         #: Connections relayed so far, by the subprotocol the client was answered with.
         self.connections = {SDK_SUBPROTOCOL: 0, LEGACY_SUBPROTOCOL: 0}
         self._thread = threading.Thread(target=self._loop.run_forever, name='foxglove-gateway', daemon=True)
@@ -99,14 +99,14 @@ class SubprotocolGateway:
         return self._server.sockets[0].getsockname()[1]
 
     async def _relay(self, client_reader: asyncio.StreamReader, client_writer: asyncio.StreamWriter) -> None:
-        self._writers.add(client_writer)
+        task = asyncio.current_task()
+        self._relays.add(task)
         server_writer = None
         try:
             head = await client_reader.readuntil(_END)
             request, answer_as = upstream_request(head)
             server_reader, server_writer = await asyncio.open_connection('127.0.0.1', self._upstream_port,
                                                                          limit=HEAD_LIMIT)
-            self._writers.add(server_writer)
             server_writer.write(request)
             await server_writer.drain()
             response = await server_reader.readuntil(_END)
@@ -121,9 +121,9 @@ class SubprotocolGateway:
         except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, ConnectionError):
             pass  # a client that left, or a head too long / cut short: its connection is closed below
         finally:
+            self._relays.discard(task)
             for writer in (client_writer, server_writer):
                 if writer is not None:
-                    self._writers.discard(writer)
                     writer.close()
 
     async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -138,8 +138,10 @@ class SubprotocolGateway:
 
     async def _shutdown(self) -> None:
         self._server.close()
-        for writer in list(self._writers):
-            writer.close()
+        relays = list(self._relays)
+        for task in relays:
+            task.cancel()  # closes both ends (the relay's finally)
+        await asyncio.gather(*relays, return_exceptions=True)
         await self._server.wait_closed()
 
     def _stop_loop(self) -> None:
