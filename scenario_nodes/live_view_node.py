@@ -72,7 +72,9 @@ class LiveViewNode(ProcessHooks, Node):
         for message_type, topic in ((Odometry, qos.ESTIMATE), (AccelStamped, qos.CONTROL), (UInt32, qos.SPIKE_COUNT)):
             self.create_subscription(message_type, topic, self._keeper(topic), VIEW_QOS, raw=True)
         self.create_timer(1.0 / p['publish_rate'], self._on_frame, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        where = f'Foxglove: open {self._view.url}' if self._view else 'Foxglove server off'
+        where = (f"Foxglove: open {self._view.url} (foxglove.sdk.v1"
+                 f"{' and foxglove.websocket.v1' if p['legacy_subprotocol'] else ' only'})"
+                 if self._view else 'Foxglove server off')
         self.get_logger().info(f"live view at {p['publish_rate']:g} Hz; {where}"
                                f"{'; MarkerArray on ' + self.resolve_topic_name(MARKERS) if self._markers else ''}")
 
