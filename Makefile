@@ -101,7 +101,8 @@ sensors: $(STAMP)
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json
 
-# the lockstep loop with and without the live view (and a Foxglove client), interleaved pairs
+# the lockstep loop with and without the live view (and a Foxglove client of each subprotocol), interleaved
+# pairs; then bytes/s per channel in realtime runs at the default raster settings and two others
 bench-live: $(STAMP)
 	$(BIN)/python -m snn_tools.live_bench --pairs $(if $(RUNS),$(RUNS),8) --out results/live_view_bench.json
 

@@ -1,26 +1,35 @@
 """The live view over Foxglove's WebSocket protocol, with the Foxglove SDK (no rclpy here).
 
-:class:`FoxgloveView` starts the SDK's server (subprotocol ``foxglove.sdk.v1``; Foxglove's
-desktop app and app.foxglove.dev connect to ``ws://localhost:8765``) and logs, per frame of
-:class:`scenario_nodes.scene.LiveScene`:
+:class:`FoxgloveView` starts the SDK's server and, on the public port, the
+:class:`~scenario_nodes.foxglove_gateway.SubprotocolGateway` in front of it, so clients of both
+subprotocols (``foxglove.sdk.v1``: the Foxglove app, Lichtblick 1.22+; ``foxglove.websocket.v1``:
+older Lichtblick and Studio, anything built on ``@foxglove/ws-protocol``) connect to
+``ws://localhost:8765``. It logs, per :class:`scenario_nodes.scene.Frame`:
 
 * ``/scene``: foxglove.SceneUpdate (protobuf), one entity per part of the scene;
 * ``/plots``: JSON (schema ``snn_rendezvous.LivePlots``), :func:`scene.plot_record`'s values:
   error and +-3 sigma per state, ranges, spikes per step, NEES;
 * ``/spike_raster``: foxglove.RawImage (mono8), neurons down, the last steps across.
 
-Every message is stamped (``log_time``) with the simulated time of its estimate. The SDK
-queues at most ``backlog`` messages per client and drops the oldest when a client does not
-keep up: logging never blocks.
+Time: every message of a frame is logged at the frame's time on the real epoch
+(:class:`~scenario_nodes.scene.LogClock`: the run's start plus simulated time), so log times
+never go backwards within a channel nor across channels, and the server broadcasts that time
+(capability ``time``): a viewer's clock and timeline then run on simulated time. Inside the
+messages each part keeps its own stamp on the same epoch. The raster is sent at most
+``raster_rate`` times per wall-clock second (it is most of the bytes). The SDK queues at most
+``backlog`` messages per client and drops the oldest when a client does not keep up: logging
+never blocks.
 """
 
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 
-from .scene import STATES, Scene, plot_record, raster_image
+from .foxglove_gateway import SubprotocolGateway
+from .scene import STATES, Frame, LogClock, Scene, plot_record, raster_image
 
 SCENE_TOPIC, PLOTS_TOPIC, RASTER_TOPIC = '/scene', '/plots', '/spike_raster'
 PLOTS_SCHEMA_NAME = 'snn_rendezvous.LivePlots'
@@ -72,8 +81,14 @@ def arrow_pose(start, end) -> tuple[tuple, tuple, float]:
 _STATIC: dict[int, tuple] = {}
 
 
-def scene_update(scene: Scene):
-    """The foxglove.SceneUpdate of a scene: one entity per primitive, named as in the scene."""
+def _timestamp(stamp_ns: int):
+    from foxglove.messages import Timestamp
+    return Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000)
+
+
+def scene_update(scene: Scene, epoch_ns: int = 0):
+    """The foxglove.SceneUpdate of a scene: one entity per primitive, named as in the scene,
+    stamped with the scene's time on the epoch ``epoch_ns``."""
     from foxglove.messages import (
         ArrowPrimitive,
         Color,
@@ -85,7 +100,6 @@ def scene_update(scene: Scene):
         SceneEntity,
         SceneUpdate,
         SpherePrimitive,
-        Timestamp,
         TriangleListPrimitive,
         Vector3,
     )
@@ -106,7 +120,7 @@ def scene_update(scene: Scene):
             _STATIC[key] = (array, points(array))
         return _STATIC[key][1]
 
-    stamp = Timestamp(scene.stamp_ns // 1_000_000_000, scene.stamp_ns % 1_000_000_000)
+    stamp = _timestamp(epoch_ns + scene.stamp_ns)
 
     def entity(name, **primitives):
         return SceneEntity(timestamp=stamp, frame_id=scene.frame_id, id=name, **primitives)
@@ -133,33 +147,71 @@ def scene_update(scene: Scene):
 
 
 def raster_message(raster: np.ndarray, stamp_ns: int, frame_id: str):
-    """foxglove.RawImage (mono8) of a (neurons, steps) raster."""
-    from foxglove.messages import RawImage, Timestamp
+    """foxglove.RawImage (mono8) of a (neurons, steps) raster, stamped ``stamp_ns`` (ns since the
+    Unix epoch)."""
+    from foxglove.messages import RawImage
     image = raster_image(raster)
-    return RawImage(timestamp=Timestamp(stamp_ns // 1_000_000_000, stamp_ns % 1_000_000_000), frame_id=frame_id,
+    return RawImage(timestamp=_timestamp(stamp_ns), frame_id=frame_id,
                     width=image.shape[1], height=image.shape[0], encoding='mono8', step=image.shape[1],
                     data=image.tobytes())
 
 
+class Throttle:
+    """At most ``rate`` yeses per second of ``clock`` (0: never); calls that come at a higher
+    rate keep it on average (the next slot follows the last one's due time, not its call)."""
+
+    def __init__(self, rate: float, clock=time.monotonic):
+        if rate < 0:
+            raise ValueError(f'raster_rate = {rate!r}: must be >= 0 (per wall-clock s; 0: no raster)')
+        self._period = 1.0 / rate if rate > 0 else None
+        self._clock = clock
+        self._due = None
+
+    def __call__(self) -> bool:
+        if self._period is None:
+            return False
+        now = self._clock()
+        if self._due is not None and now < self._due:
+            return False
+        late = self._due is None or now - self._due > self._period
+        self._due = (now if late else self._due) + self._period
+        return True
+
+
 class FoxgloveView:
-    """The SDK's WebSocket server and the three channels (its own foxglove.Context, so several
-    views, e.g. in tests, never share channels)."""
+    """The SDK's WebSocket server, the gateway for ``foxglove.websocket.v1`` clients in front of
+    it (``legacy``; False: the SDK serves ``port`` itself, ``foxglove.sdk.v1`` only) and the three
+    channels (its own foxglove.Context, so several views, e.g. in tests, never share channels).
+    ``epoch_ns``: the log times' epoch (None: the run's start, see LogClock)."""
 
     def __init__(self, host: str = '127.0.0.1', port: int = 8765, backlog: int = 64,
-                 name: str = 'snn_rendezvous live view'):
+                 name: str = 'snn_rendezvous live view', legacy: bool = True, epoch_ns: int | None = None,
+                 raster_rate: float = 5.0):
         try:
             import foxglove
             from foxglove.channels import RawImageChannel, SceneUpdateChannel
+            from foxglove.websocket import Capability
         except ImportError as error:
             raise ValueError(f'the live view needs foxglove-sdk ({error}): pip install '
                              "'snn_rendezvous[live]', or set foxglove:=false (markers only)") from None
+        self._clock = LogClock(epoch_ns)
+        self._raster_due = Throttle(raster_rate)
         self._context = foxglove.Context()
         try:
-            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
-                                                 message_backlog_size=backlog)
+            self._server = foxglove.start_server(
+                name=name, host='127.0.0.1' if legacy else host, port=0 if legacy else port,
+                context=self._context, message_backlog_size=backlog, capabilities=[Capability.Time])
         except RuntimeError as error:  # the port is taken, or the host is not an address of this machine
             raise ValueError(f'cannot serve the live view on {host}:{port} ({error}): choose another '
                              "'port' (0: any free port) or 'host'") from None
+        self._gateway = None
+        if legacy:
+            try:
+                self._gateway = SubprotocolGateway(host, port, self._server.port)
+            except OSError as error:
+                self._server.stop()
+                raise ValueError(f'cannot serve the live view on {host}:{port} ({error}): choose another '
+                                 "'port' (0: any free port) or 'host'") from None
         self._scene = SceneUpdateChannel(SCENE_TOPIC, context=self._context)
         schema = foxglove.Schema(name=PLOTS_SCHEMA_NAME, encoding='jsonschema',
                                  data=json.dumps(PLOTS_SCHEMA).encode())
@@ -170,28 +222,38 @@ class FoxgloveView:
 
     @property
     def port(self) -> int:
-        return self._server.port
+        return self._gateway.port if self._gateway is not None else self._server.port
 
     @property
     def url(self) -> str:
         return f'ws://{"localhost" if self.host in ("127.0.0.1", "::1") else self.host}:{self.port}'
 
     @property
+    def epoch_ns(self) -> int | None:
+        """The log times' epoch, ns since the Unix epoch (None until the first frame anchors it)."""
+        return self._clock.epoch_ns
+
+    @property
     def watched(self) -> bool:
         """Whether a client subscribes to any channel (nothing is built for nobody)."""
         return self._scene.has_sinks() or self._plots.has_sinks() or self._raster.has_sinks()
 
-    def publish(self, scene, sample, raster) -> None:
-        """Log one frame (any part may be None: not available yet), each channel only while a
-        client subscribes to it."""
+    def publish(self, frame: Frame) -> None:
+        """Log one frame at its time (any part may be None: not available yet), each channel
+        only while a client subscribes to it, the raster at most ``raster_rate`` times a second."""
+        log_time = self._clock(frame.stamp_ns)
+        epoch = self._clock.epoch_ns
+        self._server.broadcast_time(log_time)
+        scene, sample, raster = frame.scene, frame.sample, frame.raster
         if scene is not None and self._scene.has_sinks():
-            self._scene.log(scene_update(scene), log_time=scene.stamp_ns)
+            self._scene.log(scene_update(scene, epoch), log_time=log_time)
         if sample is not None and self._plots.has_sinks():
-            self._plots.log(json.dumps(plot_record(sample)).encode(), log_time=sample.stamp_ns)
-        if raster is not None and scene is not None and self._raster.has_sinks():
-            self._raster.log(raster_message(raster, scene.stamp_ns, scene.frame_id), log_time=scene.stamp_ns)
+            self._plots.log(json.dumps(plot_record(sample, epoch)).encode(), log_time=log_time)
+        if raster is not None and scene is not None and self._raster.has_sinks() and self._raster_due():
+            self._raster.log(raster_message(raster, epoch + scene.stamp_ns, scene.frame_id), log_time=log_time)
         self.sent += 1
 
     def close(self) -> None:
-        self._server.stop()
-
+        self._server.stop()  # first: it closes its clients' connections, through the gateway too
+        if self._gateway is not None:
+            self._gateway.close()

@@ -3,9 +3,10 @@
 Subscribes to truth, estimate, control, spike_count and spikes (best effort, shallow queues:
 it never holds the loop back), keeps only the newest messages as received bytes, and at most
 ``publish_rate`` times per wall-clock second decodes them into a
-:class:`scenario_nodes.scene.LiveScene` frame and sends it: to Foxglove clients through
-:class:`scenario_nodes.foxglove_view.FoxgloveView`, and as a MarkerArray on ``markers``
-(:mod:`scenario_nodes.scene_markers`). Inputs between two frames are coalesced; a client that
+:class:`scenario_nodes.scene.LiveScene` frame and sends it: to Foxglove clients of either
+subprotocol through :class:`scenario_nodes.foxglove_view.FoxgloveView` (log times: simulated
+time on the run's start, ``log_epoch``; the raster at most ``raster_rate`` a second), and as a
+MarkerArray on ``markers`` (:mod:`scenario_nodes.scene_markers`). Inputs between two frames are coalesced; a client that
 does not keep up loses its oldest queued messages (foxglove-sdk), and the marker publisher keeps
 only the last frame: nothing here blocks.
 """
@@ -62,7 +63,8 @@ class LiveViewNode(ProcessHooks, Node):
         self._view = None
         if p['foxglove']:
             from .foxglove_view import FoxgloveView
-            self._view = FoxgloveView(p['host'], p['port'], p['message_backlog'])
+            self._view = FoxgloveView(p['host'], p['port'], p['message_backlog'], legacy=p['legacy_subprotocol'],
+                                      epoch_ns=round(p['log_epoch'] * 1e9) or None, raster_rate=p['raster_rate'])
         self._markers = self.create_publisher(MarkerArray, MARKERS, MARKER_QOS) if p['markers'] else None
         self.create_subscription(Odometry, qos.TRUTH, lambda data: self._truths.append(data), VIEW_QOS, raw=True)
         self.create_subscription(UInt32MultiArray, qos.SPIKES, lambda data: self._spikes.append(data), VIEW_QOS,
@@ -70,7 +72,9 @@ class LiveViewNode(ProcessHooks, Node):
         for message_type, topic in ((Odometry, qos.ESTIMATE), (AccelStamped, qos.CONTROL), (UInt32, qos.SPIKE_COUNT)):
             self.create_subscription(message_type, topic, self._keeper(topic), VIEW_QOS, raw=True)
         self.create_timer(1.0 / p['publish_rate'], self._on_frame, clock=Clock(clock_type=ClockType.STEADY_TIME))
-        where = f'Foxglove: open {self._view.url}' if self._view else 'Foxglove server off'
+        where = (f"Foxglove: open {self._view.url} (foxglove.sdk.v1"
+                 f"{' and foxglove.websocket.v1' if p['legacy_subprotocol'] else ' only'})"
+                 if self._view else 'Foxglove server off')
         self.get_logger().info(f"live view at {p['publish_rate']:g} Hz; {where}"
                                f"{'; MarkerArray on ' + self.resolve_topic_name(MARKERS) if self._markers else ''}")
 
@@ -112,11 +116,10 @@ class LiveViewNode(ProcessHooks, Node):
         frame = self._scene.frame()
         if frame is None:
             return
-        scene, sample, raster = frame
         if self._view is not None:
-            self._view.publish(scene, sample, raster)
-        if markers and scene is not None:
-            self._markers.publish(marker_array(scene))
+            self._view.publish(frame)
+        if markers and frame.scene is not None:
+            self._markers.publish(marker_array(frame.scene))
 
     def close(self) -> None:
         self.get_logger().info(f'live view: {self._scene.frames} frames from {self.decoded} decoded messages '

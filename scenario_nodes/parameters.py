@@ -336,6 +336,12 @@ LIVE_VIEW = MODEL + (
     Spec('port', 8765, "Port of the Foxglove WebSocket server (Foxglove's default; 0: any free port)",
          low=0, high=65535),
     Spec('foxglove', True, 'Serve the live view over Foxglove\'s WebSocket protocol (foxglove-sdk)'),
+    Spec('legacy_subprotocol', True, 'Accept clients of the subprotocol foxglove.websocket.v1 too (Lichtblick '
+         'before 1.22, older Foxglove Studio, @foxglove/ws-protocol) on `port`: a relay in front of the SDK '
+         'rewrites their handshake (docs/decisions.md, 44); false: the SDK serves `port`, foxglove.sdk.v1 only'),
+    Spec('log_epoch', 0.0, 'Epoch of the log times, s since the Unix epoch: a message of simulated time t is '
+         'logged at log_epoch + t (0: the wall-clock time of the first frame less its simulated time, '
+         "the run's start)", low=0.0),
     Spec('markers', True, 'Publish the scene as visualization_msgs/MarkerArray on `markers` (RViz)'),
     Spec('publish_rate', 20.0, 'Frames per wall-clock second at most; inputs between two frames are '
          'coalesced (the newest drawn), never queued', low=0.1, high=1000.0),
@@ -350,7 +356,10 @@ LIVE_VIEW = MODEL + (
     Spec('corridor_length', 100.0, 'Length of the approach corridor, m (0: not drawn)', low=0.0),
     Spec('thrust_scale', 200.0, 'Length of the thrust arrow per unit of control, m per m/s^2', low=0.0),
     Spec('trail_length', 500, 'Positions kept in the true and estimated trails', low=2, high=100000),
-    Spec('raster_steps', 200, 'Steps shown across the spike raster', low=1, high=100000),
+    Spec('raster_steps', 200, 'Steps shown across the spike raster: its width in pixels (its height: the '
+         "network's neurons; bytes per image = steps x neurons)", low=1, high=100000),
+    Spec('raster_rate', 5.0, 'Spike raster images per wall-clock second at most (0: none); the raster is '
+         'most of the live view\'s bytes (docs/live_view.md)', low=0.0, high=1000.0),
 )
 
 #: Node name -> its table, in the order the YAML files and docs/parameters.md list them (the

@@ -9,6 +9,11 @@ estimate's position covariance ellipsoid at ``covariance_sigma`` sigma, the keep
 the approach corridor (a cone with its apex at the target) and the thrust vector (the
 control, m/s^2, drawn ``thrust_scale`` m per m/s^2 long from the estimated position).
 
+Time: a frame (:class:`Frame`) carries one simulated time, the newest stamp the view has heard
+of, so the frames' times never go backwards; each part keeps its own stamp inside (the plot
+sample is older: the truth of an estimate's stamp arrives after it). :class:`LogClock` puts
+simulated time on a real epoch (the run's start), the time a viewer shows.
+
 Plot values (:class:`PlotSample`) pair an estimate with the truth of the same stamp: error
 ``x_hat - x`` per state beside 3 sigma from the published covariance, range, spikes in the
 step and the NEES ``e^T P^-1 e``. The published Odometry carries only the position and velocity
@@ -19,6 +24,7 @@ never NaN, when P is not positive definite (a filter that publishes no covarianc
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -220,13 +226,45 @@ def nees(error: np.ndarray, covariance: np.ndarray) -> float | None:
     return value if math.isfinite(value) else None
 
 
+@dataclass(frozen=True)
+class Frame:
+    """What the view sends at one instant: ``stamp_ns``, the newest simulated time heard of
+    (never less than the last frame's), the scene (stamped with its estimate), the plot sample
+    (None: no new one) and the raster (None: no spikes yet)."""
+    stamp_ns: int
+    scene: Scene | None
+    sample: PlotSample | None
+    raster: np.ndarray | None
+
+
+class LogClock:
+    """Log times of a run: simulated time (ns) on a real epoch, ``epoch_ns + stamp_ns``.
+
+    ``epoch_ns`` None anchors the epoch at the first call: the wall-clock time then less the
+    simulated time then (the run's start when the view starts with the loop, exactly so at 1x).
+    A viewer then shows the run's date, and the seconds since its start are simulated seconds at
+    any real-time factor."""
+
+    def __init__(self, epoch_ns: int | None = None, wall_ns=time.time_ns):
+        if epoch_ns is not None and epoch_ns < 0:
+            raise ValueError(f'log_epoch = {epoch_ns * 1e-9!r} s: must be >= 0 (s since the Unix epoch; '
+                             '0: the run\'s start)')
+        self.epoch_ns = epoch_ns
+        self._wall_ns = wall_ns
+
+    def __call__(self, stamp_ns: int) -> int:
+        if self.epoch_ns is None:
+            self.epoch_ns = max(self._wall_ns() - stamp_ns, 0)
+        return self.epoch_ns + stamp_ns
+
+
 class LiveScene:
     """Keeps the newest decoded inputs and builds frames from them (no ROS: the node feeds it).
 
     ``add_truth`` / ``add_estimate`` / ``add_control`` / ``add_spikes`` take arrays; ``frame()``
-    returns the scene, the plot sample (None until an estimate meets its truth) and the spike
-    raster of the last ``raster_steps`` steps, or None when nothing new arrived since the last
-    frame (nothing to send)."""
+    returns a :class:`Frame` (the scene, the plot sample, None until an estimate meets its
+    truth, and the spike raster of the last ``raster_steps`` steps), or None when nothing new
+    arrived since the last frame (nothing to send)."""
 
     def __init__(self, settings: SceneSettings = SceneSettings(), frame_id: str = 'lvlh',
                  raster_steps: int = 200, keep: int = 64):
@@ -246,8 +284,14 @@ class LiveScene:
                                        settings.corridor_length)
         self.frames = 0
         self._plotted_ns = -1
+        self._heard_ns = None  # the newest stamp of any input
+
+    def _heard(self, stamp_ns: int) -> None:
+        if self._heard_ns is None or stamp_ns > self._heard_ns:
+            self._heard_ns = stamp_ns
 
     def add_truth(self, stamp_ns: int, x: np.ndarray) -> None:
+        self._heard(stamp_ns)
         self._truths[stamp_ns] = np.array(x[:6], dtype=float)
         if len(self._truths) > self._keep:
             del self._truths[min(self._truths)]
@@ -255,6 +299,7 @@ class LiveScene:
         self._changed = True
 
     def add_estimate(self, stamp_ns: int, x: np.ndarray, covariance: np.ndarray) -> None:
+        self._heard(stamp_ns)
         self._estimate = (stamp_ns, np.array(x[:6], dtype=float), np.array(covariance, dtype=float))
         self._estimates[stamp_ns] = self._estimate[1:]
         if len(self._estimates) > self._keep:
@@ -340,10 +385,10 @@ class LiveScene:
             image[:len(counts), column] = counts
         return image
 
-    def frame(self):
-        """(scene, plot sample or None when no new one, raster) if anything arrived since the last
-        frame, else None."""
-        if not self._changed:
+    def frame(self) -> Frame | None:
+        """The frame of what arrived since the last one, or None (nothing new, or no stamped
+        input yet)."""
+        if not self._changed or self._heard_ns is None:
             return None
         self._changed = False
         self.frames += 1
@@ -352,7 +397,7 @@ class LiveScene:
             sample = None  # plotted already
         elif sample is not None:
             self._plotted_ns = sample.stamp_ns
-        return self.scene(), sample, self.raster()
+        return Frame(self._heard_ns, self.scene(), sample, self.raster())
 
 
 def raster_image(raster: np.ndarray) -> np.ndarray:
@@ -364,11 +409,13 @@ def _finite(values) -> dict:
     return {name: float(v) for name, v in zip(STATES, values) if math.isfinite(v)}
 
 
-def plot_record(sample: PlotSample) -> dict:
+def plot_record(sample: PlotSample, epoch_ns: int = 0) -> dict:
     """The JSON-ready values of a plot sample: finite numbers only (a value that is not is left
-    out, as is an absent spike count or NEES)."""
+    out, as is an absent spike count or NEES). ``timestamp``: its stamp on the real epoch
+    ``epoch_ns`` (:class:`LogClock`); ``time``: simulated s (the plots' x axis)."""
+    stamp = epoch_ns + sample.stamp_ns
     record = {
-        'timestamp': {'sec': sample.stamp_ns // 1_000_000_000, 'nsec': sample.stamp_ns % 1_000_000_000},
+        'timestamp': {'sec': stamp // 1_000_000_000, 'nsec': stamp % 1_000_000_000},
         'time': sample.stamp_ns * 1e-9,
         'estimate': _finite(sample.estimate), 'error': _finite(sample.error),
         'three_sigma': _finite(sample.three_sigma), 'minus_three_sigma': _finite(-sample.three_sigma),

@@ -1,6 +1,7 @@
-"""A minimal Foxglove WebSocket client (the `websockets` library, subprotocol foxglove.sdk.v1) for
-the live view's bench and snapshot: it subscribes to every advertised channel and keeps what
-it receives. Protobuf channels are decoded with the schema the server advertises (protobuf).
+"""A minimal Foxglove WebSocket client (the `websockets` library; subprotocol foxglove.sdk.v1 or
+foxglove.websocket.v1) for the live view's bench, snapshot and tests: it subscribes to every
+advertised channel and keeps what it receives. Protobuf channels are decoded with the schema
+the server advertises (protobuf).
 """
 
 from __future__ import annotations
@@ -13,7 +14,9 @@ import struct
 import threading
 import time
 
-SUBPROTOCOL = 'foxglove.sdk.v1'
+from scenario_nodes.foxglove_gateway import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL  # noqa: F401 (re-exported)
+
+SUBPROTOCOL = SDK_SUBPROTOCOL
 MESSAGE_DATA = 1
 
 
@@ -24,16 +27,21 @@ def free_port() -> int:
 
 
 class FoxgloveClient(threading.Thread):
-    """Connects to ws://127.0.0.1:``port`` (retrying until the server is up or ``seconds``
-    pass), subscribes to every channel, keeps (log time, payload) per topic (``keep``; else
-    only counts) until the server closes, ``stop()`` or ``seconds``."""
+    """Connects to ws://127.0.0.1:``port`` offering ``subprotocol`` (retrying until the server is
+    up or ``seconds`` pass), subscribes to every channel, keeps (log time, payload) per topic
+    (``keep``; else only counts) and the bytes per topic until the server closes, ``stop()`` or
+    ``seconds``."""
 
-    def __init__(self, port: int, seconds: float = 600.0, keep: bool = True):
+    def __init__(self, port: int, seconds: float = 600.0, keep: bool = True, subprotocol: str = SUBPROTOCOL):
         super().__init__(daemon=True)
-        self.port, self.seconds, self.keep = port, seconds, keep
+        self.port, self.seconds, self.keep, self.offered = port, seconds, keep, subprotocol
         self.channels: dict[int, dict] = {}
         self.messages: dict[str, list] = {}
+        self.bytes: dict[str, int] = {}
+        self.received_at: dict[str, list] = {}  # topic -> [first, last] time.monotonic() of receipt
         self.count = 0
+        self.subprotocol = None  # what the server answered
+        self.subscribed_at = None  # time.monotonic() of the subscription
         self.error = None
         self._stopping = False
 
@@ -55,13 +63,14 @@ class FoxgloveClient(threading.Thread):
         deadline = time.monotonic() + self.seconds
         while True:
             try:
-                ws = await websockets.connect(f'ws://127.0.0.1:{self.port}', subprotocols=[SUBPROTOCOL],
+                ws = await websockets.connect(f'ws://127.0.0.1:{self.port}', subprotocols=[self.offered],
                                               max_size=None)
                 break
             except OSError:
                 if self._stopping or time.monotonic() > deadline:
                     return
                 await asyncio.sleep(0.05)
+        self.subprotocol = ws.subprotocol
         async with ws:
             while not self._stopping and time.monotonic() < deadline:
                 try:
@@ -76,13 +85,16 @@ class FoxgloveClient(threading.Thread):
                         self.channels.update({c['id']: c for c in op['channels']})
                         await ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
                             {'id': c['id'], 'channelId': c['id']} for c in op['channels']]}))
+                        self.subscribed_at = time.monotonic()
                     continue
-                opcode, subscription, log_time = struct.unpack_from('<BIQ', message)
-                if opcode != MESSAGE_DATA:
+                if message[0] != MESSAGE_DATA:  # e.g. the server's time (opcode 2)
                     continue
+                _, subscription, log_time = struct.unpack_from('<BIQ', message)
                 self.count += 1
+                topic = self.channels[subscription]['topic']
+                self.bytes[topic] = self.bytes.get(topic, 0) + len(message)
+                self.received_at.setdefault(topic, [time.monotonic(), 0.0])[1] = time.monotonic()
                 if self.keep:
-                    topic = self.channels[subscription]['topic']
                     self.messages.setdefault(topic, []).append((log_time, message[13:]))
 
 

@@ -6,7 +6,10 @@ Foxglove: Layouts -> Import from file, then Open connection -> Foxglove WebSocke
 ws://localhost:8765 (README, "Watch it fly").
 
 Panels: the 3D scene (frame lvlh) beside plots in tabs (position and velocity errors with
-their +-3 sigma bounds, range, spikes per step, NEES) and the spike raster image.
+their +-3 sigma bounds, range, spikes per step, NEES) and the spike raster image. The plots'
+x axis is the messages' own simulated time (``/plots.time``, s), every message kept: the 360 s
+of the approach at any real-time factor (a timestamp x axis would show the viewer's receive
+time).
 """
 
 from __future__ import annotations
@@ -20,6 +23,14 @@ from scenario_nodes.foxglove_view import PLOTS_TOPIC, RASTER_TOPIC, SCENE_TOPIC
 ROOT = Path(__file__).resolve().parents[1]
 LAYOUT_FILE = ROOT / 'config' / 'foxglove_layout.json'
 COLORS = {'error': '#4e79a7', 'bound': '#e15759'}
+#: The plots' x axis: simulated s of each /plots message.
+TIME_PATH = f'{PLOTS_TOPIC}.time'
+
+
+def _plot_config(fl, paths, unit: str):
+    return fl.PlotConfig(paths=paths, show_legend=True, y_axis_label=unit, x_axis_val='custom',
+                         x_axis_path=fl.PlotXAxisPath(value=TIME_PATH, enabled=True), time_range='all',
+                         x_axis_label='simulated time [s]')
 
 
 def _error_plot(fl, state: str, unit: str):
@@ -28,13 +39,12 @@ def _error_plot(fl, state: str, unit: str):
                            line_style='dashed'),
              fl.PlotSeries(value=f'{PLOTS_TOPIC}.minus_three_sigma.{state}', label='-3 sigma',
                            color=COLORS['bound'], line_style='dashed')]
-    return fl.PlotPanel(title=f'estimation error {state} [{unit}]',
-                        config=fl.PlotConfig(paths=paths, show_legend=True, y_axis_label=unit))
+    return fl.PlotPanel(title=f'estimation error {state} [{unit}]', config=_plot_config(fl, paths, unit))
 
 
 def _plot(fl, title: str, series: dict, unit: str):
     paths = [fl.PlotSeries(value=f'{PLOTS_TOPIC}.{path}', label=label) for path, label in series.items()]
-    return fl.PlotPanel(title=title, config=fl.PlotConfig(paths=paths, show_legend=True, y_axis_label=unit))
+    return fl.PlotPanel(title=title, config=_plot_config(fl, paths, unit))
 
 
 def _column(fl, panels):

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from scenario_nodes.scene import (
     LiveScene,
+    LogClock,
     SceneSettings,
     corridor_mesh,
     covariance_ellipsoid,
@@ -82,13 +83,13 @@ def test_a_plot_sample_pairs_the_estimate_with_the_truth_of_its_own_stamp():
     # the estimate for t = 0.4 s arrives before its truth: the plot waits for it
     scene.add_estimate(400_000_000, x_hat, covariance)
     scene.add_spikes(total=17, per_neuron=np.array([0, 2, 0, 1]))
-    _, sample, raster = scene.frame()
-    assert sample is None
-    np.testing.assert_array_equal(raster[:, -1], [0, 2, 0, 1])
+    frame = scene.frame()
+    assert frame.sample is None
+    np.testing.assert_array_equal(frame.raster[:, -1], [0, 2, 0, 1])
     scene.add_truth(300_000_000, truths[300_000_000])
     scene.add_truth(400_000_000, truths[400_000_000])
     scene.add_truth(500_000_000, truths[500_000_000])  # newer than the estimate: not its pair
-    _, sample, _ = scene.frame()
+    sample = scene.frame().sample
     assert sample.stamp_ns == 400_000_000 and sample.spikes == 17
     np.testing.assert_allclose(sample.error, x_hat - truths[400_000_000], rtol=0, atol=1e-15)
     np.testing.assert_allclose(sample.three_sigma, 3 * np.sqrt(np.diag(covariance)), rtol=1e-15)
@@ -96,7 +97,7 @@ def test_a_plot_sample_pairs_the_estimate_with_the_truth_of_its_own_stamp():
     assert sample.nees == pytest.approx(float(sample.error @ np.linalg.solve(covariance, sample.error)))
     assert scene.frame() is None  # nothing new: no frame
     scene.add_control(np.zeros(3))
-    assert scene.frame()[1] is None  # a new frame, but that sample was plotted already
+    assert scene.frame().sample is None  # a new frame, but that sample was plotted already
 
 
 def test_the_scene_draws_every_part_at_the_estimate_and_the_thrust_scaled():
@@ -105,7 +106,7 @@ def test_the_scene_draws_every_part_at_the_estimate_and_the_thrust_scaled():
     scene.add_truth(0, np.array([10.1, 5, -1, 0, 0, 0]))
     scene.add_estimate(0, x_hat, covariance)
     scene.add_control(np.array([1e-3, 0.0, -2e-3]))
-    drawn, _, _ = scene.frame()
+    drawn = scene.frame().scene
     assert set(drawn.names()) == {'target', 'keep_out', 'corridor', 'chaser_true', 'chaser_estimate',
                                   'covariance', 'thrust'}
     assert drawn.get('chaser_estimate').center == (10.0, 5.0, -1.0)
@@ -120,7 +121,7 @@ def test_plot_values_are_finite_only_and_the_raster_is_binary():
     covariance[0, 0] = math.nan
     scene.add_truth(0, np.zeros(6))
     scene.add_estimate(0, np.ones(6), covariance)
-    record = plot_record(scene.frame()[1])
+    record = plot_record(scene.frame().sample)
     assert 'x' not in record['three_sigma'] and record['three_sigma']['y'] == 3.0
     assert 'nees' not in record and 'spikes' not in record
     np.testing.assert_array_equal(raster_image(np.array([[0, 3], [1, 0]])), [[0, 255], [255, 0]])
@@ -142,6 +143,30 @@ def test_the_foxglove_layout_file_is_what_its_generator_writes():
         assert f'"{path}"' in text, path
 
 
+def test_every_plot_of_the_layout_draws_against_the_messages_simulated_time():
+    """x = /plots.time (simulated s) over all messages, not the receive time: the 360 s of the
+    approach whatever the real-time factor."""
+    pytest.importorskip('foxglove')
+    import json
+
+    from snn_tools.live_layout import LAYOUT_FILE
+
+    def plots(node):
+        if isinstance(node, dict):
+            if 'paths' in node and 'xAxisVal' in node:
+                yield node
+            for value in node.values():
+                yield from plots(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from plots(value)
+    configs = list(plots(json.loads(LAYOUT_FILE.read_text())))
+    assert len(configs) == 9
+    for config in configs:
+        assert (config['xAxisVal'], config['xAxisPath'], config['timeRange']) == (
+            'custom', {'value': '/plots.time', 'enabled': True}, 'all')
+
+
 def test_the_foxglove_scene_update_carries_the_scene():
     pytest.importorskip('foxglove')
     from scenario_nodes.foxglove_view import arrow_pose, scene_update
@@ -152,7 +177,7 @@ def test_the_foxglove_scene_update_carries_the_scene():
         np.testing.assert_allclose(Rotation.from_quat(q).apply([length, 0, 0]), end - start, atol=1e-12)
     scene = LiveScene()
     scene.add_estimate(0, np.ones(6), np.eye(6))
-    update = scene_update(scene.frame()[0])
+    update = scene_update(scene.frame().scene)
     assert len(update.encode()) > 100  # encodes as protobuf (decoded field by field in test_live_view_ros)
 
 
@@ -169,10 +194,11 @@ def test_a_trail_keeps_the_newest_positions_oldest_first_and_at_most_its_points(
     np.testing.assert_array_equal(short.points(), [[k, 1.0, 2.0] for k in range(5)])
 
 
-def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view():
+@pytest.mark.parametrize('subprotocol', ['foxglove.sdk.v1', 'foxglove.websocket.v1'])
+def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view(subprotocol):
     """A client subscribes, then stops reading (its socket fills): every frame is still logged
     (a view that waited for the client would hang here) and the server drops the oldest messages
-    instead of queueing 15 MB for it."""
+    instead of queueing 15 MB for it; through the gateway (foxglove.websocket.v1) too."""
     pytest.importorskip('foxglove')
     websockets = pytest.importorskip('websockets')
     import asyncio
@@ -185,7 +211,7 @@ def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view():
     subscribed, release, received = threading.Event(), threading.Event(), []
 
     async def stalled_client():
-        async with websockets.connect(f'ws://127.0.0.1:{view.port}', subprotocols=['foxglove.sdk.v1'],
+        async with websockets.connect(f'ws://127.0.0.1:{view.port}', subprotocols=[subprotocol],
                                       max_size=None, max_queue=1) as ws:
             while True:
                 op = json.loads(await ws.recv())
@@ -216,7 +242,7 @@ def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view():
             scene.add_truth(k, rng.standard_normal(6))
             scene.add_estimate(k, rng.standard_normal(6), np.eye(6))
             scene.add_spikes(total=1, per_neuron=rng.integers(0, 2, 200))
-            view.publish(*scene.frame())
+            view.publish(scene.frame())
         publishing = time.perf_counter() - started  # all 300 logged while the client read nothing
         release.set()
         client.join(20.0)
@@ -235,3 +261,125 @@ def test_a_taken_port_is_refused_naming_the_parameter():
             FoxgloveView(port=first.port)
     finally:
         first.close()
+
+
+# ---------------------------------------------------------------- time
+def test_a_frames_time_is_the_newest_stamp_heard_and_never_goes_back_while_its_plot_is_older():
+    """The truth of an estimate's stamp arrives after the estimate, so the plot sample is a step
+    behind the scene: each frame still has one time, the newest stamp heard (was: the plots
+    logged at their sample's stamp, behind the scene's, and the log time stepped back)."""
+    scene = LiveScene()
+    rng = np.random.default_rng(8)
+    times, plotted = [], []
+    scene.add_truth(500_000_000, rng.standard_normal(6))  # truth before the first estimate
+    for k in range(1, 40):
+        stamp = k * 100_000_000
+        scene.add_estimate(stamp, rng.standard_normal(6), np.eye(6))  # estimate of t_k first
+        frame = scene.frame()
+        times.append(frame.stamp_ns)
+        if frame.sample is not None:
+            plotted.append(frame.sample.stamp_ns)
+            assert frame.sample.stamp_ns <= frame.stamp_ns
+        scene.add_truth(stamp, rng.standard_normal(6))  # then its truth
+    assert times == sorted(times) and times[-1] == 39 * 100_000_000
+    assert times[0] == 500_000_000  # the scene's own stamp (the first estimate, 0.1 s) is older
+    assert plotted == sorted(set(plotted)) and len(plotted) >= 33
+    assert sum(p < t for p, t in zip(plotted, times[-len(plotted):])) >= 30  # a step behind the frame
+
+
+def test_the_log_clock_puts_simulated_time_on_the_runs_start_or_a_given_epoch():
+    wall = iter([1_800_000_000_000_000_000, 0])
+    clock = LogClock(wall_ns=lambda: next(wall))
+    assert clock(2_000_000_000) == 1_800_000_000_000_000_000  # first frame: now, at 2 s of the run
+    assert clock.epoch_ns == 1_799_999_998_000_000_000 and clock(362_000_000_000) == clock.epoch_ns + 362 * 10 ** 9
+    assert LogClock(1_700_000_000 * 10 ** 9)(5) == 1_700_000_000 * 10 ** 9 + 5
+    with pytest.raises(ValueError, match='log_epoch'):
+        LogClock(-1)
+
+
+def test_the_raster_throttle_keeps_its_rate_at_any_frame_rate():
+    from scenario_nodes.foxglove_view import Throttle
+    now = [0.0]
+    due = Throttle(5.0, clock=lambda: now[0])
+    yeses = 0
+    for k in range(2000):  # 100 s of frames at 20 Hz, jittered
+        now[0] = 0.05 * k + 0.01 * math.sin(k)
+        yeses += due()
+    assert yeses == pytest.approx(500, abs=2)
+    assert not Throttle(0.0)()
+    with pytest.raises(ValueError, match='raster_rate'):
+        Throttle(-1.0)
+
+
+# ---------------------------------------------------------------- both subprotocols on one port
+REQUEST = (b'GET / HTTP/1.1\r\nHost: localhost:8765\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n'
+           b'Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n%s\r\n')
+
+
+def test_the_gateway_rewrites_the_handshake_of_a_client_offering_only_the_legacy_subprotocol():
+    from scenario_nodes.foxglove_gateway import client_response, offered_subprotocols, upstream_request
+    legacy = REQUEST % b'sec-websocket-protocol: foxglove.websocket.v1\r\n'
+    upstream, answer = upstream_request(legacy)
+    assert answer == 'foxglove.websocket.v1' and offered_subprotocols(upstream) == ['foxglove.sdk.v1']
+    assert upstream.startswith(b'GET / HTTP/1.1\r\n') and upstream.endswith(b'\r\n\r\n')
+    assert b'Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n' in upstream  # the accept key stays valid
+    # offering both (Lichtblick 1.22+), the SDK's only, or neither: passed unchanged
+    for offer in (b'Sec-WebSocket-Protocol: foxglove.websocket.v1\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n',
+                  b'Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n', b'Sec-WebSocket-Protocol: other\r\n', b''):
+        assert upstream_request(REQUEST % offer) == (REQUEST % offer, None)
+    response = (b'HTTP/1.1 101 Switching Protocols\r\nconnection: Upgrade\r\nupgrade: websocket\r\n'
+                b'sec-websocket-protocol: foxglove.sdk.v1\r\n'
+                b'sec-websocket-accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=\r\n\r\n')
+    answered = client_response(response, answer)
+    assert offered_subprotocols(answered) == ['foxglove.websocket.v1']
+    assert b'sec-websocket-accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=\r\n' in answered
+    assert client_response(response, None) == response
+    refused = b'HTTP/1.1 400 Bad Request\r\ncontent-length: 0\r\n\r\n'
+    assert client_response(refused, answer) == refused
+
+
+def test_clients_of_both_subprotocols_get_the_same_messages_on_one_port_and_others_are_refused():
+    pytest.importorskip('foxglove')
+    websockets = pytest.importorskip('websockets')
+    import asyncio
+    import time
+
+    from scenario_nodes.foxglove_view import FoxgloveView
+    from snn_tools.live_client import FoxgloveClient
+    view = FoxgloveView(port=0, raster_rate=20.0)
+    try:
+        clients = [FoxgloveClient(view.port, seconds=30.0, subprotocol=p)
+                   for p in ('foxglove.websocket.v1', 'foxglove.sdk.v1')]
+        for client in clients:
+            client.start()
+        deadline = time.monotonic() + 10.0
+        while not all(c.subscribed_at for c in clients) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)  # the server has the subscriptions
+        scene = LiveScene()
+        rng = np.random.default_rng(9)
+        for k in range(30):
+            scene.add_truth(k * 100_000_000, rng.standard_normal(6))
+            scene.add_estimate(k * 100_000_000, rng.standard_normal(6), np.eye(6))
+            scene.add_spikes(total=3, per_neuron=rng.integers(0, 2, 20))
+            view.publish(scene.frame())
+            time.sleep(0.06)
+
+        async def offer(subprotocol):
+            async with websockets.connect(f'ws://127.0.0.1:{view.port}', subprotocols=[subprotocol]):
+                pass
+        with pytest.raises(websockets.InvalidStatus, match='400'):
+            asyncio.run(offer('foxglove.websocket.v2'))
+        time.sleep(0.3)
+    finally:
+        view.close()
+    for client in clients:
+        client.join(10.0)
+    legacy, sdk = clients
+    assert (legacy.error, sdk.error) == (None, None)
+    assert (legacy.subprotocol, sdk.subprotocol) == ('foxglove.websocket.v1', 'foxglove.sdk.v1')
+    assert sorted(c['topic'] for c in legacy.channels.values()) == ['/plots', '/scene', '/spike_raster']
+    assert legacy.channels == sdk.channels
+    for topic in ('/scene', '/plots', '/spike_raster'):
+        assert len(legacy.messages[topic]) >= 25
+        assert legacy.messages[topic] == sdk.messages[topic], topic  # byte for byte, same log times

@@ -1,14 +1,18 @@
 """The live_view node over ROS: the MarkerArray on `markers` carries the estimate and its
-covariance as published; and a real Foxglove WebSocket client (the `websockets` library,
-subprotocol foxglove.sdk.v1) connected during a short demo decodes scene, plot and raster
-messages whose values are the run's recorded estimates, truths and spikes."""
+covariance as published; a Foxglove WebSocket client (the `websockets` library, subprotocol
+foxglove.sdk.v1) connected during a short demo decodes scene, plot and raster messages whose
+values are the run's recorded estimates, truths and spikes; and during a 60 s realtime run a
+client we did not write (Foxglove's @foxglove/ws-protocol on Node, foxglove.websocket.v1) and
+ours (foxglove.sdk.v1) decode every channel, on simulated time on the run's start."""
 
-import asyncio
+import hashlib
 import json
-import socket
-import struct
-import threading
+import os
+import re
+import shutil
+import subprocess
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,9 +28,10 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.codec import encode_accel, encode_odometry  # noqa: E402
 from scenario_nodes.live_view_node import LiveViewNode  # noqa: E402
-from snn_tools.live_client import protobuf_class  # noqa: E402
+from snn_tools.live_client import FoxgloveClient, free_port, protobuf_class  # noqa: E402
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
+JS_CLIENT = Path(__file__).resolve().parent / 'js_client'
 
 
 def covariance_of(radii, quaternion, sigma):
@@ -84,60 +89,10 @@ def test_markers_carry_the_estimate_and_its_covariance_ellipsoid():
     assert markers['corridor'].type == markers['corridor'].TRIANGLE_LIST and len(markers['corridor'].points) % 3 == 0
 
 
-# ---------------------------------------------------------------- Foxglove client during a demo
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
-class FoxgloveClient(threading.Thread):
-    """Connects (retrying until the server is up), subscribes to every channel, keeps the
-    decoded messages per topic until the server closes or ``seconds`` pass."""
-
-    def __init__(self, port: int, seconds: float):
-        super().__init__(daemon=True)
-        self.port, self.seconds = port, seconds
-        self.channels, self.messages, self.subprotocol, self.error = {}, {}, None, None
-
-    def run(self):
-        try:
-            asyncio.run(self._run())
-        except Exception as error:  # noqa: BLE001 - reported by the test
-            self.error = error
-
-    async def _run(self):
-        import websockets
-        deadline = time.monotonic() + self.seconds
-        while True:
-            try:
-                ws = await websockets.connect(f'ws://127.0.0.1:{self.port}', subprotocols=[SUBPROTOCOL], max_size=None)
-                break
-            except OSError:
-                if time.monotonic() > deadline:
-                    raise
-                await asyncio.sleep(0.05)
-        self.subprotocol = ws.subprotocol
-        async with ws:
-            while time.monotonic() < deadline:
-                try:
-                    message = await asyncio.wait_for(ws.recv(), 0.5)
-                except asyncio.TimeoutError:
-                    continue
-                except websockets.ConnectionClosed:
-                    return
-                if isinstance(message, str):
-                    op = json.loads(message)
-                    if op['op'] == 'advertise':
-                        for channel in op['channels']:
-                            self.channels[channel['id']] = channel
-                        await ws.send(json.dumps({'op': 'subscribe', 'subscriptions': [
-                            {'id': c['id'], 'channelId': c['id']} for c in op['channels']]}))
-                    continue
-                opcode, subscription, log_time = struct.unpack_from('<BIQ', message)
-                assert opcode == 1  # message data
-                topic = self.channels[subscription]['topic']
-                self.messages.setdefault(topic, []).append((log_time, message[13:]))
+# ---------------------------------------------------------------- Foxglove clients during a demo
+def epoch_of(record: dict) -> int:
+    """The log times' epoch (ns) from a /plots record: its stamp on the epoch less its simulated time."""
+    return record['timestamp']['sec'] * 10 ** 9 + record['timestamp']['nsec'] - round(record['time'] * 1e9)
 
 
 def test_the_plant_waits_for_the_live_view_and_the_recorder_on_truth(tmp_path):
@@ -181,10 +136,11 @@ def test_a_foxglove_client_receives_the_published_estimates_during_a_demo(tmp_pa
 
     plots = client.messages['/plots']
     assert len(plots) >= 10  # 2 s of flight at up to 20 frames/s
+    epoch = epoch_of(json.loads(plots[0][1]))
     for log_time, payload in plots:
         record = json.loads(payload)
-        stamp = record['timestamp']['sec'] * 10 ** 9 + record['timestamp']['nsec']
-        assert stamp == log_time
+        stamp = record['timestamp']['sec'] * 10 ** 9 + record['timestamp']['nsec'] - epoch
+        assert epoch_of(record) == epoch and stamp <= log_time - epoch  # logged with its frame, at or after it
         x_hat, variance = estimates[stamp]
         np.testing.assert_allclose([record['estimate'][s] for s in states], x_hat, rtol=0, atol=1e-12)
         np.testing.assert_allclose([record['error'][s] for s in states], x_hat - truths[stamp], rtol=0, atol=1e-12)
@@ -195,11 +151,12 @@ def test_a_foxglove_client_receives_the_published_estimates_during_a_demo(tmp_pa
 
     SceneUpdate = protobuf_class(topics['/scene'])
     checked = 0
-    for log_time, payload in client.messages['/scene']:
+    for _, payload in client.messages['/scene']:
         entities = {e.id: e for e in SceneUpdate.FromString(payload).entities}
-        if log_time not in estimates:
+        stamp = entities['chaser_estimate'].timestamp.ToNanoseconds() - epoch if 'chaser_estimate' in entities else None
+        if stamp not in estimates:
             continue
-        x_hat, variance = estimates[log_time]
+        x_hat, variance = estimates[stamp]
         pose = entities['chaser_estimate'].spheres[0].pose.position
         np.testing.assert_allclose([pose.x, pose.y, pose.z], x_hat[:3], rtol=0, atol=1e-12)
         sphere = entities['covariance'].spheres[0]
@@ -219,3 +176,110 @@ def test_a_foxglove_client_receives_the_published_estimates_during_a_demo(tmp_pa
         image = np.frombuffer(raster.data, np.uint8).reshape(raster.height, raster.width) > 0
         width = image.shape[1]
         assert any((spikes[j - width:j].T == image).all() for j in range(width, len(spikes) + 1))
+
+
+@pytest.fixture(scope='module')
+def js_client() -> Path:
+    """client.mjs beside its node_modules, installed once per package-lock.json with `npm ci` in
+    the user's cache (never in the source tree); skipped without node and npm (a failure under CI,
+    whose .ci/run installs them)."""
+    node, npm = shutil.which('node'), shutil.which('npm')
+    if node is None or npm is None:
+        pytest.skip("node or npm is not installed (.ci/run installs Debian's nodejs and npm)")
+    sources = [JS_CLIENT / name for name in ('package.json', 'package-lock.json')]
+    key = hashlib.sha256(b''.join(path.read_bytes() for path in sources)).hexdigest()[:16]
+    cache = Path(os.environ.get('XDG_CACHE_HOME') or Path.home() / '.cache') / 'snn_rendezvous' / f'js_client-{key}'
+    if not (cache / 'node_modules' / '.package-lock.json').exists():
+        building = cache.with_name(f'{cache.name}.{os.getpid()}')
+        shutil.rmtree(building, ignore_errors=True)
+        building.mkdir(parents=True)
+        for path in sources:
+            shutil.copy(path, building)
+        subprocess.run([npm, 'ci', '--no-audit', '--no-fund', '--loglevel=error'], cwd=building, check=True,
+                       timeout=300)
+        shutil.rmtree(cache, ignore_errors=True)
+        building.rename(cache)
+    shutil.copy(JS_CLIENT / 'client.mjs', cache)
+    return cache / 'client.mjs'
+
+
+def layout_plot_paths() -> set[str]:
+    """The /plots paths the layout's plots draw (series and x axis)."""
+    from snn_tools.live_layout import LAYOUT_FILE
+    return set(re.findall(r'"(/plots\.[\w.]+)"', LAYOUT_FILE.read_text()))
+
+
+@pytest.mark.slow
+def test_clients_of_both_subprotocols_decode_every_channel_on_simulated_time_in_a_60_s_realtime_run(
+        tmp_path, js_client):
+    """Foxglove's own client library (@foxglove/ws-protocol 0.8.0 on Node, its default subprotocol
+    foxglove.websocket.v1) and ours (foxglove.sdk.v1) watch one live view through a 60 s realtime
+    flight at 2x: both get the three channels and the same messages, decode every one with 0
+    failures, and the log times never go backwards within a channel; they are simulated time on the
+    run's start (60 s of them in ~30 s of wall-clock time), as is the server's clock."""
+    pytest.importorskip('websockets')
+    pytest.importorskip('foxglove')
+    from snn_tools.demo import run_pipeline
+    port = free_port()
+    node = subprocess.Popen(['node', str(js_client), '--url', f'ws://127.0.0.1:{port}', '--seconds', '240'],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    ours = FoxgloveClient(port, seconds=240.0, subprotocol='foxglove.sdk.v1')
+    ours.start()
+    before_ns = time.time_ns()
+    try:
+        run_pipeline(tmp_path / 'run', mode='realtime', real_time_factor=2.0, duration=60.0, live_view=True,
+                     extra={'live_view': {'port': port}})
+        out, err = node.communicate(timeout=60)
+    finally:
+        node.kill()
+    after_ns = time.time_ns()
+    ours.join(30.0)
+    assert node.returncode == 0, err
+    summary = json.loads(out)
+    # Foxglove's client, on the subprotocol it offers by default
+    assert summary['subprotocol_offered'] == summary['subprotocol'] == 'foxglove.websocket.v1'
+    assert summary['errors'] == [] and 'time' in summary['server']['capabilities']
+    topics = summary['topics']
+    assert set(topics) == {'/scene', '/plots', '/spike_raster'}
+    for name, topic in topics.items():
+        assert topic['decode_failures'] == 0, (name, topic['first_failure'])
+        assert topic['log_time_backwards'] == 0, name
+        assert topic['messages'] >= (20 if name == '/spike_raster' else 100), name
+    assert {'target', 'keep_out', 'corridor', 'chaser_true', 'chaser_estimate', 'covariance', 'thrust',
+            'trail_true', 'trail_estimate'} <= set(summary['scene']['entity_ids'])
+    assert summary['scene']['frame_ids'] == ['lvlh']
+    plots = summary['plots']
+    assert layout_plot_paths() <= set(plots['paths']), layout_plot_paths() - set(plots['paths'])
+    assert plots['time_backwards'] == 0 and plots['time_first'] < 5.0 and plots['time_last'] > 58.0
+    assert plots['range_true_last'] < plots['range_true_first']
+    assert summary['raster']['encodings'] == ['mono8'] and summary['raster']['bad_data_length'] == 0
+    # the server's clock (what a viewer's timeline follows): never back
+    assert summary['time']['backwards'] == 0 and summary['time']['messages'] >= 100
+
+    # ours, on foxglove.sdk.v1: the same channels, every message decoded, the same bytes
+    assert ours.error is None and ours.subprotocol == 'foxglove.sdk.v1'
+    channels = {c['topic']: c for c in ours.channels.values()}
+    assert {t: (c['encoding'], c['schemaName']) for t, c in channels.items()} == {
+        t: (c['encoding'], c['schemaName']) for t, c in topics.items()}
+    decoders = {'/scene': protobuf_class(channels['/scene']).FromString, '/plots': json.loads,
+                '/spike_raster': protobuf_class(channels['/spike_raster']).FromString}
+    for name, messages in ours.messages.items():
+        log_times = [log_time for log_time, _ in messages]
+        assert all(b >= a for a, b in zip(log_times, log_times[1:])), name
+        for _, payload in messages:
+            decoders[name](payload)  # raises on a message that does not decode
+        digests = {str(t): hashlib.sha1(payload).hexdigest()[:16] for t, payload in messages}
+        theirs = topics[name]['digests']
+        common = digests.keys() & theirs.keys()
+        assert len(common) >= 0.9 * min(len(digests), len(theirs)), name
+        assert all(digests[t] == theirs[t] for t in common), name
+
+    # log time = the run's start + simulated time: 60 simulated s in ~30 wall-clock s
+    records = [json.loads(payload) for _, payload in ours.messages['/plots']]
+    epoch = epoch_of(records[0])
+    assert all(abs(epoch_of(r) - epoch) <= 1000 for r in records)  # one epoch (float s of `time`: < 1 us)
+    assert before_ns - 1e9 <= epoch <= before_ns + 20e9  # the run's start, not 1970
+    first, last = (int(topics['/scene'][key]) - epoch for key in ('first_log_time_ns', 'last_log_time_ns'))
+    assert first < 5e9 and 59e9 < last <= 60.2e9 and after_ns > before_ns
+    received = ours.received_at['/scene']
+    assert (last - first) * 1e-9 > 1.5 * (received[1] - received[0])  # received in ~half that (2x)
