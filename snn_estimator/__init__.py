@@ -1,7 +1,7 @@
 """snn_estimator: the ROS-free core of snn_rendezvous.
 
 Models (Clohessy-Wiltshire, Van der Pol), the EKF / EMSIF filters and their spiking-network
-implementations (SNN-EKF, SNN-EMSIF, SNN-EMSIF*, and the hybrids for partial measurements),
+implementations (SNN-EKF, SNN-EMSIF, SNN-EMSIF*, and the weighted EMSIF for partial measurements),
 LQR design, the offline closed loop and the runner that feeds a filter from a message stream.
 Nothing here imports rclpy or matplotlib.
 

@@ -40,8 +40,7 @@ FILTER_KINDS = _filter_kinds()
 TWIN_OF = {kind: spec.twin for kind, spec in FILTER_KINDS.items() if spec.twin}
 #: Kinds whose every run converges from a dispersed start on the rendezvous (final range below
 #: 0.1 m); the literal (S)EMSIF/ESIF gains have zero velocity rows with position-only
-#: measurements and do not, and the hybrid corrects the velocity too slowly
-#: (results/rendezvous_dispersed.json).
+#: measurements and do not (results/rendezvous_dispersed.json).
 CONVERGES_FROM_DISPERSION = ('ekf', 'emsif_weighted', 'snn_ekf', 'snn_emsif_weighted')
 #: The spiking filter the estimator node runs unless told otherwise: the one that converges from
 #: a dispersed start in the Monte Carlo of results/rendezvous_dispersed.json (docs/decisions.md, 17).

@@ -20,8 +20,8 @@ from snn_estimator.filters.estimators import FILTER_KINDS  # noqa: E402
 
 UNITS = {'x': 'm', 'y': 'm', 'z': 'm', 'vx': 'm/s', 'vy': 'm/s', 'vz': 'm/s', 'x1': '-', 'x2': '-'}
 COLOURS = {'ekf': 'tab:blue', 'emsif': 'tab:green', 'esif': 'tab:olive', 'snn_ekf': 'tab:orange',
-           'snn_emsif': 'tab:red', 'snn_emsif_star': 'tab:purple', 'emsif_hybrid': 'tab:cyan',
-           'snn_emsif_hybrid': 'tab:pink', 'emsif_weighted': 'tab:brown', 'snn_emsif_weighted': 'tab:gray'}
+           'snn_emsif': 'tab:red', 'snn_emsif_star': 'tab:purple', 'emsif_weighted': 'tab:brown',
+           'snn_emsif_weighted': 'tab:gray'}
 
 
 @dataclass

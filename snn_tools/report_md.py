@@ -69,8 +69,8 @@ SECTION_NOTES = {
         "draws x_hat0 ~ N(x0, P0) with the P0 the filters assume (1e-2 m^2, 1e-4 (m/s)^2 per axis; "
         "docs/decisions.md). The EMSIF gain (Eq. 8, 21-22) is C^+ times a diagonal saturation: it has "
         "no velocity rows, so an initial velocity error is never measured away and the controller "
-        "flies it. EMSIF-hybrid and EMSIF-weighted are this package's remedies (docs/decisions.md, "
-        "Decision 16); the NEES column says whether the "
+        "flies it. EMSIF-weighted is this package's remedy (docs/decisions.md, "
+        "Decision 16; the hybrid it once had beside it is retired); the NEES column says whether the "
         "covariance each filter publishes (and the +-3 sigma bounds the demo draws) can be trusted."),
     'rendezvous_plants': (
         "The filters and the controller keep the CW model; the truth is Basilisk (two-body gravity, "

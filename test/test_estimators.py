@@ -566,7 +566,7 @@ def test_van_der_pol_network_integrates_the_drive_it_is_set_to(drive):
 
 
 @pytest.mark.parametrize('units', ['spectral_density', 'per_sample'])
-@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_hybrid', 'emsif_weighted'])
+@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_weighted'])
 @pytest.mark.parametrize('schedule', ['time_varying', 'steady_state'])
 def test_compiled_direct_filters_equal_the_written_out_equations(kind, units, schedule):
     from snn_estimator.filters.reference import DenseFilter
@@ -663,19 +663,6 @@ def test_the_weighted_msif_gain_keeps_the_sliding_rows_and_corrects_the_velocity
     assert np.all(literal.gain[3:] == 0.0)  # Eq. 8 with C^+ never corrects a velocity
 
 
-def test_the_hybrid_gain_is_msif_on_the_measured_rows_and_kalman_on_the_others():
-    scenario, zs, us = rendezvous_inputs(steps=3)
-    hybrid = make_estimator('emsif_hybrid', scenario.estimator)
-    p = hybrid.P.copy()
-    hybrid.step(zs[0], us[0], 0.1)
-    c, s = hybrid.model.measurement_matrix, hybrid.settings
-    sat = np.minimum(np.diag(c @ p @ c.T + s.r_hat) / s.boundary_layer, 1.0)
-    np.testing.assert_allclose(hybrid.gain[:3], np.diag(sat), rtol=1e-12)
-    phi, _ = van_loan(hybrid.model.system_matrix(hybrid.model.mean_motion), s.q_hat, 0.1)
-    kalman = phi @ p @ c.T @ np.linalg.inv(c @ p @ c.T + s.r_hat / 0.1) / 0.1
-    np.testing.assert_allclose(hybrid.gain[3:], kalman[3:], rtol=1e-10)
-
-
 def test_the_gain_covariance_is_that_of_the_gain_used_and_equals_eq_6_for_the_kalman_gain():
     """P' = (Phi - dt K C) P (Phi - dt K C)^T + dt^2 K R_d K^T + Q_d, the covariance of the gain
     used; with the Kalman gain of the step it is the Kalman step (Eq. 6 sampled, Decision 43)."""
@@ -693,7 +680,7 @@ def test_the_gain_covariance_is_that_of_the_gain_used_and_equals_eq_6_for_the_ka
                                rtol=1e-10)
 
 
-@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_hybrid', 'emsif_weighted'])
+@pytest.mark.parametrize('kind', ['ekf', 'emsif', 'esif', 'emsif_weighted'])
 @pytest.mark.parametrize('process_noise_scale', [0.9, 1e3])
 def test_the_steady_state_gain_equals_the_written_out_fixed_point_of_eq_6(kind, process_noise_scale):
     """steady_state_gain (scipy's Schur DARE solver, the SIF's closed-form mean saturation)
@@ -857,7 +844,7 @@ def _snapshot_cases():
         pytest.param('snn_emsif', config.replace(gain_schedule='steady_state', precision='loihi'), {}, id='chip'),
         pytest.param('snn_ekf', config, {'lidar': True}, id='snn_ekf-lidar'),
         pytest.param('ekf', config, {'lidar': True}, id='ekf-lidar'),
-        pytest.param('snn_emsif_hybrid', config, {'runs': 3}, id='three_runs')]
+        pytest.param('snn_emsif_weighted', config, {'runs': 3}, id='three_runs')]
 
 
 @pytest.mark.parametrize('kind, config, options', _snapshot_cases())

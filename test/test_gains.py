@@ -19,7 +19,7 @@ def test_every_law_module_has_the_whole_interface_and_every_kind_names_a_law():
         assert all(hasattr(module, item) for item in INTERFACE), name
         assert module.BASE is None or module.BASE in LAWS
     assert {spec.gain for spec in FILTER_KINDS.values()} <= set(LAWS)
-    assert {'kalman', 'msif', 'sif', 'msif_hybrid', 'msif_weighted', 'fixed'} <= set(LAWS)
+    assert {'kalman', 'msif', 'sif', 'msif_weighted', 'fixed'} <= set(LAWS)
     with pytest.raises(ValueError, match='unknown gain law .*kalman'):
         gains.law('luenberger')
 
@@ -81,7 +81,7 @@ def test_the_laws_declare_the_filter_kinds_direct_filters_first_then_their_spiki
     kinds = list(FILTER_KINDS)
     spiking = [FILTER_KINDS[kind].spiking for kind in kinds]
     assert spiking == sorted(spiking) and spiking.count(False) == spiking.count(True)  # direct, then twins
-    today = ['ekf', 'emsif', 'esif', 'emsif_hybrid', 'emsif_weighted']
+    today = ['ekf', 'emsif', 'esif', 'emsif_weighted']
     assert [kind for kind in kinds if kind in today] == today  # in the laws' ORDER (a new law may join)
     for kind, spec in FILTER_KINDS.items():
         law = gains.law(spec.gain)

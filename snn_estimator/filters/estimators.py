@@ -9,10 +9,9 @@ Gain laws (one module each in snn_estimator.gains):
 {laws}
 
 With C = [I 0] (positions measured) the MSIF/SIF gain C^+ sat(.) has zero velocity rows: the
-literal (S)EMSIF never corrects a velocity error (docs/decisions.md, 16). The hybrid keeps the
-sliding gain on the measured directions and adds the Kalman gain projected on the unmeasured
-ones, (I - C^+ C) P C^T R^-1, with P the covariance of the gain actually used; the weighted
-law replaces C^+ by the covariance-weighted right inverse P C^T (C P C^T)^-1.
+literal (S)EMSIF never corrects a velocity error (docs/decisions.md, 16). The weighted law
+replaces C^+ by the covariance-weighted right inverse P C^T (C P C^T)^-1, with P the covariance
+of the gain actually used.
 
 ``gain_schedule: steady_state`` replaces any gain by its constant value at the fixed point of
 Eq. 6 (see :func:`steady_state_gain`): the network's weights are then constant, which is what

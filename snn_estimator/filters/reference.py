@@ -136,7 +136,7 @@ def written_out_steady_state_gain(source: Estimator, dt: float) -> np.ndarray:
     """The constant gain of ``source``'s law at the fixed point of the sampled step of Eq. 6
     (Decision 28, 43), from the formulas: Kalman Phi P C^T (C P C^T + R_d)^-1 / dt (Eq. 5), MSIF
     C^+ sat(diag(C P C^T + R_hat)/delta) (Eq. 8-9), SIF C^+ E[sat(|nu|/delta)] over
-    nu ~ N(0, C P C^T + R_hat) (Eq. 7), weighted and hybrid."""
+    nu ~ N(0, C P C^T + R_hat) (Eq. 7), and the weighted law."""
     s, model = source.settings, source.model
     n = model.n_state
     c = model.measurement_matrix
@@ -152,9 +152,7 @@ def written_out_steady_state_gain(source: Estimator, dt: float) -> np.ndarray:
     saturation = np.diag(np.minimum(variance / s.boundary_layer, 1.0))
     if source.gain_law == 'msif':
         return c_pinv @ saturation
-    if source.gain_law == 'msif_weighted':
-        return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation
-    return c_pinv @ saturation + (np.eye(n) - c_pinv @ c) @ kalman
+    return p @ c.T @ np.linalg.inv(c @ p @ c.T) @ saturation  # msif_weighted
 
 
 def measurement_terms(source: Estimator, x_hat: np.ndarray, z) -> tuple[np.ndarray, np.ndarray | None]:

@@ -6,8 +6,8 @@ its compiled ``gain`` piece (plain Python loops that snn_estimator.filters.kerne
 kernel per law, covariance law and integration); its ``steady_state`` form (the constant gain
 at the fixed point of Eq. 6); its ``macs`` (what snn_estimator.spiking.costs counts); and its filter
 kinds (``KINDS``: the direct filter and its spiking twin, which snn_estimator.catalog lists).
-A module may build on another law (``BASE``: its piece runs after the base's, e.g. the hybrid
-adds to MSIF).
+A module may build on another law (``BASE``: its piece runs after the base's, e.g. the weighted
+law rescales MSIF's saturations).
 
 Imports: numpy (scipy inside a function) and other law modules only; never numba (the kernels
 compile the pieces), the filters, the models or anything outside the core. A new law is one

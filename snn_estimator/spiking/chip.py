@@ -138,14 +138,14 @@ def quantize(weights: np.ndarray, lsb: float, chip: ChipFormat | None, fractiona
 
 def gain_trajectory(estimator_kind: str, model, config, dt: float, steps: int) -> np.ndarray:
     """K(t_k) of the time-varying filter, (steps, n, m): for a linear model the gains that
-    depend on P only (kalman, msif, msif_weighted, msif_hybrid) follow from P0 alone, whatever
+    depend on P only (kalman, msif, msif_weighted) follow from P0 alone, whatever
     the measurements (run here with zero innovations)."""
     from snn_estimator.filters.estimators import FILTER_KINDS, make_estimator
 
     twin = FILTER_KINDS[estimator_kind].twin or estimator_kind
     if FILTER_KINDS[twin].gain == 'sif':
         raise ValueError('gain_schedule switched needs a gain law computed from P (kalman, msif, '
-                         'msif_weighted, msif_hybrid); the SIF gain of Eq. 7 follows the innovation')
+                         'msif_weighted); the SIF gain of Eq. 7 follows the innovation')
     filt = make_estimator(twin, config.replace(gain_schedule='time_varying', precision='float64',
                                                initial_state_dispersion=False, silenced_neurons=()), model)
     c = model.measurement_matrix
