@@ -415,13 +415,13 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         if z is None:
             z, measured = self._no_measurement, self._none_measured
         else:
-            z = np.asarray(z, dtype=float).reshape(runs, -1)
+            z = np.ascontiguousarray(z, dtype=float).reshape(runs, -1)  # the kernel's types (entry_point)
             measured = self._all_measured
             if valid is not None:
                 measured = np.ascontiguousarray(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (runs,)))
                 if not measured.all():
                     z = np.where(measured[:, None], z, 0.0)
-        u = np.asarray(u, dtype=float).reshape(runs, -1)
+        u = np.ascontiguousarray(u, dtype=float).reshape(runs, -1)
         if z.shape[1] != m or u.shape[1] != self.model.n_input:
             raise ValueError(f'z must have {m} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
@@ -441,7 +441,8 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         return self._advance(z, measured, u, dt)
 
     def _advance(self, z, measured, u, dt: float) -> np.ndarray:
-        """One kernel step of ``dt`` (prepared) with the kernel's z and measured runs."""
+        """One kernel step of ``dt`` (prepared) with the kernel's z and measured runs (z and u
+        C-contiguous float64, (runs, m) and (runs, nu): the entry point's types)."""
         dynamics, drift = self._dynamics(self._x_hat, u, dt)
         noise = self._network.zero_noise
         if self.spiking and self.settings.membrane_noise > 0.0:
@@ -451,8 +452,7 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
             self.steps += 1
             self.capped_steps = self._chip.capped_steps
             return self.x_hat
-        args = (self._packed.ref, measured, float(dt), dynamics, drift, np.ascontiguousarray(z, dtype=float),
-                np.ascontiguousarray(u, dtype=float), noise)
+        args = (self._packed.ref, measured, float(dt), dynamics, drift, z, u, noise)
         if self._step_entry is None:  # the first step: through numba's dispatch, then its entry point
             status, capped = self._packed_kernel(*args)
             self._step_entry = kernels.entry_point(self._packed_kernel, args)

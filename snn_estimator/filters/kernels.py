@@ -199,33 +199,36 @@ def _kalman_terms(b, bd, measured, dt, dynamics, p, c, consts, pct, kalman, scra
                 kalman[i, j] = 0.0
         return
     r_sample, factor, k_d = consts[gains.R_SAMPLE], scratch[4], scratch[11]
-    for i in range(m):  # C P C^T + R_d = L L^T
-        for j in range(i + 1):
+    for j in range(m):  # C P C^T + R_d = L D L^T: L D below the diagonal, 1 / D on it
+        pivot = r_sample[j, j]
+        for k in range(n):
+            pivot += c[j, k] * pct[k, j]
+        for k in range(j):
+            pivot -= factor[j, k] * factor[j, k] * factor[k, k]
+        if not pivot > 0.0:
+            for q in range(n):
+                for r in range(m):
+                    kalman[q, r] = np.nan
+            return
+        factor[j, j] = 1.0 / pivot
+        for i in range(j + 1, m):
             acc = r_sample[i, j]
             for k in range(n):
                 acc += c[i, k] * pct[k, j]
             for k in range(j):
-                acc -= factor[i, k] * factor[j, k]
-            if i == j:
-                if not acc > 0.0:
-                    for q in range(n):
-                        for r in range(m):
-                            kalman[q, r] = np.nan
-                    return
-                factor[i, i] = np.sqrt(acc)
-            else:
-                factor[i, j] = acc / factor[j, j]
-    for i in range(n):  # K_d = P C^T (L L^T)^-1, row by row
+                acc -= factor[i, k] * factor[j, k] * factor[k, k]
+            factor[i, j] = acc
+    for i in range(n):  # K_d = P C^T (L D L^T)^-1, row by row: forward, scale, back
         for j in range(m):
             acc = pct[i, j]
             for k in range(j):
-                acc -= factor[j, k] * k_d[i, k]
-            k_d[i, j] = acc / factor[j, j]
+                acc -= factor[j, k] * factor[k, k] * k_d[i, k]
+            k_d[i, j] = acc
         for j in range(m - 1, -1, -1):
-            acc = k_d[i, j]
+            acc = k_d[i, j] * factor[j, j]
             for k in range(j + 1, m):
-                acc -= factor[k, j] * k_d[i, k]
-            k_d[i, j] = acc / factor[j, j]
+                acc -= factor[k, j] * factor[j, j] * k_d[i, k]
+            k_d[i, j] = acc
     for i in range(n):
         for j in range(m):
             acc = k_d[i, j] / dt
@@ -267,20 +270,22 @@ def _drift_increment(b, bd, dynamics, drift, x_hat, u, gain, nu, increment):
 
 @numba.njit
 def _positive_definite(p, b, factor):
-    """P of run b is symmetric positive definite (its Cholesky factor exists): compiled without
-    fast-math and run on the stored P, as _row_finite."""
+    """P of run b is symmetric positive definite: every pivot of its L D L^T factorisation is
+    positive and finite (Cholesky's test without square roots). Compiled without fast-math and
+    run on the stored P, as _row_finite. ``factor`` holds L D below its diagonal and 1 / D on it."""
     n = p.shape[1]
-    for i in range(n):
-        for j in range(i + 1):
+    for j in range(n):
+        pivot = p[b, j, j]
+        for k in range(j):
+            pivot -= factor[j, k] * factor[j, k] * factor[k, k]
+        if not (pivot > 0.0 and np.isfinite(pivot)):
+            return False
+        factor[j, j] = 1.0 / pivot
+        for i in range(j + 1, n):
             acc = p[b, i, j]
             for k in range(j):
-                acc -= factor[i, k] * factor[j, k]
-            if i == j:
-                if not (acc > 0.0 and np.isfinite(acc)):
-                    return False
-                factor[i, i] = np.sqrt(acc)
-            else:
-                factor[i, j] = acc / factor[j, j]
+                acc -= factor[i, k] * factor[j, k] * factor[k, k]
+            factor[i, j] = acc
     return True
 
 
@@ -303,21 +308,22 @@ def _joseph(b, bd, measured, dt, dynamics, p, rates, consts, scratch):
     c, q_step, r_sample = consts[gains.C], consts[gains.Q_STEP], consts[gains.R_SAMPLE]
     product, closed, weighted = scratch[7], scratch[8], scratch[11]
     n, m = p.shape[1], c.shape[0]
-    for i in range(n):
+    for i in range(n):  # Phi - G C, with G = dt rates
         for k in range(n):
-            acc = dt * dynamics[bd, i, k]
-            if i == k:
-                acc += 1.0
-            if measured:
-                for j in range(m):
-                    acc -= dt * rates[i, j] * c[j, k]
-            closed[i, k] = acc
-    for i in range(n):
+            closed[i, k] = dt * dynamics[bd, i, k]
+        closed[i, i] += 1.0
+        if measured:
+            for j in range(m):
+                weight = dt * rates[i, j]
+                for k in range(n):
+                    closed[i, k] -= weight * c[j, k]
+    for i in range(n):  # (Phi - G C) P, row by row so the inner loop is contiguous
         for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += closed[i, k] * p[b, k, j]
-            product[i, j] = acc
+            product[i, j] = 0.0
+        for k in range(n):
+            weight = closed[i, k]
+            for j in range(n):
+                product[i, j] += weight * p[b, k, j]
     if measured:
         for i in range(n):
             for j in range(m):
