@@ -8,14 +8,15 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from snn_estimator import simulate  # noqa: E402
+from snn_estimator import make_estimator, simulate  # noqa: E402
 from snn_estimator.offline.simulation import sensor_rendezvous_scenario  # noqa: E402
 from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
 from snn_tools.demo import run_pipeline  # noqa: E402
 
 pytestmark = pytest.mark.slow
-#: The default estimator and the robust one the issue names.
-KINDS = ('snn_ekf', 'snn_emsif_weighted')
+#: The default estimator and the robust one the issue names (22), and the EKF that filterpy's
+#: checks (36).
+KINDS = ('snn_ekf', 'snn_emsif_weighted', 'ekf')
 
 
 @pytest.fixture(scope='module')
@@ -64,6 +65,38 @@ def test_below_its_minimum_range_the_lidar_says_nothing_measured_and_the_filter_
     assert int(estimator['not_measured']) == empty.sum()
     assert int(estimator['dropout_steps']) >= empty.sum() - 1  # the last one needs no step
     assert int(estimator['measurements_used']) == (~empty).sum()
+
+
+def test_the_ekf_over_ros_is_filterpys_discrete_ekf_fed_the_bag(lidar_runs):
+    """issue 36: filterpy's ExtendedKalmanFilter (update, then predict), given the LIDAR model's
+    h, H and wrapped residual, CW's Phi and Gamma, the sampled step's Q_d (Van Loan) and R_d =
+    R_hat / dt (R_hat a density, Eq. 5-6; docs/decisions.md, 43) and the estimator's start, fed
+    the bag's measurements ("nothing measured": predict only) and controls, gives the estimator's
+    estimates to 1e-6 m and its position RMSE against the bag's truth within 2 %."""
+    from filterpy.kalman import ExtendedKalmanFilter
+    data, _ = lidar_runs['ekf']
+    scenario = sensor_rendezvous_scenario(initial_state_dispersion=True)
+    model, sensor, dt = scenario.model, scenario.sensor, scenario.dt
+    start = make_estimator('ekf', scenario.estimator, model, measurement=sensor)  # the node's x_hat0 and P0
+    ekf = ExtendedKalmanFilter(dim_x=6, dim_z=3, dim_u=3)
+    ekf.x, ekf.P = start.x_hat.copy(), start.P.copy()
+    ekf.F, ekf.B = model.discrete_matrices(dt)
+    ekf.Q = model.process_noise_discrete(start.settings.q_hat, dt)
+    ekf.R = start.settings.r_hat / dt
+    for stamps in (data.control_t, data.measurement_t, data.truth_t):  # a sample per stamp from 0 on
+        np.testing.assert_array_equal(np.round(stamps[:3601] / dt), np.arange(3601))
+    theirs = []
+    for z, u in zip(data.measurement[:3600], data.control[:3600]):
+        if np.isfinite(z).all():
+            ekf.update(z, sensor.jacobian, sensor.h, residual=sensor.residual)
+        ekf.predict(u=u)
+        theirs.append(ekf.x.copy())
+    ours, theirs, truth = data.estimate[1:3601], np.array(theirs), data.truth[1:3601]
+    np.testing.assert_allclose(ours[:, :3], theirs[:, :3], rtol=0, atol=1e-6)
+
+    def rmse(estimates):
+        return np.sqrt(np.mean((estimates[:, :3] - truth[:, :3]) ** 2))
+    assert rmse(ours) == pytest.approx(rmse(theirs), rel=0.02)
 
 
 @pytest.fixture(scope='module')
