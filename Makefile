@@ -34,7 +34,7 @@ ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 venv: $(STAMP)
 
-$(STAMP): setup.py pyproject.toml
+$(STAMP): setup.py pyproject.toml scenario_nodes/registry.py
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade "pip>=23"
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
@@ -42,7 +42,7 @@ $(STAMP): setup.py pyproject.toml
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
 	# compile the spiking, Basilisk-step and closed-loop kernels once, into numba's cache: no node or
 	# Monte Carlo compiles at start-up
-	$(BIN)/python -m snn_tools.warm_cache
+	$(BIN)/python -m snn_tools.run.warm_cache
 	touch $(STAMP)
 
 lint: $(STAMP)
@@ -75,8 +75,8 @@ neuromorphic: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/snn_bench --out results/bench.json
-	$(BIN)/python -m snn_tools.codec_bench --out results/codec_bench.json
-	$(BIN)/python -m snn_tools.measurement_bench --out results/measurement_bench.json
+	$(BIN)/python -m snn_tools.bench.codec --out results/codec_bench.json
+	$(BIN)/python -m snn_tools.bench.measurement --out results/measurement_bench.json
 
 # RUNS means Monte-Carlo runs (default: each spec's) for experiments; the loop bench takes 5 unless given
 bench-loop: $(STAMP)
@@ -92,11 +92,11 @@ bench-latency: $(STAMP)
 
 # every spiking kind under each network coding and unit, dispersed rendezvous, against its twin
 spike-budget: $(STAMP)
-	$(BIN)/python -m snn_tools.spike_budget $(if $(RUNS),--runs $(RUNS)) --out results/spike_budget.json
+	$(BIN)/python -m snn_tools.experiments.spike_budget $(if $(RUNS),--runs $(RUNS)) --out results/spike_budget.json
 
 # the LIDAR close approach (dispersed) and angles-only navigation, offline (docs/sensors.md)
 sensors: $(STAMP)
-	$(BIN)/python -m snn_tools.sensor_results $(if $(RUNS),--runs $(RUNS)) --out results
+	$(BIN)/python -m snn_tools.experiments.sensors $(if $(RUNS),--runs $(RUNS)) --out results
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json
@@ -104,7 +104,7 @@ bench-campaign: $(STAMP)
 # the lockstep loop with and without the live view (and a Foxglove client of each subprotocol), interleaved
 # pairs; then bytes/s per channel in realtime runs at the default raster settings and two others
 bench-live: $(STAMP)
-	$(BIN)/python -m snn_tools.live_bench --pairs $(if $(RUNS),$(RUNS),8) --out results/live_view_bench.json
+	$(BIN)/python -m snn_tools.bench.live --pairs $(if $(RUNS),$(RUNS),8) --out results/live_view_bench.json
 
 # the README's pictures: the interactive page of a small campaign in headless Chromium, and what a
 # Foxglove client receives from the live view during a realtime demo (drawn with matplotlib)
@@ -113,7 +113,7 @@ docs-screenshots: $(STAMP)
 	chromium --headless --no-sandbox --disable-gpu --hide-scrollbars --user-data-dir=runs/.chromium \
 		--window-size=1100,1700 --virtual-time-budget=10000 --screenshot=docs/campaign_page.png \
 		runs/campaign_page_example/campaign.html
-	$(BIN)/python -m snn_tools.live_snapshot --out docs/live_view.png
+	$(BIN)/python -m snn_tools.live.snapshot --out docs/live_view.png
 
 report: $(STAMP)
 	@test -n "$(RUN)" || (echo "usage: make report RUN=runs/<name>" && exit 2)
@@ -121,7 +121,7 @@ report: $(STAMP)
 
 # ten realtime x10 runs of 480 s (~12 min on an idle 2-core machine)
 faults: $(STAMP)
-	$(BIN)/python -m snn_tools.faults --out results/faults.json $(if $(CELLS),--cells $(CELLS))
+	$(BIN)/python -m snn_tools.experiments.faults --out results/faults.json $(if $(CELLS),--cells $(CELLS))
 
 clean:
 	rm -rf build install log *.egg-info

@@ -7,7 +7,7 @@ directly and only Basilisk's core modules are imported; caches go to ``cache_dir
 
 from __future__ import annotations
 
-from snn_estimator.offline.basilisk_truth import BasiliskPlant
+from snn_estimator.plant.basilisk_truth import BasiliskPlant
 
 from .parameters import BASILISK_PLANT, orbit_settings
 from .plant_node import PlantNode
@@ -15,7 +15,7 @@ from .runtime import run_node
 
 
 class BasiliskPlantNode(PlantNode):
-    """Wraps :class:`snn_estimator.offline.basilisk_truth.BasiliskPlant` (a clipped thrust command is
+    """Wraps :class:`snn_estimator.plant.basilisk_truth.BasiliskPlant` (a clipped thrust command is
     counted in ``saturated_steps`` and logged)."""
 
     NAME, SPECS = 'basilisk_plant', BASILISK_PLANT

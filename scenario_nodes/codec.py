@@ -40,7 +40,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from snn_estimator.loop.gates import NS, seconds_to_ns  # noqa: F401 (re-exported: one time helper)
+from snn_estimator.runners.gates import NS, seconds_to_ns  # noqa: F401 (re-exported: one time helper)
 
 #: Representation identifier of little-endian plain CDR (bytes 0-1 of the encapsulation header).
 CDR_LE_ID = b'\x00\x01'

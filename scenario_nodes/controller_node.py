@@ -17,9 +17,9 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from snn_estimator.loop.gates import NewestFirst
-from snn_estimator.loop.peers import OK, PeerWatch
-from snn_estimator.offline.blocks import lqr_control, lqr_gain
+from snn_estimator.plant.control import lqr_control, lqr_gain
+from snn_estimator.runners.gates import NewestFirst
+from snn_estimator.runners.peers import OK, PeerWatch
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
@@ -49,7 +49,7 @@ def design_gain(values: dict) -> np.ndarray:
 
 
 class ControllerNode(ProcessHooks, Node):
-    """Wraps :func:`snn_estimator.offline.blocks.lqr_control`."""
+    """Wraps :func:`snn_estimator.plant.control.lqr_control`."""
 
     def __init__(self, **kwargs):
         super().__init__('lqr_controller', **kwargs)

@@ -43,7 +43,7 @@ class DiagnosticsPublisher:
     def __init__(self, node, name: str, period: float, events: qos.QosEvents, lifecycle: bool = False,
                  peers=None):
         self._node = node
-        self.peers = peers  # a snn_estimator.loop.peers.PeerWatch: its levels go into every status
+        self.peers = peers  # a snn_estimator.runners.peers.PeerWatch: its levels go into every status
         self._name = name
         self._events = events
         self._period_ns = int(round(period * 1e9))

@@ -2,16 +2,16 @@
 
 configure: validate the parameters, build the filter (network and compiled kernels), read what
 the topics' publishers keep (an earlier estimator's newest estimate, the sensor's measurements,
-the controller's controls) and start from it (snn_estimator.loop.runner: hot swap, least-squares
+the controller's controls) and start from it (snn_estimator.runners.filter_runner: hot swap, least-squares
 restart, or the parameters at the first measurement); from then on the filter runs on every
 input. activate: publish the estimates. deactivate: stop publishing, keep running (warm).
 cleanup/shutdown: release everything. With ``autostart`` (default) the node configures and
 activates itself; with ``standby`` it stays inactive until every other estimator on `estimate`
 is gone (liveliness), then activates itself (hot standby). Exactly one is active: the
 `estimate` publisher exists only while active (the plant starts only once there is one), and
-an active estimator that sees another one alive yields by name (snn_estimator.loop.runner.Standby).
+an active estimator that sees another one alive yields by name (snn_estimator.runners.filter_runner.Standby).
 
-Timing (snn_estimator.loop.runner): the estimate x_hat_k stamped t_k is published; the controller
+Timing (snn_estimator.runners.filter_runner): the estimate x_hat_k stamped t_k is published; the controller
 answers with u_k; when z_k and u_k are both here the filter steps and x_hat_{k+1} is published
 stamped t_k + time_step. Once the plant reports the controls it applied, that step is
 provisional until the report of step k comes; a report that differs from u_k takes the step
@@ -32,8 +32,8 @@ from std_msgs.msg import UInt32, UInt32MultiArray
 from std_srvs.srv import Trigger
 
 from snn_estimator import make_estimator
-from snn_estimator.loop.peers import PeerWatch
-from snn_estimator.loop.runner import FilterRunner, RunnerSettings, Standby
+from snn_estimator.runners.filter_runner import FilterRunner, RunnerSettings, Standby
+from snn_estimator.runners.peers import PeerWatch
 from snn_estimator.schema import config_values
 from snn_estimator.spiking.costs import CostModel, energy_pj
 
@@ -372,7 +372,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
             self._inputs.subscribe_measurements()
         self._watchdog = self.create_timer(0.05, self._on_watchdog, clock=Clock(clock_type=ClockType.STEADY_TIME))
         # who else publishes estimates, by their liveliness (a standby waits for them to go, an
-        # active estimator yields to another by the rule of snn_estimator.loop.runner.Standby)
+        # active estimator yields to another by the rule of snn_estimator.runners.filter_runner.Standby)
         self._standby, self._standing_by = Standby(), bool(p['standby'])
         self._owned_subscriptions.append(qos.liveliness_monitor(
             self, Odometry, qos.ESTIMATE, p['standby_timeout'], self._on_liveliness))
@@ -500,7 +500,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
             self._publish_diagnostics(stamp_ns)
 
     def _republish(self, stamp_ns: int) -> None:
-        """A corrected estimate (snn_estimator.loop.provisional): the same stamp again."""
+        """A corrected estimate (snn_estimator.runners.provisional): the same stamp again."""
         self._out.publish(self._runner.estimator, stamp_ns, self._active, corrected=True)
 
     def values(self) -> dict:

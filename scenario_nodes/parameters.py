@@ -24,7 +24,7 @@ from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMI
 from snn_estimator.config import EstimatorConfig, sensor_boundary_layer, silenced_neurons
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
-from snn_estimator.offline.blocks import FUSED_SEED_OFFSET
+from snn_estimator.plant.sensors import FUSED_SEED_OFFSET
 
 from . import registry
 from .topics import MEASUREMENT, PIPELINE_TOPICS
@@ -513,7 +513,7 @@ def orbit_settings(values: dict):
     """The Basilisk target orbit the basilisk_plant parameters describe (angles in deg)."""
     import math
 
-    from snn_estimator.offline.basilisk_truth import OrbitSettings
+    from snn_estimator.plant.basilisk_truth import OrbitSettings
     return OrbitSettings(
         semi_major_axis=values['orbit_radius'], eccentricity=values['eccentricity'],
         inclination=math.radians(values['inclination']), raan=math.radians(values['raan']),

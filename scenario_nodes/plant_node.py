@@ -4,7 +4,7 @@ Start: with ``wait_for_loop`` the scenario (x0, the clock) starts only once the 
 'truth' matched by ``min_truth_subscribers`` subscriptions and 'measurement', 'estimate' and
 'control' each with a publisher and a subscription, then ``start_delay`` wall seconds. It says
 what it waits for. When and with which control it steps (lockstep, realtime, resend, timeouts)
-is decided by :class:`snn_estimator.loop.plant_runner.PlantRunner`; this node converts, runs the
+is decided by :class:`snn_estimator.runners.plant_runner.PlantRunner`; this node converts, runs the
 timers and publishes.
 """
 
@@ -17,12 +17,20 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMessage
 
-from snn_estimator.loop.peers import PeerWatch
-from snn_estimator.loop.plant_runner import PlantRunner, PlantSettings, StartGate
-from snn_estimator.offline.blocks import Plant
+from snn_estimator.plant.truth import Plant
+from snn_estimator.runners.peers import PeerWatch
+from snn_estimator.runners.plant_runner import PlantRunner, PlantSettings, StartGate
 
 from . import qos
-from .codec import MessageError, check_frame, control_of, decode_accel, encode_accel, encode_clock, encode_odometry
+from .codec import (
+    MessageError,
+    check_frame,
+    control_of,
+    decode_accel,
+    encode_accel,
+    encode_clock,
+    encode_odometry,
+)
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameters import PLANT, cw_model, declare
 from .runtime import ProcessHooks, ThrottledLog, run_node
@@ -64,7 +72,7 @@ def loop_missing(node, truth_subscribers: int, min_truth_subscribers: int, whole
 
 
 class PlantNode(ProcessHooks, Node):
-    """Wraps :class:`snn_estimator.offline.blocks.Plant` in a :class:`PlantRunner`; holds no dynamics
+    """Wraps :class:`snn_estimator.plant.truth.Plant` in a :class:`PlantRunner`; holds no dynamics
     and no stepping logic of its own."""
 
     NAME, SPECS = 'cw_plant', PLANT

@@ -1,7 +1,7 @@
 """The package's executables, listed once: every node (name, module, parameter table, place in
 the start order) and the tools. setup.py (console scripts), scenario_nodes.parameters (which
 table each node section of the YAML files and docs/parameters.md holds), the launch file,
-snn_tools.demo and the ros2-run wrappers in wrappers/ (test_packaging keeps them in step) all
+snn_tools.run.demo and the ros2-run wrappers in wrappers/ (test_packaging keeps them in step) all
 read this. A new node is its file plus one entry here.
 
 Standard library only: setup.py reads this file before anything is installed.
@@ -34,16 +34,16 @@ NODES = (
 
 #: Console scripts that are not nodes: name -> module:function.
 TOOLS = {
-    'report': 'snn_tools.report:main',
-    'snn_demo': 'snn_tools.demo:main',
-    'snn_experiments': 'snn_tools.experiments:main',
-    'snn_bench': 'snn_tools.bench:main',
-    'snn_loop_bench': 'snn_tools.loop_bench:main',
-    'snn_latency_bench': 'snn_tools.latency_bench:main',
-    'snn_export': 'snn_tools.nir_export:main',
-    'snn_neuromorphic': 'snn_tools.neuromorphic:main',
-    'snn_campaign': 'snn_tools.campaign:main',
-    'snn_campaign_bench': 'snn_tools.campaign_bench:main',
+    'report': 'snn_tools.bags.report:main',
+    'snn_demo': 'snn_tools.run.demo:main',
+    'snn_experiments': 'snn_tools.experiments.tables:main',
+    'snn_bench': 'snn_tools.bench.steps:main',
+    'snn_loop_bench': 'snn_tools.bench.loop:main',
+    'snn_latency_bench': 'snn_tools.bench.latency:main',
+    'snn_export': 'snn_tools.neuromorphic.nir_export:main',
+    'snn_neuromorphic': 'snn_tools.neuromorphic.tables:main',
+    'snn_campaign': 'snn_tools.campaign.run:main',
+    'snn_campaign_bench': 'snn_tools.bench.campaign:main',
 }
 
 #: The truth plants: choice -> node name.

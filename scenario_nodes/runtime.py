@@ -251,7 +251,7 @@ def hold_cpu_wake_latency(microseconds: int, device: str | None = None) -> str |
 
 
 def tune_process(nodes) -> None:
-    """Real-time and measurement switches (snn_tools.latency_bench), off unless set:
+    """Real-time and measurement switches (snn_tools.bench.latency), off unless set:
     ``SNN_CPU_WAKE_LATENCY_US=<us>`` holds the kernel's CPU latency request at that many
     microseconds (:func:`hold_cpu_wake_latency`; 0 keeps idle CPUs polling);
     the garbage collector (``SNN_GC``): by default (``freeze_startup``) every object made while

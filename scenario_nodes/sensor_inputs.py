@@ -3,7 +3,7 @@
 Each sensor has its topic, model, R, geometry, boundary layer and Mahalanobis gate
 (<name>.* parameters, parameters.SENSOR_INPUT). Their samples are one stacked measurement
 (snn_estimator.measurements.stacked), assembled per stamp by
-:class:`snn_estimator.loop.assembly.SampleAssembler` and gated per sensor before the runner
+:class:`snn_estimator.runners.assembly.SampleAssembler` and gated per sensor before the runner
 takes them.
 """
 
@@ -15,8 +15,8 @@ from functools import partial
 
 import numpy as np
 
-from snn_estimator.loop.assembly import SampleAssembler, gate
 from snn_estimator.measurements.stacked import Stacked
+from snn_estimator.runners.assembly import SampleAssembler, gate
 
 from . import qos
 from .codec import MessageError, read_measurement

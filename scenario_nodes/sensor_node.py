@@ -11,10 +11,10 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
-from snn_estimator.loop.gates import NewestFirst
-from snn_estimator.loop.peers import PeerWatch
 from snn_estimator.measurements import REASONS, VALID
-from snn_estimator.offline.blocks import MeasurementSensor, SamplePeriod
+from snn_estimator.plant.sensors import MeasurementSensor, SamplePeriod
+from snn_estimator.runners.gates import NewestFirst
+from snn_estimator.runners.peers import PeerWatch
 
 from . import qos
 from .codec import MessageError, encode_measurement, encode_no_measurement, read_input
@@ -31,7 +31,7 @@ SAYS_NOT_MEASURED = frozenset({'too_close', 'too_far', 'out_of_view', 'singular'
 
 
 class SensorNode(ProcessHooks, Node):
-    """Wraps :class:`snn_estimator.offline.blocks.MeasurementSensor`: one measurement per truth sample,
+    """Wraps :class:`snn_estimator.plant.sensors.MeasurementSensor`: one measurement per truth sample,
     stamped with the truth's time, in the message of the model (position: PointStamped with NaN
     on the axes it does not measure, PositionSensor's numbers). A sample outside the field of
     view or the range limits is published as "nothing measured" (publish_not_measured: REP 117's
@@ -158,7 +158,7 @@ class SensorNode(ProcessHooks, Node):
         self._period.reset()
 
     def _publish_diagnostics(self, stamp_ns: int) -> None:
-        # what a recorded run is checked against, per sensor (snn_tools.bag_tools.sensor_reports)
+        # what a recorded run is checked against, per sensor (snn_tools.bags.data.sensor_reports)
         values = {'measurements_published': self._published, 'measurements_resent': self._answers.resent,
                   'topic': self._pub.topic.topic_name, 'sample_period': self._p['measurement_period'],
                   'reports_every_truth': self._reports_every_truth, 'samples_unpublished': self._unpublished,

@@ -2,7 +2,7 @@
 
 Models (Clohessy-Wiltshire, Van der Pol), the EKF / EMSIF filters and their spiking-network
 implementations (SNN-EKF, SNN-EMSIF, SNN-EMSIF*, and the weighted EMSIF for partial measurements),
-LQR design, the offline closed loop and the runner that feeds a filter from a message stream.
+LQR design, the simulated closed loop and the runner that feeds a filter from a message stream.
 Nothing here imports rclpy or matplotlib.
 
 Layout (each folder's ``__init__`` says what lives there and what it may import):
@@ -12,7 +12,8 @@ Layout (each folder's ``__init__`` says what lives there and what it may import)
 * ``gains/`` (one module per gain law), ``measurements/`` (one module per sensor model);
 * ``filters/`` (the Estimator, its kernels, the reference forms), ``spiking/`` (networks, the
   chip, the spiking LQR, costs);
-* ``loop/`` (the runners the ROS nodes wrap), ``offline/`` (truth, sensors and simulate()).
+* ``plant/`` (the truth, the sensors and the LQR around the estimator), ``runners/`` (what the
+  ROS nodes wrap: the filter runner, the plant runner), ``sim/`` (scenarios and simulate()).
 
 The names below load on first use (PEP 562), so ``import snn_estimator`` costs nothing and a
 process that needs only the models (a plant node) never compiles the spiking kernels or loads
@@ -26,9 +27,9 @@ _EXPORTS = {
     'FILTER_KINDS': 'catalog', 'TWIN_OF': 'catalog', 'Estimator': 'filters.estimators',
     'make_estimator': 'filters.estimators',
     'ClohessyWiltshire': 'models', 'StateSpaceModel': 'models', 'VanDerPol': 'models',
-    'Plant': 'offline.blocks', 'PositionSensor': 'offline.blocks', 'Scenario': 'offline.simulation',
-    'lqr_control': 'offline.blocks', 'lqr_gain': 'offline.blocks', 'rendezvous_scenario': 'offline.simulation',
-    'simulate': 'offline.simulation', 'van_der_pol_scenario': 'offline.simulation',
+    'Plant': 'plant.truth', 'PositionSensor': 'plant.sensors', 'Scenario': 'sim.scenarios',
+    'lqr_control': 'plant.control', 'lqr_gain': 'plant.control', 'rendezvous_scenario': 'sim.scenarios',
+    'simulate': 'sim.simulate', 'van_der_pol_scenario': 'sim.scenarios',
 }
 
 __all__ = sorted(_EXPORTS)

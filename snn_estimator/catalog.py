@@ -60,8 +60,8 @@ def kinds_table() -> str:
     return '\n'.join([rule, line(head), rule, *map(line, rows), rule])
 
 
-#: Start-up strategies of :meth:`snn_estimator.loop.runner.FilterRunner.start` (``initialization``).
+#: Start-up strategies of :meth:`snn_estimator.runners.filter_runner.FilterRunner.start` (``initialization``).
 START_MODES = ('auto', 'parameters', 'last_estimate', 'history')
 #: How measurement stamps relate to the filter's steps (``measurement_timing``; the rule in
-#: :mod:`snn_estimator.loop.runner`, docs/decisions.md, 31).
+#: :mod:`snn_estimator.runners.filter_runner`, docs/decisions.md, 31).
 MEASUREMENT_TIMINGS = ('grid', 'any')

@@ -21,12 +21,8 @@ from dataclasses import replace
 import numpy as np
 
 from snn_estimator import FILTER_KINDS, make_estimator
-from snn_estimator.offline.simulation import (
-    rendezvous_scenario,
-    sensor_rendezvous_scenario,
-    simulate,
-    van_der_pol_scenario,
-)
+from snn_estimator.sim.scenarios import rendezvous_scenario, sensor_rendezvous_scenario, van_der_pol_scenario
+from snn_estimator.sim.simulate import simulate
 
 SEED, RUNS, EVERY = 7, 2, 25
 #: Membrane noise per step of the robustness check (membrane_noise is per sqrt(s)).

@@ -15,8 +15,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E
 from scenario_nodes.codec import encode_odometry, encode_spikes, encode_uint32  # noqa: E402
 from scenario_nodes.diagnostics import diagnostic_array  # noqa: E402
 from scenario_nodes.recorder_node import KNOWN_TYPES  # noqa: E402
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
-from snn_tools.report import default_output, write_report  # noqa: E402
+from snn_tools.bags.data import read_bag, summarize  # noqa: E402
+from snn_tools.bags.report import default_output, write_report  # noqa: E402
 
 NS = 1_000_000_000
 STEP_NS = NS // 10
@@ -174,7 +174,7 @@ def test_a_corrected_estimate_replaces_the_first_in_the_series_and_the_bag_is_st
 def test_a_series_reads_in_stamp_order_with_the_first_copy_of_each_stamp_and_an_estimates_last():
     """A recorder writes backfilled samples after newer live ones; a resend repeats a stamp; a
     corrected estimate comes after the provisional one under its stamp (the estimator's answer)."""
-    from snn_tools.bag_tools import _one_per_stamp
+    from snn_tools.bags.data import _one_per_stamp
 
     samples = [(3, 'live'), (4, 'live'), (1, 'history'), (3, 'again'), (2, 'history')]
     kept, dropped = _one_per_stamp(samples)
@@ -194,7 +194,7 @@ def test_each_sensor_is_checked_against_its_own_rate_and_a_gap_in_one_is_counted
     within range and saying "nothing measured" at every other truth: three LIDAR reports lost
     (1.2-1.4 s) are a gap of the LIDAR, while its "nothing measured" stamps are not."""
     from scenario_nodes.codec import encode_vector3
-    from snn_tools.demo import sensor_lines
+    from snn_tools.run.demo import sensor_lines
     vector = 'geometry_msgs/msg/Vector3Stamped'
     messages = steps(30)
     for k in range(30):

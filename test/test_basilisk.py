@@ -15,8 +15,8 @@ pytest.importorskip('Basilisk')
 from Basilisk.utilities import orbitalMotion  # noqa: E402
 
 from snn_estimator.models import ClohessyWiltshire  # noqa: E402
-from snn_estimator.offline.basilisk_truth import BasiliskPlant, OrbitSettings, redirect_caches  # noqa: E402
-from snn_estimator.offline.simulation import Plant  # noqa: E402
+from snn_estimator.plant.basilisk_truth import BasiliskPlant, OrbitSettings, redirect_caches  # noqa: E402
+from snn_estimator.plant.truth import Plant  # noqa: E402
 
 PAPER_X0 = np.array([70.0, 30.0, -5.0, -1.7, -0.9, 0.25])
 DT = 0.1
@@ -313,7 +313,7 @@ def run_python(code, home):
 def test_importing_the_package_does_not_import_basilisk(tmp_path):
     out = run_python("""
         import sys
-        import snn_estimator, snn_estimator.offline.basilisk_truth
+        import snn_estimator, snn_estimator.plant.basilisk_truth
         print(sorted(name for name in sys.modules if name.split('.')[0] == 'Basilisk'))
     """, tmp_path)
     assert out.strip() == '[]'
@@ -337,7 +337,7 @@ def test_nothing_is_written_to_the_home_cache_when_a_run_folder_is_given(tmp_pat
     home.mkdir()
     run_python(f"""
         import numpy as np
-        from snn_estimator.offline.basilisk_truth import BasiliskPlant
+        from snn_estimator.plant.basilisk_truth import BasiliskPlant
         plant = BasiliskPlant(np.zeros(6), cache_dir={str(run / 'cache')!r})
         plant.step(np.zeros(3), 0.1)
         from Basilisk.utilities import SimulationBaseClass

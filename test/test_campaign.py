@@ -1,4 +1,4 @@
-"""Monte-Carlo campaigns (snn_tools.campaign): spec checking, the cell runner, resuming, and the
+"""Monte-Carlo campaigns (snn_tools.campaign.run): spec checking, the cell runner, resuming, and the
 same table whatever the cluster. The multi-process tests start their own Dask clusters and
 processes, bound every wait, and kill what they started."""
 
@@ -16,21 +16,12 @@ import pyarrow.parquet as pq
 import pytest
 import yaml
 
-from snn_estimator.offline.simulation import simulate
-from snn_tools import campaign, campaign_cells
-from snn_tools.campaign import (
-    CampaignProgress,
-    CellFailed,
-    SpecError,
-    dask_client,
-    load_spec,
-    main,
-    parse_spec,
-    prepare_directory,
-    run_campaign,
-    validate,
-)
-from snn_tools.campaign_cells import SETTINGS, build_scenario, run_cell
+from snn_estimator.sim.simulate import simulate
+from snn_tools.campaign import cells as campaign_cells
+from snn_tools.campaign import run as campaign
+from snn_tools.campaign.cells import SETTINGS, build_scenario, run_cell
+from snn_tools.campaign.run import CampaignProgress, dask_client, main, run_campaign
+from snn_tools.campaign.spec import CellFailed, SpecError, load_spec, parse_spec, prepare_directory, validate
 
 distributed = pytest.importorskip('distributed')
 
@@ -346,7 +337,7 @@ def external_cluster(folder: Path, workers: int = 2):
 
 
 def _campaign_command(spec_path: Path, out: Path, *where) -> list:
-    return [sys.executable, '-m', 'snn_tools.campaign', '--spec', spec_path, '--out', out, *where]
+    return [sys.executable, '-m', 'snn_tools.campaign.run', '--spec', spec_path, '--out', out, *where]
 
 
 @pytest.fixture(scope='module')

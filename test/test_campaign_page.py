@@ -13,9 +13,9 @@ import pytest
 
 pytest.importorskip('plotly')
 
-from snn_tools.campaign import parse_spec  # noqa: E402
-from snn_tools.campaign_page import TITLE, cell_key, write_page  # noqa: E402
-from snn_tools.campaign_report import write_report  # noqa: E402
+from snn_tools.campaign.page import TITLE, cell_key, write_page  # noqa: E402
+from snn_tools.campaign.report import write_report  # noqa: E402
+from snn_tools.campaign.spec import parse_spec  # noqa: E402
 
 SPEC = {'scenario': 'rendezvous', 'runs': 3, 'filters': ['snn_ekf', 'ekf'],
         'grid': {'leak_rate': [0.001, 0.01], 'neuron_count': [50, 100, 200]},

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from snn_estimator.filters.estimators import make_estimator
-from snn_estimator.offline.simulation import rendezvous_scenario, simulate
+from snn_estimator.filters.gain_schedule import schedule_gains
+from snn_estimator.sim.scenarios import rendezvous_scenario
+from snn_estimator.sim.simulate import simulate
 from snn_estimator.spiking import chip
 
 SCENARIO = rendezvous_scenario()
@@ -115,7 +117,8 @@ def test_the_sif_gain_has_no_schedule():
 def test_schedule_gains_are_the_time_varying_gain_averaged_per_interval():
     settings = make_estimator('snn_ekf', SCENARIO.estimator, SCENARIO.model).settings
     config = SCENARIO.estimator.replace(**SCHEDULE)
-    gains = chip.schedule_gains('snn_ekf', SCENARIO.model, config, settings, 0.1)
+    gains = schedule_gains('snn_ekf', SCENARIO.model, config, settings, 0.1,
+                           lambda kind, twin_config: make_estimator(kind, twin_config, SCENARIO.model))
     # the twin EKF's own gain, stepped here without the module
     ekf = make_estimator('ekf', SCENARIO.estimator, SCENARIO.model)
     trajectory = []
@@ -142,7 +145,9 @@ def test_four_weight_sets_in_loihi_formats_converge_from_the_dispersion_in_every
 
 # ---------------------------------------------------------------- NIR and the independent re-run
 def _closed_loop(estimator, steps):
-    from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+    from snn_estimator.plant.control import lqr_control, lqr_gain
+    from snn_estimator.plant.sensors import PositionSensor
+    from snn_estimator.plant.truth import Plant
     model = SCENARIO.model
     plant = Plant(model, SCENARIO.x0, SCENARIO.process_noise)
     sensor = PositionSensor(model, SCENARIO.measurement_noise)
@@ -164,8 +169,8 @@ def _closed_loop(estimator, steps):
 def test_brian2_from_the_nir_file_matches_the_integer_network(tmp_path):
     nir = pytest.importorskip('nir')
     pytest.importorskip('brian2')
-    from snn_tools.brian2_sim import run_file
-    from snn_tools.nir_export import network_graph
+    from snn_tools.neuromorphic.brian2_sim import run_file
+    from snn_tools.neuromorphic.nir_export import network_graph
 
     estimator = make_estimator('snn_ekf', STEADY.replace(precision='loihi'), SCENARIO.model)
     estimator.prepare(SCENARIO.dt)
@@ -183,7 +188,7 @@ def test_brian2_from_the_nir_file_matches_the_integer_network(tmp_path):
 
 def test_the_schedule_exports_one_nir_graph_per_weight_set(tmp_path):
     nir = pytest.importorskip('nir')
-    from snn_tools.nir_export import export_schedule, network_arrays
+    from snn_tools.neuromorphic.nir_export import export_schedule, network_arrays
 
     estimator = make_estimator('snn_ekf', SCENARIO.estimator.replace(precision='loihi', **SCHEDULE), SCENARIO.model)
     paths = export_schedule(estimator, SCENARIO.dt, tmp_path)

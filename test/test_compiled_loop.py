@@ -1,4 +1,4 @@
-"""The compiled closed loop (snn_estimator.offline.compiled_loop) against simulate's Python loop,
+"""The compiled closed loop (snn_estimator.sim.compiled_loop) against simulate's Python loop,
 which stays the reference: the same numbers for every filter kind, truth and option."""
 
 import dataclasses
@@ -8,8 +8,8 @@ import pytest
 
 from snn_estimator import rendezvous_scenario, simulate
 from snn_estimator.filters.estimators import FILTER_KINDS
-from snn_estimator.offline.blocks import GaussianStream
-from snn_estimator.offline.simulation import angles_only_scenario, far_range_scenario, van_der_pol_scenario
+from snn_estimator.plant.truth import GaussianStream
+from snn_estimator.sim.scenarios import angles_only_scenario, far_range_scenario, van_der_pol_scenario
 
 #: 60 s: the compiled loop's chunks (512 steps) end inside the run
 SHORT = 60.0
@@ -182,7 +182,7 @@ def test_a_run_without_trajectories_holds_memory_for_its_chunk_not_its_duration(
 def test_the_bench_states_the_loop_against_the_filters_own_step():
     """make bench's Monte-Carlo figures (results/bench_monte_carlo.json): CPU us per run-step
     of each engine and of the filter's step alone, and their ratios."""
-    from snn_tools.bench import closed_loop_costs
+    from snn_tools.bench.steps import closed_loop_costs
     costs = closed_loop_costs(short(rendezvous_scenario(initial_state_dispersion=True), 5.0), 'ekf', runs=4, passes=1)
     for name in ('compiled', 'compiled_sums', 'reference', 'filter_step'):
         assert 0 < costs[name] < 1e4, costs
@@ -194,7 +194,7 @@ def test_the_bench_states_the_loop_against_the_filters_own_step():
 def test_the_bench_loop_around_a_filter_doing_nothing_leaves_the_estimate_and_restores_the_filter():
     """The loop's own cost (make bench's 'nothing' column) is the same loop, truth, sensor and
     control around a step that changes nothing; afterwards simulate flies the real filter again."""
-    from snn_tools.bench import filter_doing_nothing
+    from snn_tools.bench.steps import filter_doing_nothing
     scenario = short(rendezvous_scenario(initial_state_dispersion=True), 5.0)
     real = simulate(scenario, 'ekf', runs=2, engine='compiled')
     with filter_doing_nothing():

@@ -20,7 +20,9 @@ from snn_estimator import (
 from snn_estimator.filters import kernels
 from snn_estimator.filters.reference import DenseSpikingFilter
 from snn_estimator.models import VanDerPol
-from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+from snn_estimator.plant.control import lqr_control, lqr_gain
+from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.plant.truth import Plant
 
 SPIKING = [kind for kind, spec in FILTER_KINDS.items() if spec.spiking]
 

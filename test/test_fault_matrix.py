@@ -1,4 +1,4 @@
-"""The fault matrix (snn_tools.faults): cells parsed and tabled; a few representative cells run
+"""The fault matrix (snn_tools.experiments.faults): cells parsed and tabled; a few representative cells run
 for real (slow): each node's outage is reported by its peers and the loop ends close."""
 
 import os
@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from snn_tools.bag_tools import read_bag  # noqa: E402
-from snn_tools.faults import DURATION, all_cells, markdown, parse_cells, run_cell  # noqa: E402
+from snn_tools.bags.data import read_bag  # noqa: E402
+from snn_tools.experiments.faults import DURATION, all_cells, markdown, parse_cells, run_cell  # noqa: E402
 
 META = {'real_time_factor': 10.0, 'duration': DURATION, 'at': 100.0, 'outage': 10.0, 'load_average': 1.0, 'cpus': 2}
 

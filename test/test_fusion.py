@@ -11,8 +11,8 @@ from test_measurements import central_differences
 from snn_estimator import FILTER_KINDS, make_estimator, simulate
 from snn_estimator.measurements import make_model
 from snn_estimator.measurements.stacked import Stacked
-from snn_estimator.offline.blocks import FUSED_SEED_OFFSET, FusedSensor, MeasurementSensor
-from snn_estimator.offline.simulation import handover_scenario, sensor_rendezvous_scenario
+from snn_estimator.plant.sensors import FUSED_SEED_OFFSET, FusedSensor, MeasurementSensor
+from snn_estimator.sim.scenarios import handover_scenario, sensor_rendezvous_scenario
 
 MOUNTING = (0.0, 0.0, 1.0, 0.0)
 LIDAR_NOISE, CAMERA_NOISE = [1e-2, 1e-6, 1e-6], [1e-6, 1e-6]
@@ -120,7 +120,7 @@ def test_the_weighted_inverse_switches_to_the_pseudo_inverse_only_where_c_p_ct_i
 def test_the_assembler_hands_a_stamp_on_once_every_sensor_reported_it():
     """Complete stamps in order, a lost report completed by the next stamp or by the wait, a
     repeat recognised, NaN for a sensor that measured nothing, None when none did."""
-    from snn_estimator.loop.assembly import SampleAssembler
+    from snn_estimator.runners.assembly import SampleAssembler
     camera, lidar = camera_and_lidar()
     stacked = Stacked([camera, lidar])
     wall = [0.0]
@@ -148,7 +148,7 @@ def test_the_assembler_hands_a_stamp_on_once_every_sensor_reported_it():
 
 
 def test_a_sensors_mahalanobis_gate_drops_only_its_own_wild_sample():
-    from snn_estimator.loop.assembly import gate
+    from snn_estimator.runners.assembly import gate
     camera, lidar = camera_and_lidar()
     stacked = Stacked([camera, lidar])
     base = sensor_rendezvous_scenario()

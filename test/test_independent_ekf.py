@@ -5,7 +5,9 @@ import numpy as np
 import scipy.linalg
 from filterpy.kalman import ExtendedKalmanFilter
 
-from snn_estimator.offline.simulation import PositionSensor, simulate, van_der_pol_scenario
+from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.sim.scenarios import van_der_pol_scenario
+from snn_estimator.sim.simulate import simulate
 
 RUNS = 4  # the same seeds feed both filters: agreement is per run, not statistical
 

@@ -17,8 +17,8 @@ pytest.importorskip('rclpy')
 
 from snn_estimator import FILTER_KINDS, rendezvous_scenario, simulate  # noqa: E402
 from snn_estimator.filters.estimators import CONVERGES_FROM_DISPERSION  # noqa: E402
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
-from snn_tools.demo import run_pipeline  # noqa: E402
+from snn_tools.bags.data import read_bag, summarize  # noqa: E402
+from snn_tools.run.demo import run_pipeline  # noqa: E402
 
 pytestmark = pytest.mark.slow
 #: Riccati (EKF), no covariance (the literal ESIF, which never corrects the velocity), the gain's

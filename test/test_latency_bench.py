@@ -8,8 +8,8 @@ import os
 import numpy as np
 import pytest
 
-from snn_tools import latency_bench
-from snn_tools.latency_bench import first_arrivals, match_latencies, percentile, stamp_ns, summary
+from snn_tools.bench import latency as latency_bench
+from snn_tools.bench.latency import first_arrivals, match_latencies, percentile, stamp_ns, summary
 
 
 @pytest.mark.parametrize('values', [
@@ -238,7 +238,7 @@ def test_the_nodes_tuning_switches_freeze_gc_set_the_log_level_and_ignore_a_bad_
 
 def test_snn_demo_passes_the_cpu_wake_latency_to_every_node_and_refuses_a_negative_one(tmp_path, monkeypatch):
     """--cpu-wake-latency-us reaches the nodes through the environment they inherit."""
-    from snn_tools import demo
+    from snn_tools.run import demo
     seen = {}
 
     def run_pipeline(*args, **kwargs):
@@ -257,8 +257,8 @@ def test_snn_demo_passes_the_cpu_wake_latency_to_every_node_and_refuses_a_negati
 def test_the_probe_is_counted_in_every_nodes_hold(tmp_path):
     """The probe subscribes to measurement, estimate and control: each publisher of the loop waits
     for one more subscription (listeners), so the probe cannot stand in for a node of the loop."""
-    from snn_tools.demo import Pipeline, pipeline_env
     from snn_tools.paths import config_file
+    from snn_tools.run.demo import Pipeline, pipeline_env
     counts = {}
     for listeners in (0, 1):
         overrides = {}

@@ -1,6 +1,7 @@
 """Layers that point one way: the core (snn_estimator) imports neither ROS nor matplotlib nor
-the tools, the ROS layer (scenario_nodes) not the tools, no package has an import cycle, and the
-nodes other than the estimator start without loading numba."""
+the tools, the ROS layer (scenario_nodes) not the tools, each floor of the core only the floors
+below it, no import cycle anywhere (every import counts, inside functions too), and the nodes
+other than the estimator start without loading numba."""
 
 import ast
 import subprocess
@@ -19,23 +20,23 @@ FORBIDDEN = {
 }
 
 
-def imports(path: Path, package: str, top_level_only: bool) -> set[str]:
-    """Absolute names of the modules ``path`` imports (relative imports resolved)."""
-    tree = ast.parse(path.read_text())
-    nodes = tree.body if top_level_only else list(ast.walk(tree))
+def imports(source: str, package: str) -> set[str]:
+    """Absolute names of the modules ``source`` imports, at module level and inside functions
+    alike (relative imports resolved in ``package``)."""
     names = set()
-    for node in nodes:
+    for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:  # from . import x / from .module import y, inside ``package``
-                base = package if node.module is None else f'{package}.{node.module}'
+                base = package.rsplit('.', node.level - 1)[0] if node.level > 1 else package
                 if node.module is None:
-                    names.update(f'{package}.{alias.name}' for alias in node.names)
+                    names.update(f'{base}.{alias.name}' for alias in node.names)
                 else:
-                    names.add(base)
+                    names.add(f'{base}.{node.module}')
             else:
                 names.add(node.module)
+                names.update(f'{node.module}.{alias.name}' for alias in node.names)  # a submodule by name
     return names
 
 
@@ -53,25 +54,35 @@ def package_of(name: str, path: Path) -> str:
     return name if path.stem == '__init__' else name.rpartition('.')[0]
 
 
+def house() -> dict[str, tuple[Path, str]]:
+    """Every module of the three packages: name -> (file, source)."""
+    return {name: (path, path.read_text()) for package in PACKAGES for name, path in modules(package).items()}
+
+
+def import_graph(sources: dict[str, tuple[Path, str]]) -> dict[str, set[str]]:
+    """Module -> the modules of the house it imports, function-local imports included."""
+    return {name: {n for n in imports(source, package_of(name, path)) if n in sources}
+            for name, (path, source) in sources.items()}
+
+
 @pytest.mark.parametrize('package', sorted(FORBIDDEN))
 def test_a_layer_imports_nothing_of_the_layers_above_it(package):
-    offending = {name: sorted(n for n in imports(path, package_of(name, path), top_level_only=False)
+    offending = {name: sorted(n for n in imports(path.read_text(), package_of(name, path))
                               if n.split('.')[0] in FORBIDDEN[package])
                  for name, path in modules(package).items()}
     assert {name: found for name, found in offending.items() if found} == {}
 
 
-@pytest.mark.parametrize('package', PACKAGES)
-def test_no_package_has_an_import_cycle(package):
-    own = modules(package)
-    graph = {name: {n for n in imports(path, package_of(name, path), top_level_only=True) if n in own}
-             for name, path in own.items()}
-    state = {}
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import cycles of ``graph`` (each as a path that closes on its first module)."""
+    state, found = {}, []
 
     def visit(name, trail):
         if state.get(name) == 'done':
             return
-        assert state.get(name) != 'open', f"import cycle: {' -> '.join(trail + [name])}"
+        if state.get(name) == 'open':
+            found.append(trail[trail.index(name):] + [name])
+            return
         state[name] = 'open'
         for target in sorted(graph[name]):
             visit(target, trail + [name])
@@ -79,40 +90,91 @@ def test_no_package_has_an_import_cycle(package):
 
     for name in sorted(graph):
         visit(name, [])
+    return found
 
 
-#: What each folder of the core may import at module level (its ``__init__`` says the same):
-#: the foundation (models, schema, config, defaults, validation, catalog) sits at the bottom;
-#: the runners the nodes wrap (loop) never load the offline simulator.
-FOLDER_IMPORTS = {
-    'foundation': {'foundation', 'gains'},
-    'gains': {'gains'},
-    'measurements': {'foundation', 'measurements'},
-    'spiking': {'foundation', 'gains', 'spiking'},
-    'filters': {'foundation', 'gains', 'measurements', 'spiking', 'filters'},
-    'loop': {'foundation', 'gains', 'measurements', 'spiking', 'filters', 'loop'},
-    'offline': {'foundation', 'gains', 'measurements', 'spiking', 'filters', 'offline'},
-}
+def test_no_import_cycle_anywhere_in_the_house_counting_imports_inside_functions():
+    assert cycles(import_graph(house())) == []
 
 
-def folder_of(module: str) -> str:
+#: The core's floors, bottom first: a module may import its own floor and those below, never one
+#: above (function-local imports included). The foundation (models, schema, config, defaults,
+#: validation, catalog) at the bottom; the runners the nodes wrap never load the simulator (a
+#: floor apart, not below it); warm_up, which compiles everything, on top.
+FLOORS = (('foundation', 'gains'), ('measurements',), ('spiking',), ('filters',), ('plant',), ('runners', 'sim'),
+          ('warm_up',))
+
+
+def floor_of(module: str) -> tuple[int, str]:
+    """(floor, folder) of a core module."""
     parts = module.split('.')
-    return parts[1] if len(parts) > 2 or parts[1] in FOLDER_IMPORTS else 'foundation'
+    folder = parts[1] if len(parts) > 2 or parts[1] in {f for floor in FLOORS for f in floor} else 'foundation'
+    return next(i for i, floor in enumerate(FLOORS) if folder in floor), folder
 
 
-def test_each_folder_of_the_core_imports_only_the_folders_below_it():
-    core = modules('snn_estimator')
-    assert {folder_of(name) for name in core} == set(FOLDER_IMPORTS)
+def upward_imports(sources: dict[str, tuple[Path, str]]) -> dict[str, list[str]]:
+    """Core module -> the core modules it imports from a floor above, or from another folder
+    of its own floor."""
     offending = {}
-    for name, path in core.items():
-        allowed = FOLDER_IMPORTS[folder_of(name)]
-        found = {n for n in imports(path, package_of(name, path), top_level_only=True)
-                 if n.startswith('snn_estimator.') and n in core and folder_of(n) not in allowed}
-        if found:
-            offending[name] = sorted(found)
+    for name, targets in import_graph(sources).items():
+        if not name.startswith('snn_estimator.'):
+            continue
+        floor, folder = floor_of(name)
+        bad = sorted(t for t in targets if t.startswith('snn_estimator.') and (
+            floor_of(t)[0] > floor
+            or (floor_of(t)[0] == floor and floor_of(t)[1] not in (folder, 'foundation', 'gains'))))
+        if bad:
+            offending[name] = bad
+    return offending
+
+
+def test_each_floor_of_the_core_imports_only_its_own_and_the_floors_below():
+    sources = house()
+    folders = {floor_of(name)[1] for name in sources if name.startswith('snn_estimator.')}
+    assert folders == {f for floor in FLOORS for f in floor} - {'warm_up'} | ({'warm_up'} & folders)
+    assert upward_imports(sources) == {}
+    for floor in FLOORS[1:-1]:
+        for package in floor:
+            assert (ROOT / 'snn_estimator' / package / '__init__.py').read_text().startswith('"""'), package
+
+
+def test_an_upward_import_inside_a_function_is_caught():
+    """The checks above read every import: planted inside a function of the step kernels, an
+    import of the simulator is an upward import and a cycle (the simulator's compiled loop
+    imports the kernels)."""
+    sources = house()
+    name = 'snn_estimator.filters.kernels'
+    path, source = sources[name]
+    sources[name] = (path, source + '\n\ndef planted():\n    from snn_estimator.sim.simulate import simulate\n'
+                                    '    return simulate\n')
+    assert upward_imports(sources) == {name: ['snn_estimator.sim.simulate']}
+    assert any(name in cycle for cycle in cycles(import_graph(sources)))
+
+
+#: The tools' subpackages, bottom first (snn_tools/__init__.py): each imports only those before it
+#: and the shared modules (paths, progress, figures).
+TOOL_FLOORS = ('bags', 'run', 'live', 'campaign', 'experiments', 'neuromorphic', 'bench')
+
+
+def test_each_tools_subpackage_imports_only_those_below_it():
+    sources = {name: source for name, source in house().items() if name.startswith('snn_tools.')}
+    subpackages = {name.split('.')[1] for name in sources if name.count('.') >= 2}
+    assert subpackages == set(TOOL_FLOORS)
+    offending = {}
+    for name, targets in import_graph(house()).items():
+        if name.count('.') < 2 or not name.startswith('snn_tools.'):
+            continue
+        floor = TOOL_FLOORS.index(name.split('.')[1])
+        bad = sorted(t for t in targets if t.startswith('snn_tools.') and t.count('.') >= 2
+                     and TOOL_FLOORS.index(t.split('.')[1]) > floor)
+        if bad:
+            offending[name] = bad
     assert offending == {}
-    for package in FOLDER_IMPORTS.keys() - {'foundation'}:
-        assert (ROOT / 'snn_estimator' / package / '__init__.py').read_text().startswith('"""'), package
+
+
+def test_the_tools_keep_at_most_twelve_modules_at_their_top_level():
+    top = [path.name for path in (ROOT / 'snn_tools').glob('*.py')]
+    assert len(top) <= 12, sorted(top)
 
 
 def test_the_gain_laws_import_only_numpy_scipy_and_each_other():
@@ -122,7 +184,7 @@ def test_the_gain_laws_import_only_numpy_scipy_and_each_other():
     laws = modules('snn_estimator.gains')
     assert {'snn_estimator.gains.kalman', 'snn_estimator.gains.msif', 'snn_estimator.gains.fixed'} <= set(laws)
     for name, path in laws.items():
-        for imported in imports(path, package_of(name, path), top_level_only=False):
+        for imported in imports(path.read_text(), package_of(name, path)):
             assert imported.split('.')[0] in allowed or imported.startswith('snn_estimator.gains'), (name, imported)
 
 

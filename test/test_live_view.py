@@ -136,9 +136,9 @@ def test_bad_scene_settings_are_refused_naming_the_parameter(field, value):
 
 def test_the_foxglove_layout_file_is_what_its_generator_writes():
     pytest.importorskip('foxglove')
-    from snn_tools.live_layout import LAYOUT_FILE, layout_json
+    from snn_tools.live.layout import LAYOUT_FILE, layout_json
     text = layout_json()
-    assert LAYOUT_FILE.read_text() == text, 'stale: python -m snn_tools.live_layout --write'
+    assert LAYOUT_FILE.read_text() == text, 'stale: python -m snn_tools.live.layout --write'
     for path in ('/scene', '/plots.error.x', '/plots.three_sigma.vz', '/plots.nees', '/plots.spikes', '/spike_raster'):
         assert f'"{path}"' in text, path
 
@@ -149,7 +149,7 @@ def test_every_plot_of_the_layout_draws_against_the_messages_simulated_time():
     pytest.importorskip('foxglove')
     import json
 
-    from snn_tools.live_layout import LAYOUT_FILE
+    from snn_tools.live.layout import LAYOUT_FILE
 
     def plots(node):
         if isinstance(node, dict):
@@ -345,7 +345,7 @@ def test_clients_of_both_subprotocols_get_the_same_messages_on_one_port_and_othe
     import time
 
     from scenario_nodes.foxglove_view import FoxgloveView
-    from snn_tools.live_client import FoxgloveClient
+    from snn_tools.live.client import FoxgloveClient
     view = FoxgloveView(port=0, raster_rate=20.0)
     try:
         clients = [FoxgloveClient(view.port, seconds=30.0, subprotocol=p)

@@ -28,7 +28,7 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.codec import encode_accel, encode_odometry  # noqa: E402
 from scenario_nodes.live_view_node import LiveViewNode  # noqa: E402
-from snn_tools.live_client import FoxgloveClient, free_port, protobuf_class  # noqa: E402
+from snn_tools.live.client import FoxgloveClient, free_port, protobuf_class  # noqa: E402
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
 JS_CLIENT = Path(__file__).resolve().parent / 'js_client'
@@ -99,8 +99,8 @@ def test_the_plant_waits_for_the_live_view_and_the_recorder_on_truth(tmp_path):
     """The recorder subscribes to 'truth' last (once it hears the loop); the live view
     subscribes at once. Counted only as sensor + recorder, the live view's subscription let the
     plant start before the recorder's and the bag lost the first 17 s of truth."""
-    from snn_tools.demo import Pipeline, pipeline_env
     from snn_tools.paths import config_file
+    from snn_tools.run.demo import Pipeline, pipeline_env
     for record, live_view, expected in ((True, True, 3), (True, False, 2), (False, True, 2)):
         overrides = {}
         Pipeline(tmp_path, config_file(), overrides, pipeline_env(), record=record, live_view=live_view)
@@ -116,8 +116,8 @@ def test_the_plant_waits_for_the_live_view_and_the_recorder_on_truth(tmp_path):
 def test_a_foxglove_client_receives_the_published_estimates_during_a_demo(tmp_path):
     pytest.importorskip('websockets')
     pytest.importorskip('foxglove')
-    from snn_tools.bag_tools import read_bag
-    from snn_tools.demo import run_pipeline
+    from snn_tools.bags.data import read_bag
+    from snn_tools.run.demo import run_pipeline
     port = free_port()
     client = FoxgloveClient(port, seconds=120.0)
     client.start()
@@ -205,7 +205,7 @@ def js_client() -> Path:
 
 def layout_plot_paths() -> set[str]:
     """The /plots paths the layout's plots draw (series and x axis)."""
-    from snn_tools.live_layout import LAYOUT_FILE
+    from snn_tools.live.layout import LAYOUT_FILE
     return set(re.findall(r'"(/plots\.[\w.]+)"', LAYOUT_FILE.read_text()))
 
 
@@ -219,7 +219,7 @@ def test_clients_of_both_subprotocols_decode_every_channel_on_simulated_time_in_
     run's start (60 s of them in ~30 s of wall-clock time), as is the server's clock."""
     pytest.importorskip('websockets')
     pytest.importorskip('foxglove')
-    from snn_tools.demo import run_pipeline
+    from snn_tools.run.demo import run_pipeline
     port = free_port()
     node = subprocess.Popen(['node', str(js_client), '--url', f'ws://127.0.0.1:{port}', '--seconds', '240'],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

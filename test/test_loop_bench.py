@@ -13,8 +13,8 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from snn_tools import loop_bench  # noqa: E402
-from snn_tools.loop_bench import CpuSampler, process_cpu_seconds  # noqa: E402
+from snn_tools.bench import loop as loop_bench  # noqa: E402
+from snn_tools.bench.loop import CpuSampler, process_cpu_seconds  # noqa: E402
 
 
 class _Pipeline:
@@ -105,7 +105,7 @@ def test_a_short_run_reports_the_factor_and_every_node_s_cpu(tmp_path, capsys):
 
 
 def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
-    from snn_tools.demo import cpu_plan
+    from snn_tools.run.demo import cpu_plan
     plan = cpu_plan({0, 1})
     assert plan['estimator'] == plan['lqr_controller'] == {1}
     assert plan['cw_plant'] == plan['position_sensor'] == plan['recorder'] == {0}
@@ -121,8 +121,8 @@ def test_cpu_plan_gives_the_estimator_and_controller_a_cpu_of_their_own():
                     or not _batch_allowed(),
                     reason='needs CPU affinity, SCHED_BATCH allowed and two CPUs')
 def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_to(tmp_path):
-    from snn_tools.demo import Pipeline, cpu_plan, pipeline_env
     from snn_tools.paths import config_file
+    from snn_tools.run.demo import Pipeline, cpu_plan, pipeline_env
     everything = os.sched_getaffinity(0)
     own_nice = os.getpriority(os.PRIO_PROCESS, 0)
     for pin, scheduling, plant in ((True, 'batch', 'basilisk'), (False, 'normal', 'cw')):
@@ -148,8 +148,8 @@ def test_pipeline_nodes_start_on_their_planned_cpus_and_policy_unless_told_not_t
 def test_a_refused_sched_batch_is_reported_and_recorded_as_normal(tmp_path, monkeypatch, capsys):
     """Where the kernel refuses SCHED_BATCH (the child then stays SCHED_OTHER), the pipeline
     says so once and reports the policy the nodes really run under."""
-    from snn_tools import demo
     from snn_tools.paths import config_file
+    from snn_tools.run import demo
     monkeypatch.setattr(demo, 'running_policy', lambda pid: os.SCHED_OTHER)
     pipeline = demo.Pipeline(tmp_path, config_file(), {}, demo.pipeline_env(), pin_cpus=False,
                              scheduling='batch')
@@ -163,8 +163,8 @@ def test_a_refused_sched_batch_is_reported_and_recorded_as_normal(tmp_path, monk
 
 
 def test_pipeline_refuses_an_unknown_scheduling_policy(tmp_path):
-    from snn_tools.demo import Pipeline, pipeline_env
     from snn_tools.paths import config_file
+    from snn_tools.run.demo import Pipeline, pipeline_env
     with pytest.raises(ValueError, match='scheduling'):
         Pipeline(tmp_path, config_file(), {}, pipeline_env(), scheduling='fifo')
 
@@ -173,7 +173,7 @@ def test_pipeline_refuses_an_unknown_scheduling_policy(tmp_path):
 def test_snn_demo_prints_and_writes_the_summary_with_how_the_nodes_ran(tmp_path):
     """The demo command itself (what `make demo` runs), shortened: summary.json carries the
     issue's keys and the process set-up the real-time factor depends on."""
-    done = subprocess.run([sys.executable, '-m', 'snn_tools.demo', '--duration', '30',
+    done = subprocess.run([sys.executable, '-m', 'snn_tools.run.demo', '--duration', '30',
                            '--estimator', 'ekf', '--runs-dir', str(tmp_path), '--name', 'short',
                            '--no-report', '--scheduling', 'normal', '--cpu-affinity', 'off'],
                           capture_output=True, text=True, timeout=180)
@@ -188,7 +188,7 @@ def test_snn_demo_prints_and_writes_the_summary_with_how_the_nodes_ran(tmp_path)
 
 
 def test_the_fraction_of_the_floor_is_the_factor_over_dt_per_round_trip():
-    from snn_tools.round_trip import floor_factor
+    from snn_tools.bench.round_trip import floor_factor
     assert floor_factor(0.1, 160.0) == pytest.approx(625.0)  # 0.1 s / 160 us
     assert loop_bench.fraction_of_floor(93.75, 0.1, 160.0) == pytest.approx(0.15)
     with pytest.raises(ValueError):
@@ -215,7 +215,7 @@ def test_wakeups_per_step_use_the_same_window_and_read_this_process():
 
 @pytest.mark.slow
 def test_the_round_trip_pair_returns_a_positive_rtt():
-    from snn_tools.round_trip import measure_round_trip
+    from snn_tools.bench.round_trip import measure_round_trip
     figures = measure_round_trip(samples=200)
     assert figures['samples'] == 200
     assert 0 < figures['median_us'] <= figures['p99_us'] <= figures['max_us'] < 1e6
@@ -226,8 +226,8 @@ def test_single_process_mode_gives_the_multi_process_results(tmp_path):
     """All nodes in one process and one executor: the lockstep run is the same run, estimate by
     estimate (and hence the same as the offline core, which the multi-process run is tested
     against)."""
-    from snn_tools.bag_tools import read_bag, summarize
-    from snn_tools.demo import run_pipeline
+    from snn_tools.bags.data import read_bag, summarize
+    from snn_tools.run.demo import run_pipeline
     runs = {}
     for single in (False, True):
         result = run_pipeline(tmp_path / str(single), 'snn_emsif', 'lockstep', duration=20.0,
@@ -246,10 +246,10 @@ def test_single_process_mode_gives_the_multi_process_results(tmp_path):
 def test_the_single_process_demo_starts_flies_and_stops_eight_times_without_a_crash(tmp_path):
     """Issue 25: the single process crashed with SIGSEGV at shutdown in 2 of 6 runs (the
     recorder's drain spun rclpy's EventsExecutor after the estimator's liveliness event was
-    queued and its node removed; snn_tools.single_process.finish). Short runs, as the crash was in
+    queued and its node removed; snn_tools.run.single_process.finish). Short runs, as the crash was in
     the teardown: every one exits 0 with the whole run in its bag."""
-    from snn_tools.bag_tools import read_bag, summarize
-    from snn_tools.demo import run_pipeline
+    from snn_tools.bags.data import read_bag, summarize
+    from snn_tools.run.demo import run_pipeline
     for k in range(8):
         result = run_pipeline(tmp_path / str(k), 'snn_ekf', 'lockstep', duration=5.0, single_process=True)
         assert result['exit_codes'] == {'cw_plant': 0}, (k, result['exit_codes'])

@@ -13,8 +13,10 @@ from snn_estimator.filters.reference import DenseFilter, DenseSpikingFilter
 from snn_estimator.measurements import OUT_OF_VIEW, make_model
 from snn_estimator.measurements.spherical import RangeAzimuthElevation
 from snn_estimator.models import ClohessyWiltshire
-from snn_estimator.offline.blocks import MeasurementSensor, Plant
-from snn_estimator.offline.simulation import sensor_rendezvous_scenario, simulate
+from snn_estimator.plant.sensors import MeasurementSensor
+from snn_estimator.plant.truth import Plant
+from snn_estimator.sim.scenarios import sensor_rendezvous_scenario
+from snn_estimator.sim.simulate import simulate
 
 DIRECT = [kind for kind, spec in FILTER_KINDS.items() if not spec.spiking]
 SPIKING = [kind for kind, spec in FILTER_KINDS.items() if spec.spiking]
@@ -314,7 +316,7 @@ def test_a_sensors_boundary_layer_is_table_6s_delta_in_sigma_or_in_variance_unit
     default) gives sqrt(R_jj), 'variance' 10 R_jj, whose saturation floor R_hat_jj / delta_j is
     Table 6's 5 x 1e-2 / 0.1 = 0.5 for the range and the angles alike (Decision 35)."""
     from snn_estimator.config import sensor_boundary_layer
-    from snn_estimator.offline.simulation import handover_scenario
+    from snn_estimator.sim.scenarios import handover_scenario
     assert sensor_boundary_layer(1e-2) == sensor_boundary_layer(1e-2, 'variance') == (0.1,)
     assert sensor_boundary_layer([1e-2, 1e-6]) == (0.1, 1e-3)
     assert sensor_boundary_layer([1e-2, 1e-6], 'variance') == (0.1, 1e-5)
@@ -350,7 +352,7 @@ def test_on_the_sensors_the_spiking_ekf_is_within_1_2x_of_its_twin_only_in_the_f
     units (0.1 mm/s) code the velocity ~0.3 units off, and the paper's network ends 1.5-3x the
     EKF's RMSE; the sensors' network (deviation coding, 1 mm and 0.01 mm/s; Decision 36) within
     1.2x, at a few per cent of the possible spikes."""
-    from snn_estimator.offline.simulation import handover_scenario
+    from snn_estimator.sim.scenarios import handover_scenario
     for make in (sensor_rendezvous_scenario, handover_scenario):
         scenario = make(initial_state_dispersion=True)
         twin = np.linalg.norm(simulate(scenario, 'ekf', runs=4).rmse()[:3])
@@ -364,7 +366,7 @@ def test_on_the_sensors_the_spiking_ekf_is_within_1_2x_of_its_twin_only_in_the_f
 def test_angles_only_the_range_is_observable_only_with_a_maneuver():
     """Bearings alone under free CW drift leave the range error at ~2 % of the range after
     50 minutes; a known radial burn brings it below 0.6 %."""
-    from snn_estimator.offline.simulation import angles_only_scenario
+    from snn_estimator.sim.scenarios import angles_only_scenario
     final = {}
     for maneuver in (False, True):
         result = simulate(angles_only_scenario(maneuver=maneuver), 'ekf')
@@ -421,8 +423,8 @@ def test_make_sensors_writes_the_tables_the_docs_the_report_and_the_readme_quote
     docs/sensors.md say). make sensors and make experiments write the same REPORT section."""
     import json
 
-    from snn_tools import sensor_results
-    from snn_tools.report_md import write_report
+    from snn_tools.experiments import sensors as sensor_results
+    from snn_tools.experiments.report import write_report
     (tmp_path / 'REPORT.md').write_text(f'# report\n\n{sensor_results.BEGIN}\n{sensor_results.END}\n\n## after\n')
     assert sensor_results.main(['--runs', '1', '--out', str(tmp_path), '--no-doc']) == 0
     results = json.loads((tmp_path / 'sensors.json').read_text())

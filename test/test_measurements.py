@@ -1,4 +1,4 @@
-"""Measurement models (snn_estimator.measurements) and the offline sensor (blocks.MeasurementSensor):
+"""Measurement models (snn_estimator.measurements) and the sensor (snn_estimator.plant.sensors.MeasurementSensor):
 Jacobians against finite differences, h against an independent construction, angle wrapping,
 validity, the position model equal to PositionSensor, clear errors."""
 
@@ -21,7 +21,7 @@ from snn_estimator.measurements import (
     make_model,
     rotation_from_quaternion,
 )
-from snn_estimator.offline.blocks import MeasurementSensor, PositionSensor, SamplePeriod
+from snn_estimator.plant.sensors import MeasurementSensor, PositionSensor, SamplePeriod
 
 GEOMETRIC = [name for name in MODELS if name != 'position']
 ANGLE_MODELS = ('range_azimuth_elevation', 'line_of_sight')
@@ -344,7 +344,7 @@ def test_the_measurements_package_imports_numpy_and_validation_only():
 
 
 def test_the_measurement_bench_times_every_model(tmp_path):
-    from snn_tools import measurement_bench
+    from snn_tools.bench import measurement as measurement_bench
     out = tmp_path / 'bench.json'
     assert measurement_bench.main(['--repeat', '2', '--runs', '3', '--steps', '25', '--out', str(out)]) == 0
     import json

@@ -9,7 +9,7 @@ import pytest
 
 from snn_estimator import FILTER_KINDS, TWIN_OF, make_estimator, rendezvous_scenario, simulate
 from snn_estimator.filters.reference import DenseSpikingFilter
-from snn_tools import spike_budget
+from snn_tools.experiments import spike_budget
 
 SPIKING = [kind for kind, spec in FILTER_KINDS.items() if spec.spiking]
 

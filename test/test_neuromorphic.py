@@ -8,7 +8,10 @@ import pytest
 
 from snn_estimator.filters.estimators import make_estimator
 from snn_estimator.models import VanDerPol
-from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain, rendezvous_scenario
+from snn_estimator.plant.control import lqr_control, lqr_gain
+from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.plant.truth import Plant
+from snn_estimator.sim.scenarios import rendezvous_scenario
 from snn_estimator.spiking.costs import CHIPS, Chip, CostModel, StepCosts, energy_pj, filter_macs
 
 nir = pytest.importorskip('nir')
@@ -16,7 +19,7 @@ nir = pytest.importorskip('nir')
 pytestmark = [pytest.mark.filterwarnings('ignore::DeprecationWarning:brian2'),
               pytest.mark.filterwarnings('ignore::DeprecationWarning:pyparsing')]
 
-from snn_tools.nir_export import (  # noqa: E402
+from snn_tools.neuromorphic.nir_export import (  # noqa: E402
     SPIKING_KINDS,
     constant_gain_estimator,
     export,
@@ -122,7 +125,7 @@ def test_parameter_file_sets_filter_size_and_seed_without_rclpy(tmp_path):
     assert main(['--params-file', str(params), '--out', str(out)]) == 0
     graph = nir.read(out)
     assert graph.nodes['neurons'].v_threshold.size == 50 and int(graph.metadata['seed']) == 3
-    probe = ('import sys; from snn_tools.nir_export import export_setup; '
+    probe = ('import sys; from snn_tools.neuromorphic.nir_export import export_setup; '
              'export_setup(None, "config/rendezvous.yaml"); print("rclpy" in sys.modules)')
     result = subprocess.run([sys.executable, '-c', probe], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == 'False'
@@ -161,7 +164,7 @@ def test_costs_of_a_non_spiking_filter_are_refused():
 # ---------------------------------------------------------------- the independent simulator
 def test_brian2_built_from_the_file_reproduces_our_network_spike_for_spike(emsif_file):
     pytest.importorskip('brian2')
-    from snn_tools.brian2_sim import run_file
+    from snn_tools.neuromorphic.brian2_sim import run_file
 
     path, _ = emsif_file
     ours = constant_gain_estimator('snn_emsif', SCENARIO.estimator, SCENARIO.model)

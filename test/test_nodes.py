@@ -25,7 +25,7 @@ from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 from snn_estimator import FILTER_KINDS, rendezvous_scenario, simulate  # noqa: E402
-from snn_estimator.offline.simulation import lqr_control, lqr_gain  # noqa: E402
+from snn_estimator.plant.control import lqr_control, lqr_gain  # noqa: E402
 
 
 def run_lockstep(kind, steps, plant_class=PlantNode, sensor_parameters=None, **estimator_parameters):
@@ -76,7 +76,7 @@ def test_lockstep_ros_run_on_a_lidar_equals_the_offline_simulation_on_it():
     """The estimator on range, azimuth and elevation (config/sensor_lidar.yaml's values), its
     H(x_hat) every step, equal to the offline loop on the same sensor."""
     from scenario_nodes.parameters import sensor_suites
-    from snn_estimator.offline.simulation import sensor_rendezvous_scenario
+    from snn_estimator.sim.scenarios import sensor_rendezvous_scenario
     steps, suite = 150, sensor_suites()['lidar']
     estimates, truths = run_lockstep('snn_ekf', steps, sensor_parameters=suite['position_sensor'],
                                      **suite['estimator'])

@@ -16,7 +16,7 @@ from scenario_nodes.conversions import control_to_accel, measurement_to_point, s
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
-from snn_estimator.loop.runner import Standby  # noqa: E402
+from snn_estimator.runners.filter_runner import Standby  # noqa: E402
 
 DT = 100_000_000
 X0 = np.array([70.0, 30.0, -5.0])

@@ -261,7 +261,7 @@ def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
     (docs/decisions.md, 38), set by snn_demo's environment unless the user set another."""
     import xml.etree.ElementTree as ElementTree
 
-    from snn_tools.demo import pipeline_env
+    from snn_tools.run.demo import pipeline_env
     namespace = {'dds': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
     writer = ElementTree.parse(ROOT / 'config' / 'fastdds.xml').getroot().find('dds:data_writer', namespace)
     assert writer.get('is_default_profile') == 'true'
@@ -277,11 +277,11 @@ def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
 
 
 def test_the_install_warm_up_covers_every_kind_and_names_a_part_that_fails():
-    """make's warm-up (python -m snn_tools.warm_cache) compiles each filter kind's kernels and loop
+    """make's warm-up (python -m snn_tools.run.warm_cache) compiles each filter kind's kernels and loop
     on worker processes, the longest parts first; a part that fails comes back as its traceback
     (named, the others go on), not as a crash of the install."""
     from snn_estimator import FILTER_KINDS
-    from snn_tools import warm_cache
+    from snn_tools.run import warm_cache
     parts = warm_cache.parts()
     assert sorted(parts) == sorted([*FILTER_KINDS, 'basilisk truth'])
     spiking = [FILTER_KINDS[p].spiking for p in parts if p in FILTER_KINDS]

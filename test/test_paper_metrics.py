@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from snn_tools.paper_metrics import noise_floor, transient_metrics
+from snn_tools.experiments.paper_metrics import noise_floor, transient_metrics
 
 RESULTS = Path(__file__).resolve().parents[1] / 'results'
 
@@ -60,7 +60,7 @@ def test_the_noise_floor_is_what_zero_mean_noise_gives_the_mean_error_reading():
 
 
 def test_every_figure_the_report_shows_is_committed_within_the_budget():
-    from snn_tools.experiments import FIGURE_BUDGET_BYTES
+    from snn_tools.experiments.tables import FIGURE_BUDGET_BYTES
     report = (RESULTS / 'REPORT.md').read_text()
     links = re.findall(r'!\[[^\]]*\]\(([^)]+)\)', report)
     assert links, 'REPORT.md shows no figure'

@@ -2,7 +2,7 @@
 
 import pytest
 
-from snn_estimator.loop.peers import ERROR, OK, WARN, PeerWatch
+from snn_estimator.runners.peers import ERROR, OK, WARN, PeerWatch
 
 
 class Clock:

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from snn_estimator import rendezvous_scenario
-from snn_estimator.loop.plant_runner import STARTUP_STEPS, PlantRunner, PlantSettings, StartGate, control_in_force
-from snn_estimator.offline.blocks import Plant
+from snn_estimator.plant.truth import Plant
+from snn_estimator.runners.plant_runner import STARTUP_STEPS, PlantRunner, PlantSettings, StartGate, control_in_force
 
 DT = 100_000_000
 
@@ -161,7 +161,7 @@ def test_a_dead_controllers_last_command_expires_to_zero_thrust_in_plant_and_est
     estimator apply the control of 1.4 s until it is control_validity (0.5 s) old, then zero
     thrust; counted and logged once each."""
     from snn_estimator import make_estimator
-    from snn_estimator.loop.runner import FilterRunner, RunnerSettings
+    from snn_estimator.runners.filter_runner import FilterRunner, RunnerSettings
     runner, sent, logs, wall, _ = make_runner(mode=mode, control_timeout=0.2, control_validity=0.5)
     scenario = rendezvous_scenario()
     estimator = make_estimator('ekf', scenario.estimator, scenario.model)
@@ -208,7 +208,7 @@ def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_
     exactly that, where the controller's late u_k alone would have made it predict with u_k.
     With provisional steps it first steps with u_k and takes the step again with the report."""
     from snn_estimator import make_estimator
-    from snn_estimator.loop.runner import FilterRunner, RunnerSettings
+    from snn_estimator.runners.filter_runner import FilterRunner, RunnerSettings
     scenario = rendezvous_scenario()
     plant = Plant(scenario.model, scenario.x0, np.zeros((6, 6)))
     reports = []

@@ -4,7 +4,7 @@ command's own prints never mixed into the progress line."""
 import io
 import sys
 
-from snn_tools.campaign import CampaignProgress
+from snn_tools.campaign.run import CampaignProgress
 from snn_tools.progress import Progress, eta_text, track
 
 

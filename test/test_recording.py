@@ -22,10 +22,10 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.recorder_node import KNOWN_TYPES, RecorderNode, message_class  # noqa: E402
 from scenario_nodes.runtime import run_node  # noqa: E402
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
-from snn_tools.demo import Pipeline, pipeline_env, run_pipeline  # noqa: E402
+from snn_tools.bags.data import read_bag, summarize  # noqa: E402
+from snn_tools.bags.report import moving_rms, write_report  # noqa: E402
 from snn_tools.paths import config_file  # noqa: E402
-from snn_tools.report import moving_rms, write_report  # noqa: E402
+from snn_tools.run.demo import Pipeline, pipeline_env, run_pipeline  # noqa: E402
 
 pytestmark = pytest.mark.slow
 TOPICS = ('truth', 'measurement', 'control', 'estimate', 'spike_count', 'spikes', 'diagnostics')

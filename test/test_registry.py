@@ -42,7 +42,7 @@ def test_every_registered_executable_has_its_main_and_every_node_its_parameter_t
 
 def test_the_demo_starts_the_registrys_loop_in_its_order():
     pytest.importorskip('rclpy')
-    from snn_tools import demo
+    from snn_tools.run import demo
     assert [name for name, _ in demo.NODES] == ['recorder', 'lqr_controller', 'estimator', 'position_sensor',
                                                 'cw_plant']
     assert {plant: name for plant, (name, _) in demo.PLANTS.items()} == registry.PLANTS

@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 
 from snn_estimator import make_estimator, rendezvous_scenario, simulate
-from snn_estimator.loop.runner import NS, FilterRunner, History, RunnerSettings
-from snn_estimator.offline.simulation import Plant, PositionSensor, lqr_control, lqr_gain
+from snn_estimator.plant.control import lqr_control, lqr_gain
+from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.plant.truth import Plant
+from snn_estimator.runners.filter_runner import NS, FilterRunner, History, RunnerSettings
 
 DT = 100_000_000
 R = 1e-2 * np.eye(3)
@@ -402,7 +404,7 @@ def test_a_grid_runner_names_measurement_timing_for_a_stamp_off_its_grid():
 
 def make_lidar_runner(kind='ekf'):
     """A runner whose filter takes a LIDAR's range, azimuth and elevation (H(x_hat) each step)."""
-    from snn_estimator.offline.simulation import sensor_rendezvous_scenario
+    from snn_estimator.sim.scenarios import sensor_rendezvous_scenario
     scenario = sensor_rendezvous_scenario()
     estimator = make_estimator(kind, scenario.estimator, scenario.model, measurement=scenario.sensor)
     published = []
@@ -488,7 +490,7 @@ def _realtime_stream(steps, late=(), seed=3, silent_from=None, validity=0.5):
     same whatever the estimates; none from ``silent_from`` on) and the plant's report of what it
     stepped with from t_k (PlantRunner); the controls of ``late`` reach the plant after its tick
     (it applies the one in force) while the estimator has them before the report."""
-    from snn_estimator.loop.plant_runner import PlantRunner, PlantSettings
+    from snn_estimator.runners.plant_runner import PlantRunner, PlantSettings
     scenario = rendezvous_scenario()
     plant = Plant(scenario.model, scenario.x0, scenario.process_noise, [seed])
     sensor = PositionSensor(scenario.model, scenario.measurement_noise, [seed])
@@ -628,7 +630,7 @@ def test_lost_reports_leave_the_commanded_control_and_never_hold_more_than_the_l
     """Reports of steps 10 and 30-59 lost (a plant that stopped reporting): each held step is
     accepted as applied once PROVISIONAL_LIMIT later steps are held behind it, counted; memory
     stays bounded; the estimates are those of the controller's controls, as the waiting runner's."""
-    from snn_estimator.loop.runner import PROVISIONAL_LIMIT
+    from snn_estimator.runners.filter_runner import PROVISIONAL_LIMIT
     lost = {10, *range(30, 60)}
     stream = _realtime_stream(60)
     measurements, controls, reports = stream

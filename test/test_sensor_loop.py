@@ -9,9 +9,9 @@ import pytest
 pytest.importorskip('rclpy')
 
 from snn_estimator import make_estimator, simulate  # noqa: E402
-from snn_estimator.offline.simulation import sensor_rendezvous_scenario  # noqa: E402
-from snn_tools.bag_tools import read_bag, summarize  # noqa: E402
-from snn_tools.demo import run_pipeline  # noqa: E402
+from snn_estimator.sim.scenarios import sensor_rendezvous_scenario  # noqa: E402
+from snn_tools.bags.data import read_bag, summarize  # noqa: E402
+from snn_tools.run.demo import run_pipeline  # noqa: E402
 
 pytestmark = pytest.mark.slow
 #: The default estimator and the robust one the issue names (22), and the EKF that filterpy's
@@ -111,7 +111,7 @@ def fused_run(tmp_path_factory):
 def test_the_camera_and_lidar_fused_over_ros_equal_the_offline_hand_over_and_dock(fused_run):
     """Camera 10 Hz, LIDAR 5 Hz within 30 m, each its own node and topic: the estimator assembles
     each stamp from both and the run equals handover_scenario() offline to 1e-9; it docks."""
-    from snn_estimator.offline.simulation import handover_scenario
+    from snn_estimator.sim.scenarios import handover_scenario
     data, summary = fused_run
     offline = simulate(handover_scenario(initial_state_dispersion=True), 'snn_ekf')
     stamps = np.round(data.estimate_t / 0.1).astype(int)

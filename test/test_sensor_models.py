@@ -20,7 +20,7 @@ from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.conversions import message_to_measurement, stamp_to_ns, state_to_odometry  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 from snn_estimator.measurements import make_model  # noqa: E402
-from snn_estimator.offline.blocks import MeasurementSensor  # noqa: E402
+from snn_estimator.plant.sensors import MeasurementSensor  # noqa: E402
 
 NAMESPACE = '/sensor_model_test'
 REMAP = ['--ros-args', '-r', f'__ns:={NAMESPACE}', '-r', 'measurement:=lidar']

@@ -14,15 +14,10 @@ from snn_estimator import (
     van_der_pol_scenario,
 )
 from snn_estimator.models import StateSpaceModel
-from snn_estimator.offline.simulation import (
-    GaussianStream,
-    Plant,
-    PositionSensor,
-    Scenario,
-    lqr_control,
-    lqr_gain,
-    matrix_sqrt,
-)
+from snn_estimator.plant.control import lqr_control, lqr_gain
+from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.plant.truth import GaussianStream, Plant, matrix_sqrt
+from snn_estimator.sim.scenarios import Scenario
 
 
 def test_scalar_lqr_matches_the_closed_form(double_integrator):
@@ -265,7 +260,7 @@ def test_van_der_pol_filters_converge_from_the_wrong_initial_state():
 
 
 def test_batch_initial_state_recovers_the_state_from_positions_and_controls():
-    from snn_estimator.loop.initialization import least_squares_start as batch_initial_state
+    from snn_estimator.runners.initialization import least_squares_start as batch_initial_state
     model = ClohessyWiltshire()
     plant = Plant(model, [10.0, -4.0, 2.0, -0.3, 0.1, 0.05], np.zeros((6, 6)))
     stamps, zs, us = [], [], []
@@ -320,7 +315,7 @@ def test_the_literal_sliding_innovation_filters_never_correct_a_velocity_error(d
 def test_the_consistency_check_calls_an_exact_kalman_filter_consistent(double_integrator):
     """A linear KF whose Q and R are the truth's: average NEES and NIS inside their bounds."""
     from snn_estimator import EstimatorConfig
-    from snn_estimator.offline.simulation import Scenario
+    from snn_estimator.sim.scenarios import Scenario
     config = EstimatorConfig(
         neuron_count=1, boundary_layer=1.0, process_noise=0.05, measurement_noise=0.04,
         process_noise_scale=1.0, measurement_noise_scale=1.0, measurement_noise_units='per_sample',
@@ -341,7 +336,7 @@ def test_the_least_squares_start_covariance_is_honest_over_monte_carlo_runs():
     within the 95 % chi-square bounds."""
     import scipy.stats
 
-    from snn_estimator.loop.initialization import least_squares_start
+    from snn_estimator.runners.initialization import least_squares_start
     model = ClohessyWiltshire()
     rng = np.random.default_rng(11)
     r = 1e-2 * np.eye(3)
@@ -365,7 +360,7 @@ def test_the_least_squares_start_covariance_is_honest_over_monte_carlo_runs():
 
 
 def test_a_longer_fit_window_leaves_a_smaller_velocity_error():
-    from snn_estimator.loop.initialization import window_standard_deviations
+    from snn_estimator.runners.initialization import window_standard_deviations
     model = ClohessyWiltshire()
     sigmas = [window_standard_deviations(model, seconds, 0.1, 1e-2 * np.eye(3))[3] for seconds in (2, 5, 10, 30)]
     assert all(a > b for a, b in zip(sigmas, sigmas[1:]))

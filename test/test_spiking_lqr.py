@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from snn_estimator.offline.simulation import lqr_control, lqr_gain, rendezvous_scenario, simulate
+from snn_estimator.plant.control import lqr_control, lqr_gain
+from snn_estimator.sim.scenarios import rendezvous_scenario
+from snn_estimator.sim.simulate import simulate
 from snn_estimator.spiking.lqr import SpikingLQR
 
 SCENARIO = rendezvous_scenario(initial_state_dispersion=True)
@@ -63,8 +65,8 @@ def test_snn_lqr_closes_the_loop_offline_beside_the_lqr(kind):
 @pytest.mark.slow
 def test_snn_lqr_closes_the_loop_over_ros_and_equals_the_offline_run(tmp_path):
     pytest.importorskip('rclpy')
-    from snn_tools.bag_tools import read_bag, summarize
-    from snn_tools.demo import run_pipeline
+    from snn_tools.bags.data import read_bag, summarize
+    from snn_tools.run.demo import run_pipeline
 
     run_pipeline(tmp_path, estimator='snn_ekf', timeout=300.0,
                  extra={'lqr_controller': {'controller_type': 'snn_lqr'}})

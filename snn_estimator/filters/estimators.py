@@ -28,19 +28,20 @@ import math
 from typing import Sequence
 
 import numpy as np
-import scipy.linalg
 
 from snn_estimator import gains
 from snn_estimator.catalog import CONVERGES_FROM_DISPERSION, FILTER_KINDS, PAPER_KINDS, TWIN_OF, FilterKind, kinds_table  # noqa: F401
 from snn_estimator.config import EstimatorConfig, ResolvedConfig, gain_noise_density, resolve
 from snn_estimator.measurements import MeasurementModel
 from snn_estimator.models import DT_CACHE_SIZE, StateSpaceModel
-from snn_estimator.schema import NETWORK_CODINGS, RUNTIME
+from snn_estimator.schema import RUNTIME
 from snn_estimator.spiking import chip
 from snn_estimator.spiking.network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
 
 from . import kernels
 from .estimator_parts import DISPERSION_STREAM, EstimatorState, MeasuredSteps  # noqa: F401 (re-exported)
+from .gain_schedule import schedule_gains
+from .steady_state import steady_state_gain  # noqa: F401 (re-exported)
 
 __doc__ = __doc__.format(kinds=kinds_table(), laws=gains.table())
 
@@ -254,7 +255,7 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
             raise ValueError('the chip network (precision loihi, gain_schedule switched) holds the constant C of '
                              'the model: it takes no measurement model; use precision float64')
         self._chip = (chip.ChipNetwork(kind, model, config, self.settings, net.decoder, net.alive,
-                                       self._x_hat, net.spikes, net.total_spikes)
+                                       self._x_hat, net.spikes, net.total_spikes, self._chip_gains)
                       if chip.wanted(config) else None)
         #: What the network codes (schema network_coding): the estimate, or its deviation from
         #: the prediction x_pred (held in the network's ``reference``)
@@ -271,6 +272,14 @@ class Estimator(EstimatorViews, EstimatorState, MeasuredSteps):
         self._step_entry = None  # the packed kernel's entry point for the step's argument types (see _advance)
         self._call_dt: float | None = None
         self.reset()
+
+    def _chip_gains(self, dt: float) -> list[np.ndarray]:
+        """The gains the chip network holds for steps of ``dt`` (its gain source): the switched
+        schedule of this filter's twin, or the steady-state gain."""
+        if self.config.gain_schedule == 'switched':
+            return schedule_gains(self.kind, self.model, self.config, self.settings, dt,
+                                  lambda kind, config: Estimator(kind, self.model, config))
+        return [steady_state_gain(self.gain_law, self.model, self.settings, dt)]
 
     def _measurement_matrices(self, n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
         """H and its pseudo-inverse: one shared (1, m, n) for a linear measurement, else one
@@ -516,57 +525,3 @@ def _check_measurement(measurement, model: StateSpaceModel):
         raise ValueError(f'the measurement model {measurement.name} takes {measurement.n_state} states, the '
                          f'model has {model.n_state}')
     return measurement
-
-
-def steady_state_gain(gain_law: str, model: StateSpaceModel, settings: ResolvedConfig,
-                      dt: float) -> np.ndarray:
-    """The constant gain of ``gain_law`` at the fixed point P_ss of the sampled step of Eq. 6
-    (the discrete algebraic Riccati equation of the one-step predictor, P = Phi P Phi^T + Q_d -
-    Phi P C^T (C P C^T + R_d)^-1 C P Phi^T; docs/decisions.md, 43), by the law's ``steady_state``
-    (snn_estimator.gains). Linear models only. ValueError when the Riccati equation has no
-    stabilising solution (e.g. Q_hat = 0 with undamped modes)."""
-    if not model.is_linear:
-        raise ValueError('a steady-state gain needs a linear model')
-    law = gains.law(gain_law)
-    n = model.n_state
-    c = model.measurement_matrix
-    a_d, _ = model.linearized_increment(None, dt, settings.discretization)
-    phi = np.eye(n) + dt * a_d
-    q_step = (model.process_noise_discrete(settings.q_hat, dt) if settings.discretization == 'exact'
-              else settings.q_hat * dt)
-    r_sample = gain_noise_density(settings, dt) / dt
-    try:
-        p_ss = scipy.linalg.solve_discrete_are(phi.T, c.T, q_step, r_sample)
-    except (np.linalg.LinAlgError, ValueError) as error:
-        raise ValueError(f'no steady-state gain: the Riccati equation of Eq. 6 has no stabilising '
-                         f'solution for this Q_hat and R ({error}); raise process_noise_scale or '
-                         'use gain_schedule time_varying') from None
-    step = gains.SampledStep(phi, dt, r_sample)
-    return law.steady_state(gains.SteadyState(p_ss, c, np.linalg.pinv(c), r_sample, settings.r_hat,
-                                              settings.boundary_layer, gains.sampled_kalman(p_ss, c, step)))
-
-
-def warm_up_all(kinds=None) -> None:
-    """Compile (or load) the kernels of every filter kind (or of ``kinds``: processes can share
-    the work, as ``python -m snn_tools.warm_cache`` does), gain schedule and spike rule (and of
-    network_coding deviation with the greedy rule) on small filters of the CW model (linear) and
-    Van der Pol (nonlinear: the direct filters' drift)."""
-    from snn_estimator.models import ClohessyWiltshire
-    from snn_estimator.offline.simulation import van_der_pol_scenario
-    unknown = set(kinds or ()) - set(FILTER_KINDS)
-    if unknown:
-        raise ValueError(f'unknown filter kinds {sorted(unknown)}; choose from {", ".join(FILTER_KINDS)}')
-    linear, nonlinear = ClohessyWiltshire(), van_der_pol_scenario()
-    for kind, spec in FILTER_KINDS.items():
-        if kinds is not None and kind not in kinds:
-            continue
-        for rule in (kernels.SPIKE_RULES if spec.spiking else ('greedy',)):
-            # the deviation coding (Decision 13b) with the default rule only: the other rules
-            # compile on first use, which keeps make's warm-up from growing by half
-            for coding in (NETWORK_CODINGS if spec.spiking and rule == 'greedy' else ('state',)):
-                for schedule in ('time_varying', 'steady_state'):
-                    config = EstimatorConfig(neuron_count=4, spike_rule=rule, gain_schedule=schedule,
-                                             network_coding=coding)
-                    Estimator(kind, linear, config).warm_up()
-                config = nonlinear.estimator.replace(neuron_count=4, spike_rule=rule, network_coding=coding)
-                Estimator(kind, nonlinear.model, config).warm_up()

@@ -738,11 +738,3 @@ def innovation_nis(z, x_hat, c, p, r, has_covariance):
         s = c @ p[b] @ c.T + r if has_covariance else r
         out[b] = nu @ np.linalg.solve(s, nu)
     return out
-
-
-def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) every kernel of every filter kind, gain
-    schedule and spike rule (``make`` calls it at install to fill the cache; a node warms only
-    its own filter's, :meth:`Estimator.warm_up <snn_estimator.filters.estimators.Estimator.warm_up>`)."""
-    from .estimators import warm_up_all
-    warm_up_all()

@@ -136,44 +136,6 @@ def quantize(weights: np.ndarray, lsb: float, chip: ChipFormat | None, fractiona
     return mantissa * 2.0 ** shift, shift
 
 
-def gain_trajectory(estimator_kind: str, model, config, dt: float, steps: int) -> np.ndarray:
-    """K(t_k) of the time-varying filter, (steps, n, m): for a linear model the gains that
-    depend on P only (kalman, msif, msif_weighted) follow from P0 alone, whatever
-    the measurements (run here with zero innovations)."""
-    from snn_estimator.filters.estimators import FILTER_KINDS, make_estimator
-
-    twin = FILTER_KINDS[estimator_kind].twin or estimator_kind
-    if FILTER_KINDS[twin].gain == 'sif':
-        raise ValueError('gain_schedule switched needs a gain law computed from P (kalman, msif, '
-                         'msif_weighted); the SIF gain of Eq. 7 follows the innovation')
-    filt = make_estimator(twin, config.replace(gain_schedule='time_varying', precision='float64',
-                                               initial_state_dispersion=False, silenced_neurons=()), model)
-    c = model.measurement_matrix
-    u = np.zeros(model.n_input)
-    gains = np.empty((steps, model.n_state, model.n_meas))
-    for k in range(steps):
-        filt.step(c @ filt.x_hat, u, dt)
-        gains[k] = filt.gain
-    return gains
-
-
-def schedule_gains(estimator_kind: str, model, config, settings, dt: float) -> list[np.ndarray]:
-    """The gain of each weight set of a switched schedule: the mean of the time-varying K(t)
-    over [t_j, t_j+1) for all but the last set, and K(t_last) for the last one, held for ever
-    (at least the time-varying gain from then on: with the rendezvous' tiny Q_hat, K(t) decays
-    like 1/t for minutes and its fixed point, the steady-state gain, is too small to remove
-    what is left of a dispersed start). No switch times: the steady-state gain alone."""
-    from snn_estimator.filters.estimators import FILTER_KINDS, steady_state_gain
-
-    times = schedule_times(config)
-    if not times:
-        return [steady_state_gain(FILTER_KINDS[estimator_kind].gain, model, settings, dt)]
-    trajectory = gain_trajectory(estimator_kind, model, config, dt, int(round(times[-1] / dt)) + 1)
-    bounds = [0] + [int(round(t / dt)) for t in times]
-    gains = [trajectory[start:max(stop, start + 1)].mean(axis=0) for start, stop in zip(bounds, bounds[1:])]
-    return gains + [trajectory[bounds[-1]]]
-
-
 def schedule_times(config) -> tuple[float, ...]:
     """The switch times of ``config`` (s, increasing, > 0); ValueError naming the field."""
     times = tuple(float(t) for t in (config.schedule_times or ()))
@@ -191,11 +153,8 @@ class ChipNetwork:
     advances every run."""
 
     def __init__(self, kind: str, model, config, settings, decoder: np.ndarray, alive: np.ndarray,
-                 x_hat: np.ndarray, spikes: np.ndarray, total_spikes: np.ndarray):
-        from snn_estimator.filters.estimators import FILTER_KINDS
-
-        spec = FILTER_KINDS[kind]
-        if not spec.spiking:
+                 x_hat: np.ndarray, spikes: np.ndarray, total_spikes: np.ndarray, gain_source):
+        if decoder.shape[2] == 0:
             raise ValueError(f'precision {config.precision} and gain_schedule {config.gain_schedule} '
                              f'apply to the spiking filters; {kind} has no network')
         if not model.is_linear:
@@ -208,6 +167,9 @@ class ChipNetwork:
             raise ValueError('membrane_noise must be 0 on the chip network (its membranes read the '
                              'coding error, v = D^T e)')
         self.kind, self.model, self.config, self.settings = kind, model, config, settings
+        #: dt -> the gain of each weight set (snn_estimator.filters.gain_schedule): the chip
+        #: holds the gains it is given and runs no filter itself
+        self._gain_source = gain_source
         self.format = ChipFormat.of(config)
         schedule_times(config)  # validate early
         self._alive = alive
@@ -281,8 +243,7 @@ class ChipNetwork:
         scale = s.state_scale
         a_d, b_d = model.linearized_increment(None, dt, s.discretization)
         lsb = self._read_lsb
-        self.gains = (schedule_gains(self.kind, model, self.config, s, dt) if self.config.gain_schedule == 'switched'
-                      else [self._steady_state(dt)])
+        self.gains = [np.asarray(gain, dtype=float) for gain in self._gain_source(dt)]
         self.times = np.array(schedule_times(self.config))
         # y = A x_read + K nu + B u in readout LSB: x_read is in LSB already, nu in m, u in m/s^2
         self._dynamics, self.shifts['dynamics'] = quantize(
@@ -300,10 +261,6 @@ class ChipNetwork:
         self._dt = float(dt)
         for b in range(self.runs):
             self._load(b)
-
-    def _steady_state(self, dt: float) -> np.ndarray:
-        from snn_estimator.filters.estimators import FILTER_KINDS, steady_state_gain
-        return steady_state_gain(FILTER_KINDS[self.kind].gain, self.model, self.settings, dt)
 
     def _load(self, run: int) -> None:
         """The chip's state of ``run`` from the encoded rates: x_read = D r, e = x~0 - D r."""

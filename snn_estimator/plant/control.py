@@ -1,0 +1,32 @@
+"""The LQR that closes the loop: u = -K x_hat (Eq. 42), K by python-control.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from snn_estimator.models import StateSpaceModel
+from snn_estimator.validation import as_matrix, check_covariance
+
+
+def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
+    """Continuous-time LQR gain K (u = -K x, Eq. 42) from python-control, for a linear model."""
+    if not model.is_linear:
+        raise ValueError('LQR design needs a linear model')
+    n, m = model.n_state, model.n_input
+    q = check_covariance(as_matrix(state_weight, (n, n), 'lqr_state_weight (Qc)'),
+                         'lqr_state_weight (Qc)', allow_singular=True)
+    r = check_covariance(as_matrix(input_weight, (m, m), 'lqr_input_weight (Rc)'),
+                         'lqr_input_weight (Rc)')
+    a = model.jacobian(np.zeros(n), np.zeros(m))
+    import control  # imported here: python-control loads matplotlib, which no other core path needs
+    try:
+        gain, _, _ = control.lqr(a, model.input_matrix, q, r)
+    except Exception as error:  # python-control raises several types for an unsolvable ARE
+        raise ValueError(f'LQR design failed for these weights: {error}') from error
+    return np.asarray(gain, dtype=float)
+
+
+def lqr_control(gain: np.ndarray, x_hat) -> np.ndarray:
+    """u = -K x_hat (Eq. 42), batched."""
+    return -(np.asarray(x_hat, dtype=float) @ gain.T)

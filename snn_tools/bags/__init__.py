@@ -1,0 +1,1 @@
+"""Recorded runs: reading a bag back (RunData) and the report of one run (figures, report.md)."""

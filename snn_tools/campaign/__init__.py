@@ -1,0 +1,2 @@
+"""Monte-Carlo campaigns: the cells of a spec, their run on Dask, the tables and the interactive
+page."""

@@ -1,0 +1,2 @@
+"""The paper's experiments and ours: every table of results/REPORT.md, the sensor tables, the spike
+budget, the fault matrix."""
