@@ -49,7 +49,7 @@ def test_decay_rounds_toward_zero_as_loihi():
 
 def test_loihi_state_is_integer_and_the_readout_is_what_it_encodes():
     estimator = make_estimator('snn_ekf', STEADY.replace(precision='loihi'), SCENARIO.model)
-    network = estimator._chip
+    network = estimator.chip
     z = SCENARIO.model.measurement_matrix @ SCENARIO.x0
     for _ in range(20):
         estimator.step(z, np.zeros(3), SCENARIO.dt)

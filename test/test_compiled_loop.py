@@ -206,15 +206,15 @@ def test_the_bench_loop_around_a_filter_doing_nothing_leaves_the_estimate_and_re
 
 
 def _poison_covariance(estimator):
-    estimator._p[1, 0, 0] = np.nan  # the gain, then the estimate of run 1 go non-finite in the step
+    estimator.state.p[1, 0, 0] = np.nan  # the gain, then the estimate of run 1 go non-finite in the step
 
 
 def _poison_estimate(estimator):
-    estimator._x_hat[2, 1] = np.inf  # run 2's control is not finite before the step
+    estimator.state.x_hat[2, 1] = np.inf  # run 2's control is not finite before the step
 
 
 def _overdrive_network(estimator):
-    estimator._network.v[1] = 1e9  # run 1's network spikes up to its cap
+    estimator.network.v[1] = 1e9  # run 1's network spikes up to its cap
 
 
 @pytest.mark.parametrize('kind, events', [

@@ -784,7 +784,7 @@ def test_the_kernels_entry_point_sees_any_input_as_the_dispatcher_would(kind):
         inputs = (z, wide[:, 0], [70 - k, 30, -5])[k % 3]  # plain first, then a non-contiguous column, ints
         clean.step(z, np.zeros(3), 0.1)
         odd.step(inputs, readonly if k % 2 else [0, 0, 0], 0.1)
-    assert odd._step_entry is not odd._packed_kernel  # the fast path is the one in use
+    assert odd.program.on_entry_point  # the fast path is the one in use
     np.testing.assert_array_equal(odd.x_hat, clean.x_hat)
 
 
@@ -802,17 +802,17 @@ def test_the_packed_step_is_the_kernel_on_the_three_tuples_bit_for_bit(kind):
         z, u = np.array([[70.0 - k, 30.0, -5.0]]) + rng.normal(0.0, 0.1, (1, 3)), rng.normal(0.0, 1e-3, (1, 3))
         packed.step(z, u, dt)
         if k == 20:
-            ref = packed._packed.ref
-        if dt != tuples._call_dt:
+            ref = packed.program.packed.ref
+        program = tuples.program
+        if dt != program.dt:
             tuples.prepare(dt)
-        dynamics, drift = tuples._dynamics(tuples._x_hat, u, dt)
-        p = tuples._packed
-        status, _ = tuples._kernel(p.constants, p.state, p.network, tuples._all_measured, dt, dynamics, drift,
-                                   z, u, tuples._network.zero_noise)
+        dynamics, drift = program.dynamics(tuples.batch_x_hat, u, dt)
+        status, _ = program.kernel(program.constants, program.state, program.network, program.all_runs, dt, dynamics,
+                                   drift, z, u, tuples.network.zero_noise)
         assert status == kernels.STATUS_OK
-        np.testing.assert_array_equal(packed._x_hat, tuples._x_hat)
-        np.testing.assert_array_equal(packed._p, tuples._p)
-    assert packed._packed.ref is ref  # 40 steps of other dts: no rebuild
+        np.testing.assert_array_equal(packed.x_hat, tuples.x_hat)
+        np.testing.assert_array_equal(packed.P, tuples.P)
+    assert packed.program.packed.ref is ref  # 40 steps of other dts: no rebuild
     if packed.spiking:
         np.testing.assert_array_equal(packed.spikes, tuples.spikes)
 
@@ -821,7 +821,7 @@ def test_packed_writes_the_dt_constants_in_place_and_rebuilds_for_the_others():
     """Packed keeps private copies of the constants a dt changes (the caller's arrays are
     never written) and updates them in place; any other constant gets a new tuple and PackedRef."""
     estimator = make_estimator('ekf', EstimatorConfig())
-    packed = estimator._packed
+    packed = estimator.program.packed
     given = np.eye(3) * 2.0
     before = packed.ref
     packed.update(r_sample=given)

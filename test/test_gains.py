@@ -7,6 +7,7 @@ import pytest
 
 from snn_estimator import EstimatorConfig, gains, make_estimator
 from snn_estimator.catalog import FILTER_KINDS
+from snn_estimator.config import gain_noise_density
 from snn_estimator.filters import estimators as E
 from snn_estimator.spiking.costs import CostModel, filter_macs
 
@@ -51,7 +52,7 @@ def test_the_compiled_gain_of_each_law_equals_its_reference_form(kind):
     z = c @ x + np.array([0.3, -0.02, 0.4])
     estimator.step(z, np.zeros(3), 0.1)
     phi = np.eye(6) + 0.1 * estimator.model.linearized_increment(None, 0.1)[0]  # the exact ZOH transition
-    step = gains.SampledStep(phi, 0.1, E.gain_noise_density(s, 0.1) / 0.1)
+    step = gains.SampledStep(phi, 0.1, gain_noise_density(s, 0.1) / 0.1)
     expected = law.reference(p, c, z - c @ x, step, s.r_hat, s.boundary_layer)
     np.testing.assert_allclose(estimator.gain, expected, rtol=1e-10, atol=1e-14)
     assert np.abs(expected).max() > 1e-3  # a gain that says something

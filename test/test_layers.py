@@ -209,9 +209,9 @@ def test_the_nodes_around_the_estimator_start_without_numba_or_plotting(node):
     assert 'rclpy' in loaded and loaded & {'numba', 'matplotlib', 'control', 'snn_tools'} == set()
 
 
-def test_no_function_over_60_lines_no_class_over_300_and_short_kernel_argument_lists():
-    """Issue 21's limits, in the core and the nodes: a function fits a screen, a class is one
-    idea, and a compiled kernel takes packed tuples (about ten arguments at most)."""
+def test_no_function_over_60_lines_and_short_kernel_argument_lists():
+    """A function fits a screen, and a compiled kernel takes packed tuples (about ten arguments
+    at most). A class has no size limit (issue 37: a size is never a goal): see the next test."""
     too_long = []
     for package in ('snn_estimator', 'scenario_nodes'):
         for name, path in modules(package).items():
@@ -222,8 +222,6 @@ def test_no_function_over_60_lines_no_class_over_300_and_short_kernel_argument_l
                     kernel = package == 'snn_estimator' and node.name.endswith('_template')
                     if size > 60 or kernel and arguments > 10:
                         too_long.append((name, node.name, size, arguments))
-                elif isinstance(node, ast.ClassDef) and size > 300:
-                    too_long.append((name, node.name, size))
     assert too_long == []
 
 
@@ -231,7 +229,7 @@ def test_the_fire_kernel_takes_the_step_kernels_network_tuple():
     from snn_estimator import make_estimator
     from snn_estimator.filters import kernels
 
-    network = make_estimator('snn_ekf')._network
+    network = make_estimator('snn_ekf').network
     assert [id(a) for a in network.kernel_tuple()] == [id(network.arrays[name]) for name, _ in kernels.NETWORK]
 
 

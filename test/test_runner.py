@@ -372,7 +372,7 @@ def test_any_timing_fuses_jittered_stamps_answers_each_at_its_stamp_and_tracks_t
     # steps of 600 lengths: the per-dt caches stay bounded (a node runs for days)
     estimator = runner.estimator
     assert len(estimator.model.__dict__.get('_zoh_cache', {})) <= 64
-    assert len(estimator._dynamics._linear_cache) <= 64
+    assert estimator.program.dynamics.cached_steps <= 64
     _, _, _, grid_errors = _jittered_loop(0.0)
     rmse, grid_rmse = (np.sqrt((e[300:] ** 2).mean(axis=0)) for e in (errors, grid_errors))
     assert np.all(rmse < 1.3 * grid_rmse), rmse / grid_rmse

@@ -631,7 +631,8 @@ def _sources_digest() -> str:
     return digest.hexdigest()[:12]
 
 
-_DIGEST = _sources_digest()
+#: A hash of the sources every composed kernel is made of (the name it is cached under carries it).
+DIGEST = _sources_digest()
 _KERNELS: dict = {}
 
 
@@ -642,7 +643,7 @@ def _specialise(template, name: str, **pieces):
     kernel = _KERNELS.get(key)
     if kernel is None:
         function = types.FunctionType(template.__code__, {**globals(), **pieces}, template.__name__)
-        function.__qualname__ = f'{name}_{_DIGEST}'
+        function.__qualname__ = f'{name}_{DIGEST}'
         function.__doc__ = template.__doc__
         kernel = _KERNELS[key] = numba.njit(cache=True, fastmath=_FAST)(function)
     return kernel

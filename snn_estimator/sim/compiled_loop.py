@@ -39,6 +39,7 @@ import numpy as np
 
 from snn_estimator import gains
 from snn_estimator.filters import kernels
+from snn_estimator.filters.program import StepProgram
 
 #: Steps per compiled call (and noise rows drawn at a time): the blocks of GaussianStream.
 CHUNK = 512
@@ -319,7 +320,7 @@ def record_sample(sample, step, with_metrics, x, applied, state, network, output
             np.empty(n))
 
 
-_DIGEST = hashlib.sha256(Path(__file__).read_bytes() + kernels._DIGEST.encode()).hexdigest()[:12]
+_DIGEST = hashlib.sha256(Path(__file__).read_bytes() + StepProgram.DIGEST.encode()).hexdigest()[:12]
 _LOOPS: dict = {}
 
 
@@ -376,16 +377,17 @@ class CompiledLoop:
     position sensor and ``_Control``, at steps of ``dt``."""
 
     def __init__(self, estimator, plant, sensor, control, dt: float, filter_c, r_hat):
-        if dt != estimator._call_dt:
+        program = estimator.program  # the filter's kernel and the arrays it steps
+        if dt != program.dt:
             estimator.prepare(dt)
         self.estimator, self.plant, self.sensor, self.dt = estimator, plant, sensor, float(dt)
         runs, n, n_u = estimator.runs, estimator.model.n_state, estimator.model.n_input
-        dynamics, drift = estimator._dynamics(estimator._x_hat, np.zeros((runs, n_u)), dt)
+        dynamics, drift = program.dynamics(estimator.batch_x_hat, np.zeros((runs, n_u)), dt)
         m = sensor.model.measurement_matrix.shape[0]
         self._z, self._u = np.zeros((runs, m)), np.zeros((runs, n_u))
-        network = estimator._network
+        network = estimator.network
         self._dynamics, self._drift = dynamics, drift
-        self._loop = loop_kernel(estimator._kernel)
+        self._loop = loop_kernel(program.kernel)
         self.truth_inside = hasattr(plant, 'step_noise_covariance')  # blocks.Plant; Basilisk steps itself
         self._x = np.ascontiguousarray(plant.x, dtype=float).copy()
         self._applied = np.zeros((runs, n_u))
@@ -432,7 +434,7 @@ class CompiledLoop:
         plant_noise = (self.plant._noise.take(count) if self.truth_inside else np.zeros((runs, count, n)))
         sensor_noise = self.sensor._noise.take(count)
         membrane = (np.stack([g.normal(0.0, self._sigma, (count, self._neurons))
-                              for g in self.estimator._network.noise_rngs], axis=1)
+                              for g in self.estimator.network.noise_rngs], axis=1)
                     if self._sigma > 0.0 else np.zeros((0, runs, self._neurons)))
         sample_at, step_at = sink.offsets(first)
         done = 0
@@ -460,10 +462,10 @@ class CompiledLoop:
         """One compiled call for steps first .. first + count - 1; returns (status, steps taken)
         after the estimator's counters and a bad input's ValueError."""
         estimator = self.estimator
-        packed = estimator._packed  # read each call: an event may have retuned the constants
-        running = estimator._all_measured if divergence.running is None else np.ascontiguousarray(divergence.running)
-        step_args = (packed.constants, packed.state, packed.network, running, self.dt, self._dynamics,
-                     self._drift, self._z, self._u, estimator._network.zero_noise)
+        program = estimator.program  # read each call: an event may have retuned the constants
+        running = program.all_runs if divergence.running is None else np.ascontiguousarray(divergence.running)
+        step_args = (program.constants, program.state, program.network, running, self.dt, self._dynamics,
+                     self._drift, self._z, self._u, estimator.network.zero_noise)
         truth = (self.truth_inside, self._phi, self._gamma, self._plant_root, np.ascontiguousarray(plant_noise),
                  self._x, self._applied)
         sensing = self._sensing[:2] + (np.ascontiguousarray(sensor_noise),) + self._sensing[3:]
@@ -480,8 +482,8 @@ class CompiledLoop:
         self.plant.step(self._u, self.dt)
         self._x[:] = self.plant.x
         record_sample(sample, step, k + 1 >= sink.metrics_from, self._x,
-                      np.ascontiguousarray(self.plant.applied, dtype=float), self.estimator._packed.state,
-                      self.estimator._packed.network, sink.outputs)
+                      np.ascontiguousarray(self.plant.applied, dtype=float), self.estimator.program.state,
+                      self.estimator.program.network, sink.outputs)
         if divergence.check(k, self.estimator, self.plant) == 0 and status == kernels.STATUS_NON_FINITE:
             raise FloatingPointError(f'the {self.estimator.kind} state became non-finite')
 

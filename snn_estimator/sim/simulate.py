@@ -205,7 +205,7 @@ def simulate(scenario: Scenario, kind: str, runs: int = 1, seed: int = 0,
     started, cpu_started = time.perf_counter(), time.thread_time()
     if compiled:
         loop = compiled_loop.CompiledLoop(estimator, plant, sensing.sensor, control, dt, sensing.c, sensing.r_hat)
-        sink = (compiled_loop.FullRecord(record, runs, scenario.model.n_state, estimator._network.r.shape[1])
+        sink = (compiled_loop.FullRecord(record, runs, scenario.model.n_state, estimator.network.r.shape[1])
                 if record is not None else
                 ChunkSink(sums, scenario.model.n_input, estimator.spiking))
         loop.run(sink, steps, divergence, events, on_step)

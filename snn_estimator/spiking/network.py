@@ -82,6 +82,13 @@ class Network:
         self.v[run] = potentials
         return decoded
 
+    def retire(self, runs: np.ndarray) -> None:
+        """Silence every neuron of the runs marked in ``runs`` for good, their rates and
+        potentials zero (a run that diverged: it fires no more)."""
+        self.alive[runs] = False
+        self.r[runs] = 0.0
+        self.v[runs] = 0.0
+
     def lose(self, wanted: np.ndarray) -> None:
         """Silence exactly the neurons marked in ``wanted`` (others revive): a newly silenced
         neuron's r_i and the synaptic input it sent (r_i times its Omega_f column) vanish."""
