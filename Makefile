@@ -28,7 +28,7 @@ SCHEDULER ?=
 # ROS 2 Jazzy from PyPI (cp311 wheels); lark-parser is what they need (never lark 1.x beside it).
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
-.PHONY: venv test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
+.PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
 	spike-budget sensors \
 	docs-screenshots report faults clean
 
@@ -40,17 +40,25 @@ $(STAMP): setup.py pyproject.toml scenario_nodes/registry.py
 	$(BIN)/python -m pip install --quiet $(ROS_WHEELS)
 	$(BIN)/python -m pip install --quiet -e ".[test,basilisk,campaign,neuromorphic,live]"
 	$(BIN)/python -m pip install --quiet colcon-common-extensions
-	# compile the spiking, Basilisk-step and closed-loop kernels once, into numba's cache: no node or
-	# Monte Carlo compiles at start-up
-	$(BIN)/python -m snn_tools.run.warm_cache
+	# compile what make demo runs into numba's cache (the rest compiles on first use, or with make warm)
+	$(BIN)/python -m snn_tools.run.warm_cache --demo
 	touch $(STAMP)
+
+# every kernel (each filter kind, the closed loops, the Basilisk plant) into numba's cache, on the
+# CPUs in parallel: no test, node or Monte Carlo compiles after it
+WARM := $(VENV)/.snn_rendezvous-warm
+warm: $(WARM)
+
+$(WARM): $(STAMP)
+	$(BIN)/python -m snn_tools.run.warm_cache
+	touch $(WARM)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
 # the CPU-sensitive tests (golden numbers of the fast-math kernels) run again compiled for a generic
 # x86-64 CPU: the suite must pass on any CPU the wheels support (issue 36)
-test: lint
+test: lint warm
 	$(BIN)/python -m pytest -q -n 2 -m "not slow" test
 	NUMBA_CPU_NAME=generic $(BIN)/python -m pytest -q -n 2 -m cpu_sensitive test
 	$(BIN)/python -m pytest -q -m slow --durations=15 test
@@ -122,6 +130,11 @@ report: $(STAMP)
 # ten realtime x10 runs of 480 s (~12 min on an idle 2-core machine)
 faults: $(STAMP)
 	$(BIN)/python -m snn_tools.experiments.faults --out results/faults.json $(if $(CELLS),--cells $(CELLS))
+
+# a newcomer's first make demo, timed on a fresh clone of HEAD with its own .venv (~1.5 GB in a
+# temporary folder, removed after) -> results/first_demo.json
+time-first-demo:
+	$(PYTHON) -m snn_tools.bench.first_demo --python $(PYTHON) --out results/first_demo.json
 
 clean:
 	rm -rf build install log *.egg-info

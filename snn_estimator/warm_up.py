@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 
-from snn_estimator.catalog import FILTER_KINDS
+import numpy as np
+
+from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS
 from snn_estimator.config import EstimatorConfig
 from snn_estimator.filters import kernels
 from snn_estimator.filters.estimators import Estimator
@@ -62,6 +64,16 @@ def closed_loops(kinds=None, basilisk: bool = True) -> None:
     on_basilisk = rendezvous_scenario(plant='basilisk')
     simulate(dataclasses.replace(on_basilisk, duration=on_basilisk.dt, metric_window=on_basilisk.dt), 'ekf',
              engine='compiled')
+
+
+def demo(kind: str = DEFAULT_FILTER) -> None:
+    """What ``make demo`` runs compiled: the estimator node's kernels for ``kind`` at its
+    default settings (the step, the spikes of a silencing, the runner's NIS check). The kernels'
+    types depend on the filter's composition, not on its sizes, so a small network compiles the
+    node's."""
+    estimator = Estimator(kind, ClohessyWiltshire(), EstimatorConfig(neuron_count=4))
+    estimator.warm_up()
+    estimator.innovation_nis(estimator.x_hat[:3], np.eye(3))
 
 
 def everything() -> None:

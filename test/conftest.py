@@ -119,6 +119,7 @@ LONG = frozenset({
     'test_an_interrupt_leaves_a_table_of_the_finished_cells',
     'test_the_shipped_specs_are_valid',
     'test_brian2_from_the_nir_file_matches_the_integer_network',
+    'test_the_install_compiles_what_the_demo_runs_and_the_estimator_node_then_compiles_nothing',
 })
 
 

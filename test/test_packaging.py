@@ -287,3 +287,22 @@ def test_the_install_warm_up_covers_every_kind_and_names_a_part_that_fails():
     spiking = [FILTER_KINDS[p].spiking for p in parts if p in FILTER_KINDS]
     assert spiking == sorted(spiking, reverse=True)  # the spiking kinds (the longest) first
     assert 'unknown filter kinds' in warm_cache.warm('ukf')
+
+
+def test_the_install_compiles_what_the_demo_runs_and_the_estimator_node_then_compiles_nothing(tmp_path):
+    """make's install warms only the demo's part (issue 37: a newcomer's first make demo must not
+    wait for every kind): the default estimator's kernels, which the node's own warm-up then
+    finds in numba's cache (an empty cache of its own here, so only that part fills it)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    warm = subprocess.run([sys.executable, '-c', "from snn_tools.run import warm_cache; print(warm_cache.warm('demo'))"],
+                          capture_output=True, text=True, timeout=600, env=env)
+    assert warm.returncode == 0 and warm.stdout.strip() == '', warm.stderr
+    node = ('from snn_estimator import make_estimator; from snn_estimator.catalog import DEFAULT_FILTER\n'
+            'from snn_estimator.filters import kernels\n'
+            'estimator = make_estimator(DEFAULT_FILTER); estimator.warm_up()\n'
+            'stats = kernels.step_kernel(*estimator.program.composition, packed=True).stats\n'
+            'print(len(stats.cache_hits), len(stats.cache_misses))')
+    loaded = subprocess.run([sys.executable, '-c', node], capture_output=True, text=True, timeout=300, env=env)
+    assert loaded.returncode == 0, loaded.stderr
+    hits, misses = map(int, loaded.stdout.split())
+    assert hits >= 1 and misses == 0

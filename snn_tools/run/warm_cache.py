@@ -1,4 +1,8 @@
-"""``python -m snn_tools.run.warm_cache [--jobs N]``: fill numba's on-disk cache at install (``make``).
+"""``python -m snn_tools.run.warm_cache [--jobs N] [--demo]``: fill numba's on-disk cache.
+
+``--demo`` (``make`` at install) compiles only what ``make demo`` runs (the default estimator's
+kernels, ~20 s), so a newcomer's first demo does not wait for every kind; without it (``make
+warm``, which ``make test`` runs first) every part below.
 
 Compiles each filter kind's kernels and closed loop, and the Basilisk truth's sample writer, on
 ``--jobs`` worker processes (default: the CPUs, at most 4), each taking the next part when it is
@@ -32,7 +36,9 @@ def warm(part: str) -> str:
     """Compile one part (in a worker process); the traceback as text if it failed, else ''."""
     try:
         from snn_estimator import warm_up
-        if part == 'basilisk truth':
+        if part == 'demo':
+            warm_up.demo()
+        elif part == 'basilisk truth':
             warm_up.closed_loops(kinds=(), basilisk=True)
         else:
             warm_up.filter_kernels([part])
@@ -44,6 +50,8 @@ def warm(part: str) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='warm_cache', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--demo', action='store_true',
+                        help="only what make demo runs (the default estimator's kernels)")
     parser.add_argument('--jobs', type=int, default=min(os.cpu_count() or 1, 4),
                         help='worker processes (default: the CPUs, at most 4)')
     args = parser.parse_args(argv)
@@ -51,7 +59,7 @@ def main(argv=None) -> int:
         parser.error('--jobs must be >= 1')
     begun, failed = time.monotonic(), []
     with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
-        futures = {pool.submit(warm, part): part for part in parts()}
+        futures = {pool.submit(warm, part): part for part in (['demo'] if args.demo else parts())}
         for future in as_completed(futures):
             error = future.result()
             if error:
