@@ -294,8 +294,8 @@ def test_the_install_compiles_what_the_demo_runs_and_the_estimator_node_then_com
     wait for every kind): the default estimator's kernels, which the node's own warm-up then
     finds in numba's cache (an empty cache of its own here, so only that part fills it)."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
-    warm = subprocess.run([sys.executable, '-c', "from snn_tools.run import warm_cache; print(warm_cache.warm('demo'))"],
-                          capture_output=True, text=True, timeout=600, env=env)
+    program = "from snn_tools.run import warm_cache; print(warm_cache.warm('demo'))"
+    warm = subprocess.run([sys.executable, '-c', program], capture_output=True, text=True, timeout=600, env=env)
     assert warm.returncode == 0 and warm.stdout.strip() == '', warm.stderr
     node = ('from snn_estimator import make_estimator; from snn_estimator.catalog import DEFAULT_FILTER\n'
             'from snn_estimator.filters import kernels\n'
