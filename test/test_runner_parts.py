@@ -6,6 +6,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from test_runner import Clock
 
 from snn_estimator import make_estimator, rendezvous_scenario
 from snn_estimator.runners.control_book import ControlBook
@@ -30,14 +31,6 @@ class Logs:
 
     def __call__(self, level, message):
         self.lines.append((level, message))
-
-
-class Clock:
-    def __init__(self):
-        self.now = 0.0
-
-    def __call__(self):
-        return self.now
 
 
 # ------------------------------------------------------------------ the measurement queue
