@@ -125,8 +125,7 @@ class Inputs:
             else:  # z None: the sensor looked and measured nothing (outside its limits)
                 stamp_ns, z = read_measurement(self._model, data, self._sensor_frame)
         except MessageError as error:
-            runner.measurements_received += 1
-            return self._refuse(runner.rejected, 'measurement', error)
+            return self._refuse(runner.measurement_unreadable, 'measurement', error)
         if self._node.active and runner.has_measurement(stamp_ns) and self._out.resend(stamp_ns):
             runner.repeated()  # the same sample again (a lockstep resend): the same answer
         elif z is None:
@@ -147,7 +146,7 @@ class Inputs:
         try:
             record, u = read_input('control', data, self._frame)
         except MessageError as error:
-            return self._refuse(self._runner.control_rejected, what, error)
+            return self._refuse(self._runner.control_unreadable, what, error)
         if take(record.stamp_ns, u) is not None:
             self._report()
 
@@ -156,13 +155,14 @@ class Inputs:
             record = decode_odometry(data)
             self._runner.set_state(state_of(record), record.covariance)
         except ValueError as error:  # MessageError included
-            self._runner.events['set_state_rejected'] += 1
+            self._runner.count('set_state_rejected')
             self._node.log('warning', f'rejected set_state: {error}')
             return
         self._node.get_logger().info(f'state set to {np.array2string(self._runner.estimator.x_hat, precision=4)}')
 
-    def _refuse(self, counter, what: str, error: MessageError) -> None:
-        counter[error.reason] += 1
+    def _refuse(self, count, what: str, error: MessageError) -> None:
+        """Count (``count(reason)``), log and report an input that could not be read."""
+        count(error.reason)
         self._node.log('warning', f'rejected {what}: {error}')
         self._report()
 
@@ -262,7 +262,7 @@ def apply_runtime_changes(runner: FilterRunner, values: dict, changes: dict) -> 
         estimator.retune(**retune)  # validated (also against the step in use) before it changes anything
     runner.replace_settings(settings)
     if estimator.spiking and silencing:
-        runner.events['silencing_changes'] += 1
+        runner.count('silencing_changes')
     return values
 
 
@@ -468,13 +468,13 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
         self._standby.update(*self._estimators_alive())
         if self._standing_by and not self._active and self._standby.takes_over(runner.started):
             self.get_logger().warning(f"standby: no other estimator is alive on '{qos.ESTIMATE}': activating")
-            runner.events['standby_activations'] += 1
+            runner.count('standby_activations')
             self.trigger_activate()
         elif self._active and self._standby.yields(self.get_name()):
             self.get_logger().warning(f"another estimator is active on '{qos.ESTIMATE}' "
                                       f"({', '.join(self._standby.others)}): yielding (the first name in "
                                       'order publishes); standing by')
-            runner.events['yields'] += 1
+            runner.count('yields')
             self.trigger_deactivate()
             self._standing_by = True
 

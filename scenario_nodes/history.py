@@ -20,7 +20,7 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.qos import DurabilityPolicy
 
-from snn_estimator.runners.filter_runner import History
+from snn_estimator.runners.start_up import History
 
 from . import qos
 from .codec import MessageError, read_input, read_measurement

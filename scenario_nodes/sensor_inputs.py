@@ -80,8 +80,7 @@ class FusedInputs:
         try:
             stamp_ns, z = read_measurement(sensor.model, data, sensor.frame_id)
         except MessageError as error:
-            runner.measurements_received += 1
-            return self._refuse(runner.rejected, f"{sensor.name}'s sample", error)
+            return self._refuse(runner.measurement_unreadable, f"{sensor.name}'s sample", error)
         kind, ready = self.assembler.offer(index, stamp_ns, z)
         if kind == 'repeat':  # a lockstep resend: the same answer
             if self._node.active and runner.has_measurement(stamp_ns) and self._out.resend(stamp_ns):

@@ -8,7 +8,9 @@ from snn_estimator import make_estimator, rendezvous_scenario, simulate
 from snn_estimator.plant.control import lqr_control, lqr_gain
 from snn_estimator.plant.sensors import PositionSensor
 from snn_estimator.plant.truth import Plant
-from snn_estimator.runners.filter_runner import NS, FilterRunner, History, RunnerSettings
+from snn_estimator.runners.filter_runner import FilterRunner, RunnerSettings
+from snn_estimator.runners.gates import NS
+from snn_estimator.runners.start_up import History
 
 DT = 100_000_000
 R = 1e-2 * np.eye(3)
@@ -77,7 +79,7 @@ def test_a_control_missing_two_measurements_later_is_held_and_counted():
     runner.measurement(2 * DT, X0)
     assert runner.estimator.steps == 1  # u_1 may still come
     runner.measurement(3 * DT, X0)
-    assert runner.estimator.steps == 2 and runner.controls_missing == 1
+    assert runner.estimator.steps == 2 and runner.control_book.missing == 1
 
 
 def test_a_sensor_dropout_is_predicted_over_once_the_clock_is_two_steps_ahead():
@@ -89,7 +91,7 @@ def test_a_sensor_dropout_is_predicted_over_once_the_clock_is_two_steps_ahead():
     assert runner.estimator.steps == 1  # a measurement came less than dropout_wait ago
     wall.now = 1.0
     runner.watchdog(now_ns=5 * DT)
-    assert runner.time_ns == 5 * DT and runner.dropout_steps == 4
+    assert runner.time_ns == 5 * DT and runner.measurement_queue.dropout_steps == 4
 
 
 def loop_history(steps, seed=3):
@@ -289,7 +291,7 @@ def test_stamps_off_the_clock_name_the_likely_cause(clock_ns, cause):
                           R, publish=lambda stamp: None, log=lambda level, message: logs.append(message))
     runner.start('auto')
     runner.measurement(10 * DT, X0, now_ns=clock_ns)
-    assert sum(cause in m for m in logs) == 1 and runner.events['stamps_off_the_clock'] == 1
+    assert sum(cause in m for m in logs) == 1 and runner.measurement_queue.events['stamps_off_the_clock'] == 1
 
 
 # ------------------------------------------------------------------ measurement_timing: any
@@ -366,8 +368,8 @@ def test_any_timing_fuses_jittered_stamps_answers_each_at_its_stamp_and_tracks_t
     stays within 1.3x of the same loop's with the sensor on a 10 Hz grid."""
     runner, stamps, answered, errors = _jittered_loop(0.03)
     assert answered == stamps
-    assert runner.rejected == {} and runner.measurements_used == len(stamps) - 1
-    assert runner.dropout_steps == 0 and runner.controls_missing == 0
+    assert runner.measurement_queue.rejected == {} and runner.measurement_queue.used == len(stamps) - 1
+    assert runner.measurement_queue.dropout_steps == 0 and runner.control_book.missing == 0
     assert len(set(np.diff(stamps))) > 500  # really off any grid
     # steps of 600 lengths: the per-dt caches stay bounded (a node runs for days)
     estimator = runner.estimator
@@ -386,7 +388,7 @@ def test_any_timing_rejects_a_late_measurement_as_stale_and_never_as_misaligned(
         assert runner.measurement(stamp, X0) is None
     assert [s for s, _ in published] == [1_000_000_000, 1_093_000_000, 1_207_000_000]
     assert runner.measurement(1_150_000_000, X0) == 'stale'  # older than the newest fused
-    assert runner.rejected == {'stale': 1}
+    assert runner.measurement_queue.rejected == {'stale': 1}
     with pytest.raises(ValueError, match='measurement_timing'):
         RunnerSettings(time_step=0.1, measurement_timing='sometimes')
 
@@ -457,10 +459,11 @@ def test_a_sample_the_sensor_could_not_measure_is_predicted_over_at_once_and_ans
     assert runner.no_measurement(DT) is None and published == [0, DT]  # waits for u_1
     runner.control(DT, np.zeros(3))
     twin.step(None, np.zeros(3), 0.1)
-    assert published == [0, DT, 2 * DT] and runner.dropout_steps == 1 and runner.not_measured == 1
+    queue = runner.measurement_queue
+    assert published == [0, DT, 2 * DT] and queue.dropout_steps == 1 and queue.not_measured == 1
     np.testing.assert_array_equal(runner.estimator.x_hat, twin.x_hat)
     assert runner.has_measurement(DT)  # a resend: answered with the estimate it got
-    assert runner.no_measurement(DT) == 'stale' and runner.events['not_measured_rejected.stale'] == 1
+    assert runner.no_measurement(DT) == 'stale' and runner.measurement_queue.events['not_measured_rejected.stale'] == 1
     values = runner.values()
     assert values['measurements_received'] == 1 and values['not_measured'] == 2
     assert values['measurements_rejected'] == 0 and values['measurements_pending'] == 0
@@ -530,7 +533,7 @@ def _feed(runner, out, stream, report_delay=1, lost=(), lost_controls=()):
             runner.measurement(k * DT, measurements[k * DT])
         for stamp in out.first:
             first_tick.setdefault(stamp, k)
-        out.most_held = max(out.most_held, runner.provisional_held)
+        out.most_held = max(out.most_held, runner.provisional_log.held_count)
     return first_tick
 
 
@@ -590,7 +593,7 @@ def test_a_provisional_step_the_plant_confirms_gives_exactly_the_estimates_of_wa
     assert all(ticks[(k + 1) * DT] == k for k in range(60))
     assert all(waited_ticks[(k + 1) * DT] == k + 1 for k in range(1, 60))  # the report's tick
     assert runner.values()['provisional_steps'] == 59  # step 0 came before the plant's first report
-    assert runner.provisional_held == 0 and runner.values()['provisional_held'] == 0
+    assert runner.provisional_log.held_count == 0 and runner.values()['provisional_held'] == 0
     for key in ('measurements_used', 'controls_missing', 'dropout_steps', 'spikes_total', 'steps'):
         assert runner.values()[key] == waiting.values()[key], key
 
@@ -630,7 +633,7 @@ def test_lost_reports_leave_the_commanded_control_and_never_hold_more_than_the_l
     """Reports of steps 10 and 30-59 lost (a plant that stopped reporting): each held step is
     accepted as applied once PROVISIONAL_LIMIT later steps are held behind it, counted; memory
     stays bounded; the estimates are those of the controller's controls, as the waiting runner's."""
-    from snn_estimator.runners.filter_runner import PROVISIONAL_LIMIT
+    from snn_estimator.runners.provisional import PROVISIONAL_LIMIT
     lost = {10, *range(30, 60)}
     stream = _realtime_stream(60)
     measurements, controls, reports = stream
@@ -684,9 +687,9 @@ def test_set_state_accepts_the_held_steps_so_a_later_report_never_undoes_it():
         runner.measurement(k * DT, measurements[k * DT])
         if k == 0:
             runner.applied(0, reports[0])
-    assert runner.provisional_held == 7
+    assert runner.provisional_log.held_count == 7
     runner.set_state(WRONG, np.eye(6))
-    assert runner.provisional_held == 0 and runner.values()['provisional_unconfirmed'] == 7
+    assert runner.provisional_log.held_count == 0 and runner.values()['provisional_unconfirmed'] == 7
     for k in range(1, 8):
         runner.applied(k * DT, reports[k * DT])  # step 5's differs: nothing to go back to
     np.testing.assert_array_equal(runner.estimator.x_hat, WRONG)

@@ -1,7 +1,13 @@
-"""Where a filter starts again mid-flight: from the data, never the parameters' initial state.
+"""When and where a filter starts again mid-flight: from the data, never the parameters'
+initial state.
 
-A filter that lost the truth (a persistently inconsistent innovation, a non-finite state), or
-is reset on request, restarts from what the loop measured, in this order:
+When (:class:`RestartTrigger`): a reset on request, at the next measurement's step, or a
+normalised innovation squared (NIS) above ``nis_threshold`` for ``nis_window`` steps in a row.
+(A non-finite state or a covariance the step cannot keep restarts it at once: the runner's
+step catches them.)
+
+Where from (:class:`Recovery`): a filter that lost the truth, or is reset on request, restarts
+from what the loop measured, in this order:
 
 1. a least-squares fit of the recent measurements (``initial_fit_window`` seconds, the controls
    used between them; :func:`snn_estimator.runners.initialization.least_squares_start`): the prior at
@@ -31,6 +37,53 @@ from .initialization import least_squares_start
 TRUST_INFLATION = 10.0
 #: Fewest measurements a least-squares restart fits.
 MIN_FIT_MEASUREMENTS = 5
+
+
+class RestartTrigger:
+    """Says when a running filter must start again from the data (see the module docstring)."""
+
+    def __init__(self):
+        self._inconsistent_steps = 0  # NIS over the threshold, in a row
+        self._requested: tuple[str, str] | None = None
+
+    @property
+    def requested(self) -> tuple[str, str] | None:
+        """(why, 'reset') of a reset requested for the next measurement's step, else None."""
+        return self._requested
+
+    @property
+    def consistent(self) -> bool:
+        """The last innovation checked was within the threshold (or none was since a restart)."""
+        return self._inconsistent_steps == 0
+
+    def request(self, why: str) -> None:
+        """A reset on request: the next measurement's step restarts the filter."""
+        self._requested = (why, 'reset')
+
+    def check(self, nis: float, threshold: float, window: int) -> tuple[str, str] | None:
+        """Count a step's NIS: (why, 'inconsistent_innovation') once it was over ``threshold``
+        for ``window`` steps in a row (``window`` 0: never), else None."""
+        self._inconsistent_steps = self._inconsistent_steps + 1 if nis > threshold else 0
+        if self._inconsistent_steps >= window > 0:
+            return (f'normalised innovation squared {nis:.1f} > {threshold} for {self._inconsistent_steps} steps',
+                    'inconsistent_innovation')
+        return None
+
+    def forget_inconsistency(self) -> None:
+        """Start counting inconsistent steps afresh (the state was set)."""
+        self._inconsistent_steps = 0
+
+    def clear(self) -> None:
+        """The filter restarted: nothing requested, nothing inconsistent."""
+        self._inconsistent_steps = 0
+        self._requested = None
+
+    def snapshot(self) -> tuple:
+        """What a step changes here, for :meth:`restore` (a step taken again)."""
+        return self._inconsistent_steps, self._requested
+
+    def restore(self, snapshot: tuple) -> None:
+        self._inconsistent_steps, self._requested = snapshot
 
 
 class Recovery:
