@@ -1,5 +1,5 @@
 """The package's executables, listed once: every node (name, module, parameter table, place in
-the start order) and the tools. setup.py (console scripts), scenario_nodes.parameters (which
+the start order) and the tools. setup.py (console scripts), scenario_nodes.parameter_tables (which
 table each node section of the YAML files and docs/parameters.md holds), the launch file,
 snn_tools.run.demo and the ros2-run wrappers in wrappers/ (test_packaging keeps them in step) all
 read this. A new node is its file plus one entry here.
@@ -15,7 +15,7 @@ class NodeEntry(NamedTuple):
 
     name: str         # executable, node name and parameter-file section
     module: str       # module whose main() runs it
-    parameters: str   # its table in scenario_nodes.parameters
+    parameters: str   # its table in scenario_nodes.parameter_tables.TABLES
     start: int        # start order of the demo and the launch: consumers first, the plant last
     plant: str = ''   # a truth plant: the --plant / plant:= choice that selects it
     optional: bool = False  # started only when asked (snn_demo --live-view, live_view:=true)
@@ -66,8 +66,3 @@ def node(name: str) -> NodeEntry:
             return entry
     raise ValueError(f'unknown node {name!r}; choose one of {", ".join(e.name for e in NODES)}')
 
-
-WRAPPER = '''#!/bin/sh
-# ros2 run entry point for a pip install: run the console script installed in <prefix>/bin.
-exec "$(dirname "$0")/../../bin/{name}" "$@"
-'''

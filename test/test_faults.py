@@ -19,8 +19,8 @@ from rosgraph_msgs.msg import Clock  # noqa: E402
 
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.conversions import stamp_to_ns  # noqa: E402
-from scenario_nodes.parameters import DEFAULT_FILTER  # noqa: E402
 from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from snn_estimator.catalog import DEFAULT_FILTER  # noqa: E402
 from snn_tools.bags.data import matched_errors, read_bag, summarize  # noqa: E402
 from snn_tools.paths import config_file  # noqa: E402
 from snn_tools.run.demo import NODES, Pipeline, pipeline_env  # noqa: E402

@@ -14,10 +14,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_the_wrappers_are_exactly_the_registrys_executables_and_can_run():
+    from snn_tools.run.parameter_files import WRAPPER
     wrappers = {path.name: path for path in (ROOT / 'wrappers').iterdir()}
     assert set(wrappers) == set(registry.executables())
     for name, path in wrappers.items():
-        assert path.read_text() == registry.WRAPPER.format(name=name), f'{name}: run parameters --write'
+        assert path.read_text() == WRAPPER.format(name=name), f'{name}: run parameter_files --write'
         assert os.access(path, os.X_OK), name
 
 
@@ -35,9 +36,10 @@ def test_every_registered_executable_has_its_main_and_every_node_its_parameter_t
         assert spec is not None, name
         assert f'def {function}(' in Path(spec.origin).read_text(), name
     pytest.importorskip('rclpy')
-    from scenario_nodes import parameters
-    assert list(parameters.NODES) == [entry.name for entry in registry.NODES]
-    assert all(parameters.NODES[entry.name] is getattr(parameters, entry.parameters) for entry in registry.NODES)
+    from scenario_nodes import parameter_tables
+    assert list(parameter_tables.NODES) == [entry.name for entry in registry.NODES]
+    assert all(parameter_tables.NODES[entry.name] is getattr(parameter_tables, entry.parameters)
+               for entry in registry.NODES)
 
 
 def test_the_demo_starts_the_registrys_loop_in_its_order():

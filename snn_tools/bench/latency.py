@@ -50,7 +50,7 @@ from tempfile import mkdtemp
 
 import numpy as np
 
-from scenario_nodes.parameters import DEFAULT_FILTER
+from snn_estimator.catalog import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 
 #: case -> (plant real_time_factor, extra environment of every node, node parameters changed,

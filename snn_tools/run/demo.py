@@ -21,7 +21,8 @@ from pathlib import Path
 import yaml
 
 from scenario_nodes import registry
-from scenario_nodes.parameters import DEFAULT_FILTER, SUITE_SENSOR_NODES, sensor_suites
+from scenario_nodes.parameter_tables import SUITE_SENSOR_NODES, sensor_suites
+from snn_estimator.catalog import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 from snn_tools.paths import DDS_PROFILE, DDS_PROFILE_VARIABLE, config_file
 
@@ -103,7 +104,7 @@ class Pipeline:
         if live_view:
             self.nodes.insert(0, LIVE_VIEW)
         #: The sensor processes: position_sensor, or sensor nodes of that kind on their own topics
-        #: (a suite of several sensors, scenario_nodes.parameters.SUITE_SENSOR_NODES).
+        #: (a suite of several sensors, scenario_nodes.parameter_tables.SUITE_SENSOR_NODES).
         self.sensor_nodes = tuple(sensor_nodes)
         if single_process and self.sensor_nodes != ('position_sensor',):
             raise ValueError('the single-process mode runs one position_sensor: not with several sensors')
@@ -258,7 +259,7 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
-    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameters.sensor_suites.
+    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameter_tables.sensor_suites.
     ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE). ``listeners``: subscribers
     of measurement, estimate and control besides the loop's (a probe), counted in each node's hold."""
     scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
