@@ -107,7 +107,7 @@ CONFIG_FILES = {
 def sensor_overlay(name: str) -> str:
     """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml."""
     out = [f'# snn_rendezvous: the {name} sensor suite instead of the position sensor (docs/sensors.md).',
-           '# Generated from scenario_nodes/parameters.py (sensor_suites). Load it after the scenario file:',
+           '# Generated from scenario_nodes/parameter_tables.py (sensor_suites). Load it after the scenario file:',
            '#   --ros-args --params-file config/rendezvous.yaml --params-file config/sensor_' + name + '.yaml',
            '']
     for node, values in sensor_suites()[name].items():
@@ -124,7 +124,7 @@ def sensor_overlay(name: str) -> str:
 def yaml_document(header: str, estimator_overrides: dict) -> str:
     """A parameter file for all nodes, every parameter commented (generated from the tables)."""
     out = [f'# snn_rendezvous: {header}',
-           '# Generated from scenario_nodes/parameters.py (python -m scenario_nodes.parameters --write).',
+           '# Generated from scenario_nodes/parameter_tables.py (python -m snn_tools.run.parameter_files --write).',
            '# Use with: ros2 run snn_rendezvous <node> --ros-args --params-file <this file>',
            '# Matrices are flat lists: 1 value = scalar x identity, n values = diagonal, n*n = row-major.',
            '# [runtime] parameters can be changed while running (ros2 param set); the others are read',
@@ -163,15 +163,15 @@ def yaml_document(header: str, estimator_overrides: dict) -> str:
 PARAMETERS_DOC = """\
 # Parameters
 
-Generated from `scenario_nodes/parameters.py` (`python -m scenario_nodes.parameters --write`; a
-test fails when this file, config/rendezvous.yaml or config/rendezvous_as_published.yaml is
-stale). Every parameter is declared with a descriptor carrying this text and its range
-(`ros2 param describe /estimator leak_rate`). Matrices are flat lists: 1 value = scalar x I,
-n values = diagonal, n x n values = row-major. **[runtime]** parameters may be changed while
-running (`ros2 param set`): they are validated and applied between two steps, or refused with a
-reason and nothing changes. The others are read at start-up (the estimator: at configure); an
-invalid value makes the node exit with code 2 (the estimator: fails `configure`) with a message
-that names the parameter and the fix.
+Generated from `scenario_nodes/parameter_tables.py` (`python -m snn_tools.run.parameter_files
+--write`; a test fails when this file, config/rendezvous.yaml or
+config/rendezvous_as_published.yaml is stale). Every parameter is declared with a descriptor
+carrying this text and its range (`ros2 param describe /estimator leak_rate`). Matrices are flat
+lists: 1 value = scalar x I, n values = diagonal, n x n values = row-major. **[runtime]**
+parameters may be changed while running (`ros2 param set`): they are validated and applied
+between two steps, or refused with a reason and nothing changes. The others are read at start-up
+(the estimator: at configure); an invalid value makes the node exit with code 2 (the estimator:
+fails `configure`) with a message that names the parameter and the fix.
 
 """
 
