@@ -371,7 +371,8 @@ def show(value) -> str:
 
 def sensor_suites() -> dict[str, dict[str, dict]]:
     """Sensors that replace Table 6's position sensor: name -> node -> parameter values
-    (``make demo SENSOR=<name>``, config/sensor_<name>.yaml). The numbers are the core's
+    (``make demo SENSOR=<name>``, config/sensor_<name>.yaml; the sensor nodes each starts:
+    scenario_nodes.registry.SENSOR_NODES). The numbers are the core's
     (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
     sample, the mounting that looks back at the target, the minimum range, and the estimator's
     R and boundary layer (Table 6's delta per component, one sensor sigma:
@@ -405,8 +406,3 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
         'lqr_controller': {'measurement_topics': ['camera', 'lidar']},
         'recorder': {'topics': topics}}
     return suites
-
-
-#: The sensor nodes of each suite: position_sensor renamed (and its `measurement` remapped to its
-#: name) when it is not the one sensor on `measurement`.
-SUITE_SENSOR_NODES = {'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar')}

@@ -2,8 +2,10 @@
 wrappers, the parameter tables, the demo and the launch file all list the same nodes."""
 
 import importlib
+import json
 import os
-import runpy
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -24,9 +26,14 @@ def test_the_wrappers_are_exactly_the_registrys_executables_and_can_run():
 
 def test_setup_reads_its_console_scripts_from_the_registry():
     text = (ROOT / 'setup.py').read_text()
-    assert "'registry.py'))['executables']()" in text and "'scenario_nodes.plant_node:main'" not in text
-    # the registry needs nothing installed: setup.py runs it before numpy exists
-    assert runpy.run_path(str(ROOT / 'scenario_nodes' / 'registry.py'))['executables']() == registry.executables()
+    assert 'from scenario_nodes.registry import executables' in text and "'scenario_nodes.plant_node:main'" not in text
+    # the registry needs nothing installed: setup.py reads it from the source tree before numpy
+    # exists (here: an interpreter without site-packages)
+    code = (f'import json, sys; sys.path.insert(0, {str(ROOT)!r}); '
+            'from scenario_nodes.registry import executables; print(json.dumps(executables()))')
+    done = subprocess.run([sys.executable, '-S', '-c', code], capture_output=True, text=True, cwd='/')
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout) == registry.executables()
 
 
 def test_every_registered_executable_has_its_main_and_every_node_its_parameter_table():
@@ -42,11 +49,14 @@ def test_every_registered_executable_has_its_main_and_every_node_its_parameter_t
                for entry in registry.NODES)
 
 
-def test_the_demo_starts_the_registrys_loop_in_its_order():
+def test_the_demo_starts_the_registrys_loop_in_its_order(tmp_path):
     pytest.importorskip('rclpy')
-    from snn_tools.run import demo
-    assert [name for name, _ in demo.NODES] == ['recorder', 'lqr_controller', 'estimator', 'position_sensor',
-                                                'cw_plant']
-    assert {plant: name for plant, (name, _) in demo.PLANTS.items()} == registry.PLANTS
+    from snn_tools.paths import config_file
+    from snn_tools.run.demo import Pipeline, pipeline_env
+    for plant, name in registry.plants().items():
+        pipeline = Pipeline(tmp_path, config_file(), {}, pipeline_env(), plant=plant)
+        assert [node.name for node in pipeline.nodes] == ['recorder', 'lqr_controller', 'estimator',
+                                                          'position_sensor', name]
+        assert pipeline.plant == name
     with pytest.raises(ValueError, match='unknown node'):
         registry.node('kalman_node')
