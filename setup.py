@@ -1,15 +1,18 @@
 """ament_python package snn_rendezvous; installable by colcon and by pip alike."""
 
 import os
-import runpy
+import sys
 from glob import glob
 
 from setuptools import find_packages, setup
 
+# The executables are listed once, in scenario_nodes/registry.py (standard library only), read
+# from this source tree: nothing of the package is installed yet.
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from scenario_nodes.registry import executables  # noqa: E402
+
 PACKAGE = 'snn_rendezvous'
-# The executables are listed once, in scenario_nodes/registry.py (standard library only).
-EXECUTABLES = runpy.run_path(os.path.join(os.path.dirname(os.path.abspath(__file__)), 'scenario_nodes',
-                                          'registry.py'))['executables']()
+EXECUTABLES = executables()
 
 data_files = [
     ('share/ament_index/resource_index/packages', [f'resource/{PACKAGE}']),

@@ -1,4 +1,5 @@
-"""Closed-loop rendezvous: plant, position_sensor, lqr_controller, estimator (and a recorder).
+"""Closed-loop rendezvous: plant, position_sensor, lqr_controller, estimator (and a recorder, a
+live view): the nodes, their start order and subscriber counts of scenario_nodes.registry.
 
     ros2 launch snn_rendezvous rendezvous.launch.py estimator:=snn_emsif_weighted mode:=realtime
     ros2 launch snn_rendezvous rendezvous.launch.py params_file:=/path/to/my.yaml record:=true
@@ -20,7 +21,6 @@ from launch.actions import (
     RegisterEventHandler,
     SetEnvironmentVariable,
 )
-from launch.conditions import IfCondition
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
@@ -35,7 +35,9 @@ from snn_estimator.catalog import FILTER_KINDS
 PACKAGE = 'snn_rendezvous'
 DDS_PROFILE_VARIABLE = 'FASTRTPS_DEFAULT_PROFILES_FILE'
 FILTERS = ' | '.join(FILTER_KINDS)
-PLANTS = registry.PLANTS
+PLANTS = registry.plants()
+#: Launch arguments that start an optional node: argument -> node.
+OPTIONAL_ARGUMENTS = {'record': 'recorder', 'live_view': 'live_view'}
 
 
 def generate_launch_description():
@@ -79,8 +81,11 @@ def generate_launch_description():
 
 
 def _nodes(context):
-    """The nodes, with ``scheduling``, ``--launch-prefix``, the plant and the end of the launch
-    resolved: with batch each runs as ``chrt --batch 0 [launch-prefix] <executable>``."""
+    """The nodes of the pipeline description (scenario_nodes.registry) for the plant and the
+    optional nodes asked for, in its start order (the plant last), each with the subscriber
+    counts it waits for (decisions.md, 33 and 41), with ``scheduling``, ``--launch-prefix`` and
+    the end of the launch resolved: with batch each runs as ``chrt --batch 0 [launch-prefix]
+    <executable>``."""
     params = LaunchConfiguration('params_file')
     namespace = LaunchConfiguration('namespace')
     prefix = None  # launch's own --launch-prefix handling
@@ -88,42 +93,29 @@ def _nodes(context):
         user_prefix = LaunchConfiguration('launch-prefix', default='').perform(context)
         prefix = f'chrt --batch 0 {user_prefix}'.strip()
     end_with_plant = LaunchConfiguration('keep_alive').perform(context) != 'true'
-    plant_name = PLANTS[LaunchConfiguration('plant').perform(context)]
+    plant = LaunchConfiguration('plant').perform(context)
+    plant_name = registry.plant_node(plant)
     estimator = LaunchConfiguration('estimator').perform(context)
-
-    def node(executable, extra=None, **kwargs):
-        return Node(package=PACKAGE, executable=executable, name=executable, exec_name=executable,
-                    namespace=namespace, parameters=[params] + ([extra] if extra else []),
-                    output='screen', prefix=prefix, **kwargs)
-
-    plant_params = {
+    optional = [node for argument, node in OPTIONAL_ARGUMENTS.items()
+                if LaunchConfiguration(argument).perform(context).lower() in ('true', '1')]
+    started = registry.pipeline(plant, optional)
+    extra = registry.subscriber_counts(started)
+    extra[plant_name].update({
         'mode': LaunchConfiguration('mode'), 'exit_when_done': end_with_plant,
         # typed: launch would pass real_time_factor:=10 as an integer, which a DOUBLE refuses
-        'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'), value_type=float)}
-    optional = [name for name in ('record', 'live_view')
-                if LaunchConfiguration(name).perform(context).lower() in ('true', '1')]
-    if optional:  # the first state waits for the sensor and each of these on 'truth' (the recorder
-        # subscribes last, once it hears the loop: counted, it is sure to record the start)
-        plant_params['min_truth_subscribers'] = 1 + len(optional)
-    plant = node(plant_name, plant_params)
-    extra = {'estimator': {'filter_type': estimator} if estimator else None}
-    if 'record' in optional:  # the sensor's publisher matches estimator, controller and recorder first
-        extra['position_sensor'] = {'min_measurement_subscribers': 3}  # (decisions.md, 33)
-    # the controller's controls reach the estimator, the plant and the optional nodes before it
-    # subscribes to estimates, and the estimates the controller and those before the estimator
-    # subscribes to measurements: the plant starts with every link matched (decisions.md, 41)
-    extra['lqr_controller'] = {'min_control_subscribers': 2 + len(optional)}
-    extra['estimator'] = {**(extra['estimator'] or {}), 'min_estimate_subscribers': 1 + len(optional)}
-    options = {'recorder': {'condition': IfCondition(LaunchConfiguration('record'))},
-               'live_view': {'condition': IfCondition(LaunchConfiguration('live_view'))}}
-    actions = [node(entry.name, extra.get(entry.name), **options.get(entry.name, {}))
-               for entry in registry.LOOP + registry.OPTIONAL]
+        'real_time_factor': ParameterValue(LaunchConfiguration('real_time_factor'), value_type=float)})
+    if estimator:
+        extra.setdefault('estimator', {})['filter_type'] = estimator
+    actions = [Node(package=PACKAGE, executable=node.entry.name, name=node.name, exec_name=node.name,
+                    namespace=namespace, parameters=[params] + ([extra[node.name]] if node.name in extra else []),
+                    remappings=[tuple(rule.split(':=')) for rule in node.remaps], output='screen', prefix=prefix)
+               for node in started]
+    plant_action = next(action for action, node in zip(actions, started) if node.name == plant_name)
     if DDS_PROFILE_VARIABLE not in os.environ:  # the package's Fast DDS profile (docs/decisions.md, 38)
         actions.insert(0, SetEnvironmentVariable(DDS_PROFILE_VARIABLE, PathJoinSubstitution(
             [FindPackageShare(PACKAGE), 'config', 'fastdds.xml'])))
-    actions.append(plant)  # the registry's start order: consumers first, the plant last
     if end_with_plant:
         actions.append(RegisterEventHandler(OnProcessExit(
-            target_action=plant,
+            target_action=plant_action,
             on_exit=[EmitEvent(event=Shutdown(reason='the plant has flown the scenario'))])))
     return actions

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from snn_estimator.plant.basilisk_truth import BasiliskPlant
 
-from .parameters import BASILISK_PLANT, orbit_settings
+from .core_objects import orbit_settings
+from .parameter_tables import BASILISK_PLANT
 from .plant_node import PlantNode
 from .runtime import run_node
 

@@ -24,8 +24,10 @@ from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
 from .codec import MessageError, decode_stamp, encode_accel, read_input, seconds_to_ns
+from .core_objects import cw_model
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import CONTROLLER, cw_model, declare
+from .parameter_tables import CONTROLLER
+from .ros_parameters import declare
 from .runtime import Answers, MatchHold, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 GAIN_PARAMETERS = {'lqr_state_weight', 'lqr_input_weight', 'gain'}

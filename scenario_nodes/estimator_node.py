@@ -49,19 +49,11 @@ from .codec import (
     state_of,
 )
 from .conversions import MEASUREMENT_CLASSES
+from .core_objects import cw_model, estimator_config, measurement_model, silenced_set
 from .diagnostics import DiagnosticsPublisher
 from .history import collect_history
-from .parameters import (
-    ESTIMATOR,
-    ESTIMATOR_RUNTIME,
-    check_choices,
-    cw_model,
-    declare,
-    estimator_config,
-    measurement_model,
-    read,
-    silenced_set,
-)
+from .parameter_tables import ESTIMATOR, ESTIMATOR_RUNTIME
+from .ros_parameters import check_choices, declare, read
 from .runtime import Answers, MatchHold, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 from .sensor_inputs import FusedInputs, declare_sensors
 

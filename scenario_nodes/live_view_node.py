@@ -25,7 +25,8 @@ from visualization_msgs.msg import MarkerArray
 
 from . import qos
 from .codec import MessageError, decode_accel, decode_odometry, decode_spikes, decode_uint32, state_of
-from .parameters import LIVE_VIEW, declare
+from .parameter_tables import LIVE_VIEW
+from .ros_parameters import declare
 from .runtime import ProcessHooks, run_node
 from .scene import LiveScene, SceneSettings
 from .scene_markers import marker_array

@@ -31,8 +31,10 @@ from .codec import (
     encode_clock,
     encode_odometry,
 )
+from .core_objects import cw_model
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import PLANT, cw_model, declare
+from .parameter_tables import PLANT
+from .ros_parameters import declare
 from .runtime import ProcessHooks, ThrottledLog, run_node
 
 #: Wall-clock seconds between two notices of what the plant is still waiting for.

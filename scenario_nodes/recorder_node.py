@@ -37,8 +37,9 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, TypesysError, get_typestore
 
 from . import qos
-from .parameters import RECORDER, declare
+from .parameter_tables import RECORDER
 from .qos import message_class
+from .ros_parameters import declare
 from .runtime import ProcessHooks, clock_ns, run_node
 
 KNOWN_TYPES = {

@@ -1,7 +1,7 @@
 """The estimator's inputs from several sensors (its `sensors` parameter; docs/sensors.md).
 
 Each sensor has its topic, model, R, geometry, boundary layer and Mahalanobis gate
-(<name>.* parameters, parameters.SENSOR_INPUT). Their samples are one stacked measurement
+(<name>.* parameters, parameter_tables.SENSOR_INPUT). Their samples are one stacked measurement
 (snn_estimator.measurements.stacked), assembled per stamp by
 :class:`snn_estimator.runners.assembly.SampleAssembler` and gated per sensor before the runner
 takes them.
@@ -21,7 +21,9 @@ from snn_estimator.runners.assembly import SampleAssembler, gate
 from . import qos
 from .codec import MessageError, read_measurement
 from .conversions import MEASUREMENT_CLASSES
-from .parameters import declare, measurement_model, sensor_input_specs
+from .core_objects import measurement_model
+from .parameter_tables import sensor_input_specs
+from .ros_parameters import declare
 from .runtime import clock_ns
 
 

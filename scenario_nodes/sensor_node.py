@@ -19,8 +19,10 @@ from snn_estimator.runners.peers import PeerWatch
 from . import qos
 from .codec import MessageError, encode_measurement, encode_no_measurement, read_input
 from .conversions import MEASUREMENT_CLASSES
+from .core_objects import measurement_model
 from .diagnostics import DiagnosticsPublisher, Rejections
-from .parameters import SENSOR, declare, measurement_model
+from .parameter_tables import SENSOR
+from .ros_parameters import declare
 from .runtime import Answers, MatchHold, ProcessHooks, ThrottledLog, clock_ns, on_clock_jump_back, run_node
 
 #: An angle variance (rad^2) from which the node warns: 0.1 rad (5.7 deg) of noise.

@@ -4,7 +4,7 @@ whether it may change at runtime, default, meaning.
 Everything else is derived from :data:`FIELDS`: :class:`~snn_estimator.config.EstimatorConfig`
 (its fields and defaults), the validation of :func:`~snn_estimator.config.resolve`, the set
 :attr:`Estimator.RETUNABLE <snn_estimator.filters.estimators.Estimator.RETUNABLE>`, the estimator's ROS
-parameter table in ``scenario_nodes/parameters.py`` (descriptors, ``read_only``), and from that
+parameter table in ``scenario_nodes/parameter_tables.py`` (descriptors, ``read_only``), and from that
 ``config/*.yaml`` and ``docs/parameters.md``. Adding a parameter is one entry here (and the code
 that uses it).
 

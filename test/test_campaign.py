@@ -170,7 +170,7 @@ def test_a_non_spiking_cell_has_no_spike_fraction_and_van_der_pol_no_range():
 
 def test_a_silenced_fraction_silences_what_the_ros_estimator_would():
     pytest.importorskip('rclpy')
-    from scenario_nodes.parameters import silenced_set
+    from scenario_nodes.core_objects import silenced_set
     scenario = build_scenario('rendezvous', {'neuron_count': 40, 'silenced_fraction': 0.25}, seed=7)
     expected = silenced_set({'silenced_fraction': 0.25}, 40, 7)
     assert list(scenario.estimator.silenced_neurons) == expected and len(expected) == 10

@@ -17,16 +17,16 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 
-from scenario_nodes import qos  # noqa: E402
+from scenario_nodes import qos, registry  # noqa: E402
 from scenario_nodes.conversions import stamp_to_ns  # noqa: E402
-from scenario_nodes.parameters import DEFAULT_FILTER  # noqa: E402
 from snn_estimator import rendezvous_scenario, simulate  # noqa: E402
+from snn_estimator.catalog import DEFAULT_FILTER  # noqa: E402
 from snn_tools.bags.data import matched_errors, read_bag, summarize  # noqa: E402
 from snn_tools.paths import config_file  # noqa: E402
-from snn_tools.run.demo import NODES, Pipeline, pipeline_env  # noqa: E402
+from snn_tools.run.demo import Pipeline, pipeline_env  # noqa: E402
 
 pytestmark = pytest.mark.slow
-MODULES = dict(NODES)
+ESTIMATOR_MODULE = registry.node('estimator').module
 
 
 class Monitor:
@@ -132,7 +132,7 @@ def test_estimator_hot_swap_safe_mode_and_recovery(tmp_path):
         monitor.set('cw_plant', paused=False)
         monitor.wait_clock(killed_at + 10.0)
         paused_at = pause(monitor)
-        pipeline.start_node('estimator', MODULES['estimator'], {'filter_type': 'snn_ekf'}, 'estimator_swap')
+        pipeline.start_node('estimator', ESTIMATOR_MODULE, {'filter_type': 'snn_ekf'}, 'estimator_swap')
         monitor.wait_estimate_after(paused_at)  # the new estimator is live
         monitor.set('cw_plant', paused=False)
 
@@ -168,7 +168,7 @@ def test_a_hot_standby_takes_over_when_the_active_estimator_dies(tmp_path):
     at ~100 s; the standby activates itself and the loop goes on with (almost) no safe mode,
     where kill-and-restart (the test above) flies ~100 steps blind."""
     def during(pipeline, monitor):
-        pipeline.start_node('estimator', MODULES['estimator'], {'standby': True}, node_name='estimator_standby')
+        pipeline.start_node('estimator', ESTIMATOR_MODULE, {'standby': True}, node_name='estimator_standby')
         monitor.wait_clock(100.0)
         pipeline.processes['estimator'].send_signal(signal.SIGKILL)
         pipeline.processes['estimator'].wait(10)

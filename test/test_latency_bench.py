@@ -262,7 +262,8 @@ def test_the_probe_is_counted_in_every_nodes_hold(tmp_path):
     counts = {}
     for listeners in (0, 1):
         overrides = {}
-        Pipeline(tmp_path, config_file(), overrides, pipeline_env(), listeners=listeners)
+        Pipeline(tmp_path, config_file(), overrides, pipeline_env(),
+                 listeners=dict.fromkeys(('measurement', 'estimate', 'control'), listeners))
         counts[listeners] = (overrides['position_sensor']['min_measurement_subscribers'],
                              overrides['estimator']['min_estimate_subscribers'],
                              overrides['lqr_controller']['min_control_subscribers'])

@@ -155,7 +155,7 @@ def test_a_refused_sched_batch_is_reported_and_recorded_as_normal(tmp_path, monk
                              scheduling='batch')
     pipeline.start()
     try:
-        assert pipeline.refused_batch == [name for name, _ in pipeline.nodes]
+        assert pipeline.refused_batch == [node.name for node in pipeline.nodes]
         assert pipeline.scheduling == 'normal'
         assert capsys.readouterr().err.count('refused SCHED_BATCH') == 1
     finally:

@@ -75,7 +75,7 @@ def test_lockstep_ros_run_equals_the_offline_simulation(kind, parameters):
 def test_lockstep_ros_run_on_a_lidar_equals_the_offline_simulation_on_it():
     """The estimator on range, azimuth and elevation (config/sensor_lidar.yaml's values), its
     H(x_hat) every step, equal to the offline loop on the same sensor."""
-    from scenario_nodes.parameters import sensor_suites
+    from scenario_nodes.parameter_tables import sensor_suites
     from snn_estimator.sim.scenarios import sensor_rendezvous_scenario
     steps, suite = 150, sensor_suites()['lidar']
     estimates, truths = run_lockstep('snn_ekf', steps, sensor_parameters=suite['position_sensor'],
@@ -446,7 +446,7 @@ def test_an_estimator_with_two_sensors_fuses_a_stamp_once_both_reported_and_coun
     from rclpy.node import Node
 
     from scenario_nodes.codec import encode_accel, encode_measurement, encode_no_measurement
-    from scenario_nodes.parameters import sensor_suites
+    from scenario_nodes.parameter_tables import sensor_suites
     from snn_estimator.measurements import make_model
     suite = sensor_suites()['camera+lidar']['estimator']
     models = {name: make_model(suite[f'{name}.model'], suite[f'{name}.measurement_noise'],

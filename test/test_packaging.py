@@ -4,14 +4,12 @@
 needs the executable bit; these tests resolve executables exactly so and start them.
 """
 
-import ast
 import os
 import shutil
 import signal
 import subprocess
 import sys
 import time
-import types
 from pathlib import Path
 
 import pytest
@@ -147,44 +145,11 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
     """Run generate_launch_description() against stand-ins for launch/launch_ros (not
     installable here) and check what it would start, for both scheduling choices, and that the
     launch shuts down when the plant exits unless keep_alive:=true."""
-    created = {}
+    from launch_stubs import DEFAULTS, launched_nodes, load_launch_file
 
-    def recorder(kind):
-        class Action:
-            def __init__(self, *args, **kwargs):
-                self.args, self.kwargs = args, kwargs
-                created.setdefault(kind, []).append(self)
-        return Action
+    from scenario_nodes import registry
 
-    class Config(tuple):
-        """LaunchConfiguration stand-in: compares as ('config', name), performs from a dict."""
-        def perform(self, context):
-            return context.get(self[1], self[2])
-
-    stubs = {
-        'launch': {'LaunchDescription': lambda actions: actions},
-        'launch.actions': {'DeclareLaunchArgument': recorder('argument'),
-                           'OpaqueFunction': recorder('opaque'), 'EmitEvent': recorder('emit'),
-                           'RegisterEventHandler': recorder('handler'),
-                           'SetEnvironmentVariable': recorder('environment')},
-        'launch.conditions': {'IfCondition': recorder('condition')},
-        'launch.event_handlers': {'OnProcessExit': recorder('on_exit')},
-        'launch.events': {'Shutdown': recorder('shutdown')},
-        'launch.substitutions': {'LaunchConfiguration': lambda name, default=None: Config(('config', name, default)),
-                                 'PathJoinSubstitution': lambda parts: ('join', tuple(parts))},
-        'launch_ros.actions': {'Node': recorder('node')},
-        'launch_ros.substitutions': {'FindPackageShare': lambda name: ('share', name)},
-        'launch_ros.parameter_descriptions': {
-            'ParameterValue': lambda value, value_type=None: ('typed', value, value_type)},
-    }
-    for name, members in stubs.items():
-        module = types.ModuleType(name)
-        module.__dict__.update(members)
-        monkeypatch.setitem(sys.modules, name, module)
-    path = ROOT / 'launch' / 'rendezvous.launch.py'
-    ast.parse(path.read_text())
-    namespace = {}
-    exec(compile(path.read_text(), str(path), 'exec'), namespace)
+    namespace, created = load_launch_file(monkeypatch)
     namespace['generate_launch_description']()
     arguments = {a.args[0]: a.kwargs for a in created['argument']}
     assert {'estimator', 'params_file', 'mode', 'scheduling', 'plant', 'keep_alive'} <= set(arguments)
@@ -193,7 +158,7 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
     assert arguments['scheduling']['choices'] == ['normal', 'batch']
     assert arguments['scheduling']['default_value'] == 'normal'
     make_nodes = created['opaque'][0].kwargs['function']
-    base = {'keep_alive': 'false', 'plant': 'cw', 'estimator': '', 'record': 'false', 'live_view': 'false'}
+    base = dict(DEFAULTS)
     for context, prefix in (({'scheduling': 'normal'}, None),  # launch applies --launch-prefix itself
                             ({'scheduling': 'batch'}, 'chrt --batch 0'),
                             ({'scheduling': 'batch', 'launch-prefix': 'gdb -ex run --args'},
@@ -201,8 +166,8 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         created['node'], created['handler'] = [], []
         actions = make_nodes(dict(base, **context))
         nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
-        assert set(nodes) == set(NODES) | {'live_view'}  # live_view only with live_view:=true
-        assert nodes['live_view']['condition'].args == (('config', 'live_view', None),)
+        # the registry's start order, the plant last; recorder and live view only when asked for
+        assert list(nodes) == ['lqr_controller', 'estimator', 'position_sensor', 'cw_plant']
         for exe, n in nodes.items():
             assert n['package'] == PACKAGE and n['name'] == exe
             assert n['exec_name'] == exe  # log lines say [estimator-2], not [chrt-2]
@@ -237,23 +202,25 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
     nodes = {n.kwargs['executable']: n.kwargs for n in created['node']}
     assert created['handler'] == [] and nodes['basilisk_plant']['parameters'][1]['exit_when_done'] is False
     assert nodes['estimator']['parameters'][1]['filter_type'] == 'snn_emsif_weighted'
-    assert 'min_truth_subscribers' not in nodes['basilisk_plant']['parameters'][1]  # the file's (the sensor)
+    assert nodes['basilisk_plant']['parameters'][1]['min_truth_subscribers'] == 1  # the sensor
     # the recorder subscribes to 'truth' last (once it hears the loop): the plant's first state
     # waits for it, and for the live view, which would otherwise fill the count before it
     for record, live_view, expected in (('true', 'false', 2), ('false', 'true', 2), ('true', 'true', 3)):
-        created['node'] = []
-        make_nodes(dict(base, scheduling='normal', record=record, live_view=live_view))
-        plant = next(n.kwargs for n in created['node'] if n.kwargs['executable'] == 'cw_plant')
-        assert plant['parameters'][1]['min_truth_subscribers'] == expected, (record, live_view)
-        sensor = next(n.kwargs for n in created['node'] if n.kwargs['executable'] == 'position_sensor')
-        assert sensor['parameters'][1:] == ([{'min_measurement_subscribers': 3}] if record == 'true' else [])
-        # upstream the same (decisions.md, 41): controls reach estimator, plant and the optional
-        # nodes before the controller subscribes to estimates, estimates the controller and those
-        # before the estimator subscribes to measurements
+        by_name = {name: n['parameters'][1:] for name, n in
+                   launched_nodes(monkeypatch, record=record, live_view=live_view).items()}
+        assert ('recorder' in by_name) is (record == 'true') and ('live_view' in by_name) is (live_view == 'true')
+        assert by_name['cw_plant'][0]['min_truth_subscribers'] == expected, (record, live_view)
+        # each sensor waits for its estimator, controller and recorder; upstream the same
+        # (decisions.md, 33 and 41): controls reach estimator, plant and the optional nodes before
+        # the controller subscribes to estimates, estimates the controller and those before the
+        # estimator subscribes to measurements: the counts of the pipeline description
         optional = (record == 'true') + (live_view == 'true')
-        by_name = {n.kwargs['executable']: n.kwargs['parameters'][1:] for n in created['node']}
+        assert by_name['position_sensor'] == [{'min_measurement_subscribers': 2 + (record == 'true')}]
         assert by_name['lqr_controller'] == [{'min_control_subscribers': 2 + optional}]
         assert by_name['estimator'] == [{'min_estimate_subscribers': 1 + optional}]
+        optional_nodes = [name for name, asked in (('recorder', record), ('live_view', live_view)) if asked == 'true']
+        counts = registry.subscriber_counts(registry.pipeline('cw', optional_nodes))
+        assert all(by_name[name][0].items() >= values.items() for name, values in counts.items())
 
 
 def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():

@@ -10,20 +10,21 @@ import yaml
 
 pytest.importorskip('rclpy')
 
-from scenario_nodes.parameters import (  # noqa: E402
-    CONFIG_FILES,
+from scenario_nodes.core_objects import estimator_config  # noqa: E402
+from scenario_nodes.parameter_tables import (  # noqa: E402
     CONTROLLER,
     ESTIMATOR,
     ESTIMATOR_RUNTIME,
     PLANT,
-    RECORDER,  # noqa: E402
+    RECORDER,
     SENSOR,
-    estimator_config,
     sensor_input_specs,
     sensor_suites,
 )
+from scenario_nodes.ros_parameters import descriptor  # noqa: E402
 from snn_estimator import EstimatorConfig, make_estimator, rendezvous_scenario, schema  # noqa: E402
 from snn_estimator.filters.estimators import Estimator  # noqa: E402
+from snn_tools.run.parameter_files import CONFIG_FILES  # noqa: E402
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR,
@@ -38,9 +39,9 @@ def node_values(document: dict, node: str) -> dict:
 
 def test_the_generated_files_are_current():
     """config/*.yaml and docs/parameters.md are generated from the parameter tables."""
-    from scenario_nodes.parameters import generated_files
+    from snn_tools.run.parameter_files import generated_files
     for path, content in generated_files().items():
-        assert path.read_text() == content, f'{path.name} is stale: run python -m scenario_nodes.parameters --write'
+        assert path.read_text() == content, f'{path.name} is stale: run python -m snn_tools.run.parameter_files --write'
 
 
 def test_default_yaml_repeats_every_default_of_the_parameter_tables():
@@ -80,10 +81,10 @@ def test_as_published_yaml_differs_only_in_the_network_numerics_and_the_start():
 def test_descriptors_carry_descriptions_ranges_and_read_only_flags():
     for specs in NODES.values():
         for spec in specs:
-            descriptor = spec.descriptor()
-            assert len(descriptor.description) > 15, spec.name
+            described = descriptor(spec)
+            assert len(described.description) > 15, spec.name
             if spec.low is not None and isinstance(spec.default, float):
-                assert descriptor.floating_point_range[0].from_value == spec.low
+                assert described.floating_point_range[0].from_value == spec.low
     by_name = {s.name: s for s in ESTIMATOR}
     assert by_name['filter_type'].read_only and by_name['neuron_count'].read_only
     assert 'Eq.' in by_name['boundary_layer'].description
@@ -133,7 +134,7 @@ def test_the_readme_ros2_run_lines_set_what_they_say():
     import rclpy
     from rclpy.node import Node
 
-    from scenario_nodes.parameters import declare
+    from scenario_nodes.ros_parameters import declare
 
     readme = (CONFIG.parent / 'README.md').read_text().replace('\\\n', ' ')
     lines = re.findall(r'^ros2 run snn_rendezvous (\w+)\s+--ros-args (.*?)(?:\s+#.*)?$', readme, re.M)
@@ -178,9 +179,10 @@ def test_a_node_with_only_the_shared_parameters_gets_no_empty_section(monkeypatc
     """A new node whose table is the shared MODEL one (issue 21's throwaway node found it):
     every section of the generated file holds a ros__parameters mapping, which rcl requires
     (an empty one is a parse error: 'Cannot have a value before ros__parameters')."""
-    from scenario_nodes import parameters
+    from scenario_nodes import parameter_tables
+    from snn_tools.run.parameter_files import yaml_document
 
-    monkeypatch.setattr(parameters, 'NODES', {**parameters.NODES, 'range_monitor': parameters.MODEL})
-    document = yaml.safe_load(parameters.yaml_document('test', {}))
+    monkeypatch.setattr(parameter_tables, 'NODES', {**parameter_tables.NODES, 'range_monitor': parameter_tables.MODEL})
+    document = yaml.safe_load(yaml_document('test', {}))
     assert '/**/range_monitor' not in document
     assert all(isinstance(section.get('ros__parameters'), dict) for section in document.values())

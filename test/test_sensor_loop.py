@@ -153,6 +153,23 @@ def test_each_sensor_of_the_fused_run_reported_every_stamp_of_its_schedule(fused
     assert summary['gaps'] == {'camera': [], 'lidar': [], 'control': [], 'estimate': []}
 
 
+def test_single_process_mode_runs_the_two_sensor_nodes_of_the_suite(tmp_path):
+    """--single-process builds the nodes of the pipeline description, a suite's two sensors under
+    their names and on their own topics included: its first 30 s are the offline hand-over's."""
+    from snn_estimator.sim.scenarios import handover_scenario
+    result = run_pipeline(tmp_path, estimator='snn_ekf', sensor='camera+lidar', duration=30.0, single_process=True,
+                          timeout=240.0)
+    assert result['exit_codes'] == {'cw_plant': 0}
+    data = read_bag(result['bag'])
+    summary = summarize(data)
+    assert set(summary['sensors']) == {'camera', 'lidar'} and summary['recording_complete'], summary['messages']
+    offline = simulate(handover_scenario(initial_state_dispersion=True), 'snn_ekf')
+    stamps = np.round(data.estimate_t / 0.1).astype(int)
+    inside = stamps <= 300
+    assert inside.sum() == 301
+    np.testing.assert_allclose(data.estimate[inside], offline.estimate[0, stamps[inside]], rtol=0, atol=1e-9)
+
+
 @pytest.fixture(scope='module')
 def lidar_dropout_run(tmp_path_factory):
     """The fused loop for 60 s with the LIDAR dropping 5 % of its samples (not published)."""

@@ -50,7 +50,7 @@ from tempfile import mkdtemp
 
 import numpy as np
 
-from scenario_nodes.parameters import DEFAULT_FILTER
+from snn_estimator.catalog import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 
 #: case -> (plant real_time_factor, extra environment of every node, node parameters changed,
@@ -261,7 +261,8 @@ def run_case(run_dir: Path, case: str, samples: int, estimator: str, domain_id: 
             # the probe is one more subscriber of measurement, estimate and control: each publisher
             # waits for it too, so it cannot stand in for a node (decisions.md 33 and 41)
             run_pipeline(run_dir, estimator, 'realtime', duration=duration, real_time_factor=factor,
-                         domain_id=domain_id, extra=parameters, listeners=1, **options)
+                         domain_id=domain_id, extra=parameters, listeners=dict.fromkeys(PROBE_TOPICS, 1),
+                         **options)
         finally:
             probe.send_signal(signal.SIGINT)
             try:

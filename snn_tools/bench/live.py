@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
 
-from scenario_nodes.parameters import DEFAULT_FILTER
+from snn_estimator.catalog import DEFAULT_FILTER
 from snn_tools.live.client import LEGACY_SUBPROTOCOL, SDK_SUBPROTOCOL, FoxgloveClient, free_port
 from snn_tools.progress import track
 from snn_tools.run.demo import run_pipeline

@@ -44,8 +44,8 @@ import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
 
-from scenario_nodes.parameters import DEFAULT_FILTER
 from scenario_nodes.topics import APPLIED_CONTROL, CLOCK, DIAGNOSTICS, PIPELINE_TOPICS
+from snn_estimator.catalog import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 from snn_tools.progress import track
 from snn_tools.run.demo import SCHEDULING, Pipeline, pipeline_env, run_pipeline

@@ -21,11 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from scenario_nodes import registry
 from snn_tools.bags.data import read_bag, summarize
 from snn_tools.paths import SOURCE_ROOT, config_file, replace_between_markers
-from snn_tools.run.demo import NODES, Pipeline, pipeline_env
+from snn_tools.run.demo import Pipeline, pipeline_env
 
-MODULES = dict(NODES)
 #: Matrix rows: the node a fault hits -> its process name in the pipeline.
 TARGETS = {'plant': 'cw_plant', 'sensor': 'position_sensor', 'controller': 'lqr_controller',
            'estimator': 'estimator', 'recorder': 'recorder'}
@@ -91,7 +91,7 @@ def inject(pipeline: Pipeline, node: str, fault: str, outage: float) -> None:
     process.wait(10)
     time.sleep(outage)
     overrides = {'output': str(pipeline.run_dir / 'bag_restarted')} if node == 'recorder' else None
-    pipeline.start_node(name, MODULES.get(name, 'scenario_nodes.plant_node'), overrides, log_name=f'{name}_restarted')
+    pipeline.start_node(name, registry.node(name).module, overrides, log_name=f'{name}_restarted')
 
 
 def run_cell(node: str, fault: str, out: Path, domain_id: int, duration: float, at: float, outage: float,

@@ -284,11 +284,12 @@ def _through_linear(graph, source: str, target: str) -> np.ndarray:
 # ---------------------------------------------------------------- parameters and CLI
 def read_parameters(path: Path) -> dict:
     """Estimator parameter values from a ROS parameter YAML (sections ``/**`` and
-    ``/**/estimator``) over the estimator node's defaults (scenario_nodes.parameters, read
+    ``/**/estimator``) over the estimator node's defaults (scenario_nodes.parameter_tables, read
     without rclpy). ValueError naming an unknown estimator parameter or a bad choice."""
     import yaml
 
-    from scenario_nodes.parameters import ESTIMATOR, check_choices
+    from scenario_nodes.parameter_tables import ESTIMATOR
+    from scenario_nodes.ros_parameters import check_choices
 
     document = yaml.safe_load(Path(path).read_text(encoding='utf-8')) or {}
     if not any(section in document for section in PARAMETER_SECTIONS):
@@ -311,7 +312,7 @@ def export_setup(kind: str | None, params_file: Path | None):
     if params_file is None:
         scenario = rendezvous_scenario()
         return kind or 'snn_emsif', scenario.estimator, scenario.model, scenario.dt
-    from scenario_nodes.parameters import cw_model, estimator_config
+    from scenario_nodes.core_objects import cw_model, estimator_config
 
     values = read_parameters(params_file)
     model = cw_model(values, form=values['cw_model'], measured_axes=values['measured_axes'])

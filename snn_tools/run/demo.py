@@ -1,8 +1,9 @@
 """snn_demo: the closed-loop rendezvous over ROS 2, each node its own process.
 
-Starts recorder, lqr_controller, estimator, position_sensor and cw_plant with the package's
-parameter file, runs the scenario, stops the nodes cleanly (recorder last), then reads the bag
-back and writes ``runs/<name>/summary.json`` and the report. What ``make demo`` runs.
+Starts the nodes of the pipeline description (scenario_nodes.registry: recorder, lqr_controller,
+estimator, position_sensor and cw_plant, in that order) with the package's parameter file, runs
+the scenario, stops the nodes cleanly (recorder last), then reads the bag back and writes
+``runs/<name>/summary.json`` and the report. What ``make demo`` runs.
 """
 
 from __future__ import annotations
@@ -21,18 +22,15 @@ from pathlib import Path
 import yaml
 
 from scenario_nodes import registry
-from scenario_nodes.parameters import DEFAULT_FILTER, SUITE_SENSOR_NODES, sensor_suites
+from scenario_nodes.parameter_tables import sensor_suites
+from snn_estimator.catalog import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 from snn_tools.paths import DDS_PROFILE, DDS_PROFILE_VARIABLE, config_file
 
-#: The loop's nodes in start order (consumers first, the plant, which starts the clock, last):
-#: (node name, module), from the registry; the CW plant stands for the plant chosen.
-NODES = tuple((entry.name, entry.module) for entry in registry.LOOP) + (
-    (registry.PLANTS['cw'], registry.node(registry.PLANTS['cw']).module),)
-#: The truth plants the demo can fly: --plant choice -> (node name, module).
-PLANTS = {plant: (name, registry.node(name).module) for plant, name in registry.PLANTS.items()}
-#: The optional live view (Foxglove WebSocket and `markers`): started beside the others with --live-view.
-LIVE_VIEW = ('live_view', registry.node('live_view').module)
+#: The module that runs every node of a run in one process (--single-process).
+SINGLE_PROCESS = 'snn_tools.run.single_process'
+#: The nodes that watch the loop and yield the CPU to it (see :func:`_child_setup`).
+OBSERVERS = ('recorder', 'live_view')
 #: The exchange that paces a lockstep run (estimate k -> control k -> estimate k+1).
 LOOP_PAIR = ('estimator', 'lqr_controller')
 #: Linux scheduling policies the node processes can run under (see :func:`_child_setup`).
@@ -65,9 +63,7 @@ def cpu_plan(available=None, plant: str = 'cw') -> dict[str, set[int]]:
     if len(cpus) < 2:
         return {}
     loop, rest = {cpus[-1]}, set(cpus[:-1])
-    plan = {name: loop if name in LOOP_PAIR else rest for name, _ in NODES}
-    plan[PLANTS[plant][0]] = rest
-    plan[LIVE_VIEW[0]] = rest  # never beside the pacing pair
+    plan = {entry.name: loop if entry.name in LOOP_PAIR else rest for entry in registry.NODES}
     if plant == 'basilisk':
         plan['recorder'] = set(cpus)
     return plan
@@ -78,14 +74,19 @@ class Pipeline:
 
     def __init__(self, run_dir: Path, params_file: Path, overrides: dict, env: dict, record: bool = True,
                  namespace: str = '', pin_cpus: bool = True, scheduling: str = 'batch', plant: str = 'cw',
-                 live_view: bool = False, single_process: bool = False, sensor_nodes=('position_sensor',),
-                 listeners: int = 0):
+                 live_view: bool = False, single_process: bool = False, sensor: str = 'position',
+                 listeners: dict | None = None):
         if scheduling not in SCHEDULING:
             raise ValueError(f'scheduling {scheduling!r}: expected one of {SCHEDULING}')
-        if plant not in PLANTS:
-            raise ValueError(f'plant {plant!r}: expected one of {", ".join(PLANTS)}')
+        optional = [name for name, asked in (('recorder', record), ('live_view', live_view)) if asked]
+        #: The nodes of the run in start order (scenario_nodes.registry.pipeline): a sensor suite's
+        #: sensors each on their own topic, named after it.
+        self.nodes = registry.pipeline(plant, optional, sensor)
         #: The plant's node name (cw_plant or basilisk_plant): the key of its process.
-        self.plant = PLANTS[plant][0]
+        self.plant = registry.plant_node(plant)
+        self.plant_choice, self.sensor = plant, sensor
+        #: Subscribers outside the pipeline: topic -> count (e.g. the latency bench's probe).
+        self.listeners = dict(listeners or {})
         self.namespace = namespace
         #: Every node in one process and executor (snn_tools.run.single_process), keyed as the plant.
         self.single_process = single_process
@@ -98,54 +99,38 @@ class Pipeline:
         self.overrides = overrides
         self.env = env
         self.processes: dict[str, subprocess.Popen] = {}
-        self.nodes = [PLANTS[plant] if name == 'cw_plant' else (name, module) for name, module in NODES
-                      if record or name != 'recorder']
-        if live_view:
-            self.nodes.insert(0, LIVE_VIEW)
-        #: The sensor processes: position_sensor, or sensor nodes of that kind on their own topics
-        #: (a suite of several sensors, scenario_nodes.parameters.SUITE_SENSOR_NODES).
-        self.sensor_nodes = tuple(sensor_nodes)
-        if single_process and self.sensor_nodes != ('position_sensor',):
-            raise ValueError('the single-process mode runs one position_sensor: not with several sensors')
-        # the first state waits until the sensors, the recorder and the live view match 'truth': the
-        # recorder subscribes last (once it hears the loop), so an uncounted live view would let
-        # the plant start before it and the bag would lose the first truths
-        truth_subscribers = len(self.sensor_nodes) + record + live_view
-        if truth_subscribers > 1:
-            overrides.setdefault(self.plant, {}).setdefault('min_truth_subscribers', truth_subscribers)
-        # and each sensor subscribes to 'truth' only once its measurement publisher matched the
-        # estimator, the controller and the recorder: DDS may match the subscriber's end first
-        # (the recorder then lost a LIDAR's first 94 s in a CI run; docs/decisions.md, 33)
-        # (``listeners``: other subscribers of measurement, estimate and control, e.g. the latency
-        # bench's probe, counted in each so that they cannot stand in for a node of the loop)
-        for sensor in self.sensor_nodes:
-            overrides.setdefault(sensor, {}).setdefault('min_measurement_subscribers', 2 + record + listeners)
-        # upstream of the sensors, the same: the controller subscribes to 'estimate' once its
-        # controls reach the estimator, the plant, the recorder (and the live view), and the
-        # estimator to the measurements once its estimates reach the controller, the recorder (and
-        # the live view), so the plant starts with every link matched on its publisher's side (a
-        # realtime run once flew its first 1.1 s without control: decisions.md, 41)
-        overrides.setdefault('lqr_controller', {}).setdefault('min_control_subscribers',
-                                                              2 + record + live_view + listeners)
-        overrides.setdefault('estimator', {}).setdefault('min_estimate_subscribers', 1 + record + live_view + listeners)
+        # Each node holds its input until its output reaches every subscriber of the run (the
+        # plant its first state, the sensors 'truth', the controller 'estimate', the estimator its
+        # measurements): DDS may match a subscriber's end first, and the recorder, which subscribes
+        # to 'truth' last, would lose the start (docs/decisions.md, 33 and 41). An extra value
+        # given for a count wins.
+        for name, counts in registry.subscriber_counts(self.nodes, self.listeners).items():
+            for key, value in counts.items():
+                overrides.setdefault(name, {}).setdefault(key, value)
         (run_dir / 'logs').mkdir(parents=True, exist_ok=True)
 
     def command(self, name: str, module: str, node_name: str | None = None, remaps=()) -> list[str]:
         # Run-specific values go in a second parameter file: node-specific entries of the first
         # file would win over '-p' arguments, which rcl files under the /** wildcard.
-        own = []
-        if module == 'snn_tools.run.single_process':
-            own = ['--plant', next(k for k, (n, _) in PLANTS.items() if n == self.plant)]
-            own += [] if self.record else ['--no-record']
+        own = self.single_process_arguments() if module == SINGLE_PROCESS else []
         command = [sys.executable, '-m', module, *own, '--ros-args', '--params-file', str(self.params_file),
                    '--params-file', str(self.overrides_file)]
         if self.namespace:
             command += ['-r', f'__ns:={self.namespace}']
-        if node_name:
+        if node_name and node_name != name:
             command += ['-r', f'__node:={node_name}']
         for remap in remaps:
             command += ['-r', remap]
         return command
+
+    def single_process_arguments(self) -> list[str]:
+        """The node set of this run as snn_tools.run.single_process takes it (the same counts)."""
+        own = ['--plant', self.plant_choice, '--sensor', self.sensor]
+        own += [] if self.record else ['--no-record']
+        own += ['--live-view'] if any(node.name == 'live_view' for node in self.nodes) else []
+        for topic, count in self.listeners.items():
+            own += ['--listener', topic] * count
+        return own
 
     @property
     def overrides_file(self) -> Path:
@@ -153,16 +138,10 @@ class Pipeline:
 
     def start(self) -> None:
         if self.single_process:
-            self.start_node(self.plant, 'snn_tools.run.single_process', log_name='single_process')
-            if LIVE_VIEW in self.nodes:  # the live view stays a process of its own
-                self.start_node(*LIVE_VIEW)
-            return
-        for name, module in self.nodes:
-            if name == 'position_sensor' and self.sensor_nodes != ('position_sensor',):
-                for sensor in self.sensor_nodes:  # each on its own topic, named after it
-                    self.start_node(name, module, node_name=sensor, remaps=[f'measurement:={sensor}'])
-                continue
-            self.start_node(name, module)
+            self.start_node(self.plant, SINGLE_PROCESS, log_name='single_process')
+        for node in self.nodes:
+            if not self.single_process or node.entry.own_process:
+                self.start_node(node.entry.name, node.entry.module, node_name=node.name, remaps=node.remaps)
 
     def start_node(self, name: str, module: str, overrides: dict | None = None, log_name: str | None = None,
                    node_name: str | None = None, remaps=()):
@@ -178,7 +157,7 @@ class Pipeline:
         self.processes[key] = subprocess.Popen(
             self.command(name, module, node_name, remaps), env=self.env, stdout=log, stderr=subprocess.STDOUT,
             start_new_session=True,
-            preexec_fn=_child_setup(self.cpus.get(name), name in ('recorder', LIVE_VIEW[0]), self.batch))
+            preexec_fn=_child_setup(self.cpus.get(name), name in OBSERVERS, self.batch))
         if self.batch and running_policy(self.processes[key].pid) not in (BATCH, None):
             if not self.refused_batch:
                 print(f'snn_demo: the kernel refused SCHED_BATCH for {key}; the nodes run under the '
@@ -253,14 +232,14 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
                  scheduling: str | None = None, plant: str = 'cw', live_view: bool = False,
-                 single_process: bool = False, sensor: str = 'position', listeners: int = 0) -> dict:
+                 single_process: bool = False, sensor: str = 'position', listeners: dict | None = None) -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
-    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameters.sensor_suites.
+    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameter_tables.sensor_suites.
     ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE). ``listeners``: subscribers
-    of measurement, estimate and control besides the loop's (a probe), counted in each node's hold."""
+    besides the pipeline's, topic -> count (a probe), counted in each node's hold."""
     scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
@@ -271,21 +250,20 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
         plant_values['real_time_factor'] = float(real_time_factor)
     if plant == 'basilisk':
         plant_values['cache_dir'] = str(run_dir / 'cache')  # nothing of the run outside its folder
-    overrides = {PLANTS[plant][0]: plant_values, 'estimator': {'filter_type': estimator},
+    plant_name = registry.plant_node(plant)
+    overrides = {plant_name: plant_values, 'estimator': {'filter_type': estimator},
                  'recorder': {'output': str(run_dir / 'bag'), 'storage': storage}}
-    sensor_nodes = ('position_sensor',)
     if sensor != 'position':
         suites = sensor_suites()
         if sensor not in suites:
             raise ValueError(f"sensor must be position or one of {', '.join(suites)}; got {sensor!r}")
         for name, values in suites[sensor].items():
-            overrides.setdefault(PLANTS[plant][0] if name == 'cw_plant' else name, {}).update(values)
-        sensor_nodes = SUITE_SENSOR_NODES[sensor]
+            overrides.setdefault(plant_name if name == 'cw_plant' else name, {}).update(values)
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
                         pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view,
-                        single_process=single_process, sensor_nodes=sensor_nodes, listeners=listeners)
+                        single_process=single_process, sensor=sensor, listeners=listeners)
     sim_duration = float(duration if duration is not None else 360.0)
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)
@@ -383,7 +361,7 @@ def main(argv=None) -> int:
     parser.add_argument('--estimator', default=DEFAULT_FILTER, choices=tuple(FILTER_KINDS),
                         help=f'filter_type of the estimator (default {DEFAULT_FILTER})')
     parser.add_argument('--mode', default='lockstep', choices=('lockstep', 'realtime'))
-    parser.add_argument('--plant', default='cw', choices=tuple(PLANTS),
+    parser.add_argument('--plant', default='cw', choices=tuple(registry.plants()),
                         help='truth: cw (the model the filters use) or basilisk (J2, thrust limits)')
     parser.add_argument('--sensor', default='position', choices=('position', *sensor_suites()),
                         help="position (Table 6's partial position) or a sensor suite (docs/sensors.md)")

@@ -1,7 +1,9 @@
 """Every node of the pipeline in one process and one executor (``snn_demo --single-process``).
 
-The same node classes, parameters (the ``--params-file`` arguments apply to every node; their
-``/**/<name>`` entries pick each node's own) and topics as the multi-process demo; messages still
+The same nodes as the multi-process demo and the launch file, from the same pipeline
+description (scenario_nodes.registry: classes, start order, subscriber counts; the live view
+stays a process of its own), with the same parameters (the ``--params-file`` arguments apply to
+every node; their ``/**/<name>`` entries pick each node's own) and topics; messages still
 travel through the middleware (rclpy has no intra-process transport), but there is one process
 to wake instead of five and one executor that runs every callback. The separate processes stay
 the default: a crash or a hot swap takes one node there, and the CPU plan spreads them over the
@@ -15,29 +17,44 @@ first, never spun again). Exit code as :func:`scenario_nodes.runtime.run_node`.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 
-#: (name, module, class) in the demo's start order: consumers first, the plant last.
-NODE_CLASSES = (
-    ('recorder', 'scenario_nodes.recorder_node', 'RecorderNode'),
-    ('lqr_controller', 'scenario_nodes.controller_node', 'ControllerNode'),
-    ('estimator', 'scenario_nodes.estimator_node', 'EstimatorNode'),
-    ('position_sensor', 'scenario_nodes.sensor_node', 'SensorNode'),
-)
-PLANT_CLASSES = {'cw': ('cw_plant', 'scenario_nodes.plant_node', 'PlantNode'),
-                 'basilisk': ('basilisk_plant', 'scenario_nodes.basilisk_plant_node', 'BasiliskPlantNode')}
+from scenario_nodes import registry
+
 #: Seconds the others keep spinning after the plant's last step (the last estimate and control).
 SETTLE = 0.3
 
 
-def node_classes(plant: str = 'cw', record: bool = True) -> list[tuple[str, type]]:
+def build_nodes(plant: str = 'cw', optional=('recorder',), sensor: str = 'position', listeners=None, **options):
+    """Yield (name, node) for every node of the run that shares the process, in start order: the
+    nodes of scenario_nodes.registry.pipeline(``plant``, ``optional``, ``sensor``), each of its
+    registered class, with the subscriber counts of the run as parameter overrides (they win
+    over the parameter files, as the launch file's do; ``listeners``: subscribers outside the
+    pipeline, topic -> count) and, for a suite's sensor, its own name and topic. ``options`` go
+    to every node (e.g. ``context``)."""
     import importlib
-    chosen = [entry for entry in NODE_CLASSES if record or entry[0] != 'recorder'] + [PLANT_CLASSES[plant]]
-    return [(name, getattr(importlib.import_module(module), cls)) for name, module, cls in chosen]
+
+    from rclpy.parameter import Parameter
+
+    started = registry.pipeline(plant, optional, sensor)
+    counts = registry.subscriber_counts(started, listeners)
+    for node in started:
+        if node.entry.own_process:
+            continue
+        cls = getattr(importlib.import_module(node.entry.module), node.entry.node_class)
+        overrides = [Parameter(name, value=value) for name, value in counts.get(node.name, {}).items()]
+        arguments = {}
+        if node.name != node.entry.name or node.remaps:
+            rules = [f'__node:={node.name}', *node.remaps]
+            arguments['cli_args'] = ['--ros-args', *(part for rule in rules for part in ('-r', rule))]
+        yield node.name, cls(parameter_overrides=overrides, **arguments, **options)
 
 
-def run(args=None, plant: str = 'cw', record: bool = True) -> int:
+def run(args=None, plant: str = 'cw', optional=('recorder',), sensor: str = 'position', listeners=None) -> int:
+    """Build the nodes of the run (:func:`build_nodes`) in one executor and spin it until the
+    plant is done or a signal comes."""
     import rclpy
     from rclpy.exceptions import ParameterException
     from rclpy.executors import ExternalShutdownException
@@ -45,6 +62,7 @@ def run(args=None, plant: str = 'cw', record: bool = True) -> int:
 
     from scenario_nodes.runtime import EXIT_CONFIG, EXIT_OK, SPIN_BURST, StopFlag, make_executor, tune_process
 
+    plant_name = registry.plant_node(plant)
     stop = StopFlag()
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -57,13 +75,13 @@ def run(args=None, plant: str = 'cw', record: bool = True) -> int:
     code = EXIT_OK
     try:
         executor = make_executor()
-        for name, cls in node_classes(plant, record):
-            nodes[name] = cls()
-            executor.add_node(nodes[name])
+        for name, node in build_nodes(plant, optional, sensor, listeners):
+            nodes[name] = node
+            executor.add_node(node)
         for node in nodes.values():
             node.start()
         tune_process(nodes.values())
-        the_plant = nodes[PLANT_CLASSES[plant][0]]
+        the_plant = nodes[plant_name]
         spin_once = executor.spin_once
         while rclpy.ok() and not stop.requested and not the_plant.done:
             for _ in range(SPIN_BURST):
@@ -130,18 +148,24 @@ def finish(nodes: dict, executor) -> None:
 
 
 def main(argv=None) -> int:
-    """``python -m snn_tools.run.single_process [--plant cw|basilisk] [--no-record] --ros-args ...``"""
+    """``python -m snn_tools.run.single_process [--plant cw|basilisk] [--sensor S] [--no-record]
+    [--live-view] [--listener TOPIC ...] --ros-args ...``"""
     argv = list(sys.argv[1:] if argv is None else argv)
     ros = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
-    own = argv[:len(argv) - len(ros)]
-    plant = 'cw'
-    if '--plant' in own:
-        plant = own[own.index('--plant') + 1]
-    if plant not in PLANT_CLASSES:
-        print(f'[single_process] --plant {plant!r}: expected one of {", ".join(PLANT_CLASSES)}',
-              file=sys.stderr)
-        return 2
-    return run(['single_process', *ros], plant, '--no-record' not in own)
+    parser = argparse.ArgumentParser(prog='single_process', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--plant', default='cw', choices=tuple(registry.plants()))
+    parser.add_argument('--sensor', default='position', choices=tuple(registry.SENSOR_NODES),
+                        help='position, or a sensor suite: its sensor nodes each on their own topic')
+    parser.add_argument('--no-record', action='store_true', help='without the recorder')
+    parser.add_argument('--live-view', action='store_true',
+                        help='a live view runs beside, in a process of its own (snn_demo starts it): the '
+                             'nodes count it among the subscribers they wait for')
+    parser.add_argument('--listener', action='append', default=[], metavar='TOPIC',
+                        help='one more subscriber of TOPIC outside the pipeline (a probe), counted likewise')
+    own = parser.parse_args(argv[:len(argv) - len(ros)])
+    optional = [name for name, asked in (('recorder', not own.no_record), ('live_view', own.live_view)) if asked]
+    listeners = {topic: own.listener.count(topic) for topic in own.listener}
+    return run(['single_process', *ros], own.plant, optional, own.sensor, listeners)
 
 
 if __name__ == '__main__':

@@ -1,27 +1,24 @@
-"""Every node parameter, declared once: name, default, unit/meaning, range, read-only.
+"""Every node parameter, declared once: name, default, unit/meaning, range, read-only. Pure data.
 
-These tables are the one source of the parameters: the nodes declare them (with their
-ParameterDescriptors), the YAML files in config/ and docs/parameters.md are generated from
-them (``python -m scenario_nodes.parameters --write``; a test keeps them in step), and their
-defaults come from the core's :mod:`snn_estimator.defaults`. Matrices are flat row-major lists
+These tables are the one source of the parameters: the nodes declare them
+(:mod:`scenario_nodes.ros_parameters`, with their ParameterDescriptors), the YAML files in
+config/ and docs/parameters.md are generated from them (``python -m snn_tools.run.parameter_files
+--write``; a test keeps them in step), and their defaults come from the core's
+:mod:`snn_estimator.defaults` and :mod:`snn_estimator.schema`. Matrices are flat row-major lists
 (1 value = scalar times identity, n values = diagonal, n*n values = full).
 """
 
 from __future__ import annotations
 
-import argparse
-import textwrap
-import weakref
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from snn_estimator import defaults as D
 from snn_estimator import schema
-from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMINGS, START_MODES  # noqa: F401 (DEFAULT_FILTER re-exported)
-from snn_estimator.config import EstimatorConfig, sensor_boundary_layer, silenced_neurons
+from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMINGS, START_MODES
+from snn_estimator.config import sensor_boundary_layer
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
 from snn_estimator.plant.sensors import FUSED_SEED_OFFSET
@@ -29,7 +26,6 @@ from snn_estimator.plant.sensors import FUSED_SEED_OFFSET
 from . import registry
 from .topics import MEASUREMENT, PIPELINE_TOPICS
 
-ROOT = Path(__file__).resolve().parents[1]
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
 DOUBLE_ARRAY, INTEGER_ARRAY, STRING_ARRAY = 'double_array', 'integer_array', 'string_array'
 
@@ -46,22 +42,6 @@ class Spec:
     high: float | None = None
     choices: Sequence[str] = ()
     kind: str | None = None
-
-    def descriptor(self):
-        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-        text = self.description
-        if self.choices:
-            text += f" (one of: {' | '.join(self.choices)})"
-        descriptor = ParameterDescriptor(name=self.name, description=text, read_only=self.read_only)
-        if self.low is not None and not isinstance(self.default, bool):
-            if isinstance(self.default, int):
-                high = int(self.high) if self.high is not None else 2 ** 62
-                descriptor.integer_range = [IntegerRange(from_value=int(self.low), to_value=high, step=1)]
-            elif isinstance(self.default, float):
-                high = float(self.high) if self.high is not None else 1e308
-                descriptor.floating_point_range = [
-                    FloatingPointRange(from_value=float(self.low), to_value=high, step=0.0)]
-        return descriptor
 
 
 def _floats(values) -> list:
@@ -137,8 +117,7 @@ BASILISK_PLANT = PLANT + (
          'their defaults under ~/.cache)'),
 )
 
-#: Where a sensor is and how it is turned: h(x) depends on these, so the sensor and the estimator
-#: that takes its measurements read the same values (docs/sensors.md, "Frames and angles").
+
 def _match_hold(count: str, publisher: str, input_: str, why: str, demo: str, note: str = '') -> tuple:
     """The two parameters of a node that subscribes to its input only once its output's publisher
     matched enough subscriptions (runtime.MatchHold; docs/decisions.md, 33 and 41)."""
@@ -151,6 +130,15 @@ def _match_hold(count: str, publisher: str, input_: str, why: str, demo: str, no
              'anyway (with a warning naming the count)', low=0.0, high=600.0))
 
 
+def _time_jump_threshold(input_: str, before: str = 'the last one', then: str = ': start over') -> Spec:
+    """time_jump_threshold of a node that takes ``input_`` (the sensor, the controller, the
+    estimator: one name, default and range, each node's own wording)."""
+    return Spec('time_jump_threshold', 1.0, f'Without a running /clock, {input_} this far before {before} '
+                f'means the time base restarted{then}, s', low=0.0)
+
+
+#: Where a sensor is and how it is turned: h(x) depends on these, so the sensor and the estimator
+#: that takes its measurements read the same values (docs/sensors.md, "Frames and angles").
 SENSOR_GEOMETRY = (
     Spec('observer', 'chaser', 'Where the sensor is: on the chaser (sees the target at -position) or on '
          'the target (sees the chaser); not for position', choices=OBSERVERS),
@@ -166,8 +154,7 @@ SENSOR = MODEL + (
     Spec('measurement_noise', [D.RENDEZVOUS_MEASUREMENT_NOISE], 'R, covariance of the position noise '
          'per sample, m^2 (Table 6: 1e-2 I3); for another model R in its units (docs/sensors.md)'),
     Spec('seed', 0, 'Seed of the measurement noise (stream 2 of the seed)', low=0),
-    Spec('time_jump_threshold', 1.0, 'Without a running /clock, a truth this far before the last '
-         'one means the time base restarted: start over, s', low=0.0),
+    _time_jump_threshold('a truth'),
     # the measurement model and its geometry (snn_estimator.measurements; docs/sensors.md)
     Spec('model', 'position', 'Measurement model; position publishes PointStamped in frame_id, the others '
          'their message in sensor_frame_id (docs/sensors.md)', choices=tuple(MEASUREMENT_MODELS)),
@@ -203,8 +190,7 @@ CONTROLLER = MODEL + (
          'thrust)', read_only=False, low=1e-9),
     Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock, or stamped '
          'more than this plus two time steps ahead of it, are rejected, s', read_only=False, low=1e-9),
-    Spec('time_jump_threshold', 1.0, 'Without a running /clock, an estimate this far before the '
-         'last one means the time base restarted: start over, s', low=0.0),
+    _time_jump_threshold('an estimate'),
     Spec('measurement_topics', [MEASUREMENT], "The sensors' topics watched (any message type; only its "
          'stamp is read): each is a peer in diagnostics (peer.<topic>), and safe mode starts when none '
          'of them has sent anything for estimate_timeout (the estimates are then predictions); an '
@@ -309,8 +295,7 @@ ESTIMATOR = MODEL + (
     Spec('max_input_age', 1.0, 'Measurements older than this behind the newest one received '
          '(stragglers), or stamped more than this plus two time steps ahead of the simulated '
          'clock, are rejected, s', read_only=False, low=1e-9),
-    Spec('time_jump_threshold', 1.0, 'Without a running /clock, a measurement this far before the '
-         'estimate time means the time base restarted (bag loop): the filter restarts, s', low=0.0),
+    _time_jump_threshold('a measurement', 'the estimate time', ' (bag loop): the filter restarts'),
     Spec('nis_threshold', 25.0, 'Normalised innovation squared above which a step counts as '
          'inconsistent (chi-square, 3 dof: p = 1.5e-5)', read_only=False, low=1e-9),
     Spec('nis_window', 10, 'Inconsistent steps in a row that trigger a re-initialisation from the '
@@ -362,265 +347,32 @@ LIVE_VIEW = MODEL + (
          'most of the live view\'s bytes (docs/live_view.md)', low=0.0, high=1000.0),
 )
 
+#: Every table by the name a registry entry gives (``NodeEntry.parameters``).
+TABLES = {'MODEL': MODEL, 'PLANT': PLANT, 'BASILISK_PLANT': BASILISK_PLANT, 'SENSOR': SENSOR,
+          'CONTROLLER': CONTROLLER, 'ESTIMATOR': ESTIMATOR, 'RECORDER': RECORDER, 'LIVE_VIEW': LIVE_VIEW}
 #: Node name -> its table, in the order the YAML files and docs/parameters.md list them (the
 #: registry's).
-NODES = {entry.name: globals()[entry.parameters] for entry in registry.NODES}
-
-
-def declare(node, specs: Sequence[Spec], check: bool = True) -> dict:
-    """Declare ``specs`` on ``node`` (once; a lifecycle node configured again reads them);
-    return name -> value (None for unset arrays). With ``check``, a value outside ``choices``
-    raises ValueError naming the parameter (see :func:`check_choices`)."""
-    from rclpy.exceptions import ParameterUninitializedException
-    from rclpy.parameter import Parameter
-
-    kinds = {DOUBLE_ARRAY: Parameter.Type.DOUBLE_ARRAY, INTEGER_ARRAY: Parameter.Type.INTEGER_ARRAY,
-             STRING_ARRAY: Parameter.Type.STRING_ARRAY}
-    if node not in _TAKING_INTEGERS:  # runtime sets too (`ros2 param set ... 10`), once per node
-        node.add_pre_set_parameters_callback(lambda parameters: integers_as_doubles(node, parameters))
-        _TAKING_INTEGERS.add(node)
-    values = {}
-    for spec in specs:
-        if node.has_parameter(spec.name):  # a lifecycle node configured again
-            values[spec.name] = node.get_parameter(spec.name).value
-        elif spec.default is None:
-            node.declare_parameter(spec.name, kinds[spec.kind], spec.descriptor())
-            try:
-                values[spec.name] = node.get_parameter(spec.name).value
-            except ParameterUninitializedException:
-                values[spec.name] = None
-        else:
-            values[spec.name] = _declare_with_coercion(node, spec)
-    if check:
-        check_choices(values, specs)
-    return values
-
-
-#: Nodes whose parameter services already take an integer for a double (see declare).
-_TAKING_INTEGERS: weakref.WeakSet = weakref.WeakSet()
-
-
-def integers_as_doubles(node, parameters: list) -> list:
-    """A pre-set-parameters callback: an integer (or a list of integers) set for a declared
-    double parameter becomes that double. ``ros2 param set /cw_plant real_time_factor 10``
-    sends an INTEGER ParameterValue, which rclpy would refuse as the wrong type; every other
-    parameter passes unchanged (rclpy and the node's own callback then check it as usual)."""
-    from rclpy.parameter import Parameter
-    kind = Parameter.Type
-    widened = {kind.INTEGER: kind.DOUBLE, kind.INTEGER_ARRAY: kind.DOUBLE_ARRAY}
-    out = []
-    for parameter in parameters:
-        target = widened.get(parameter.type_)
-        if target is not None and node.has_parameter(parameter.name):
-            descriptor = node.describe_parameter(parameter.name)
-            if not descriptor.dynamic_typing and descriptor.type == target.value:
-                value = (float(parameter.value) if target == kind.DOUBLE
-                         else [float(v) for v in parameter.value])
-                parameter = Parameter(parameter.name, target, value)
-        out.append(parameter)
-    return out
-
-
-def _is_double(default) -> bool:
-    return (isinstance(default, float)
-            or (isinstance(default, list) and bool(default) and all(isinstance(v, float) for v in default)))
-
-
-def coerce(spec: Spec, value):
-    """``value`` as the type of ``spec``'s default where that is exact: an integer (or a list
-    of integers) given for a double (``-p real_time_factor:=10``) becomes a double; anything
-    else is returned as it is."""
-    if isinstance(spec.default, float) and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if (_is_double(spec.default) and isinstance(value, (list, tuple)) and value
-            and all(isinstance(v, int) and not isinstance(v, bool) for v in value)):
-        return [float(v) for v in value]
-    return value
-
-
-def _declare_with_coercion(node, spec: Spec):
-    """Declare ``spec`` with its value from the overrides, an integer given for a double
-    accepted as that double; a value of another type refused naming the parameter and the fix."""
-    from rcl_interfaces.msg import ParameterDescriptor
-    from rclpy.exceptions import InvalidParameterTypeException
-    if not _is_double(spec.default):
-        return _declare_static(node, spec, spec.default, ignore_override=False)
-    # read the override as given (any type), then declare the parameter with its type
-    probe = ParameterDescriptor(name=spec.name, dynamic_typing=True)
-    given = node.declare_parameter(spec.name, spec.default, probe).value
-    node.undeclare_parameter(spec.name)
-    value = coerce(spec, given)
-    scalar = isinstance(spec.default, float)
-    if not (isinstance(value, float) if scalar else
-            not isinstance(value, (str, bytes)) and all(isinstance(v, float) for v in value)):
-        kind = 'double' if scalar else 'list of doubles'
-        raise ValueError(f'parameter {spec.name} must be a {kind} (e.g. {spec.name}:={_show(spec.default)}); '
-                         f'got {given!r}')
-    try:
-        return node.declare_parameter(spec.name, value, spec.descriptor(), ignore_override=True).value
-    except InvalidParameterTypeException as error:  # not expected after the check: say it anyway
-        raise ValueError(f'parameter {spec.name}: {error}') from None
-
-
-def _declare_static(node, spec: Spec, default, ignore_override: bool):
-    from rclpy.exceptions import InvalidParameterTypeException
-    try:
-        return node.declare_parameter(spec.name, default, spec.descriptor(), ignore_override=ignore_override).value
-    except InvalidParameterTypeException as error:
-        raise ValueError(f'parameter {spec.name} must be of the type of its default '
-                         f'{_show(spec.default)} ({error})') from None
-
-
-def read(node, specs: Sequence[Spec]) -> dict:
-    """The current values of declared ``specs`` (None for an array never set)."""
-    from rclpy.exceptions import ParameterUninitializedException
-    values = {}
-    for spec in specs:
-        try:
-            values[spec.name] = node.get_parameter(spec.name).value
-        except ParameterUninitializedException:
-            values[spec.name] = None
-    return values
-
-
-def check_choices(values: dict, specs: Sequence[Spec]) -> None:
-    """ValueError naming the first parameter whose value is not one of its choices."""
-    for spec in specs:
-        if spec.choices and values.get(spec.name) not in spec.choices:
-            raise ValueError(f"parameter {spec.name} must be one of {' | '.join(spec.choices)}; "
-                             f'got {values.get(spec.name)!r}')
-
-
-def estimator_config(values: dict) -> EstimatorConfig:
-    """The core configuration from the estimator node's parameter values (every schema field;
-    silenced_neurons with silenced_fraction added)."""
-    silenced = tuple(silenced_set(values, values['neuron_count'], values['seed']))
-    return EstimatorConfig(**dict(schema.config_values(values), silenced_neurons=silenced))
-
+NODES = {entry.name: TABLES[entry.parameters] for entry in registry.NODES}
 
 #: Parameters applied between steps through the parameter services; the others are read-only.
 ESTIMATOR_RUNTIME = frozenset(spec.name for spec in ESTIMATOR if not spec.read_only)
 
 
-def silenced_set(values: dict, neurons: int, seed: int) -> list[int]:
-    """silenced_neurons plus a seeded random silenced_fraction of the N neurons
-    (snn_estimator.config.silenced_neurons)."""
-    return silenced_neurons(neurons, seed, values.get('silenced_fraction') or 0.0,
-                            values.get('silenced_neurons') or ())
-
-
-def orbit_settings(values: dict):
-    """The Basilisk target orbit the basilisk_plant parameters describe (angles in deg)."""
-    import math
-
-    from snn_estimator.plant.basilisk_truth import OrbitSettings
-    return OrbitSettings(
-        semi_major_axis=values['orbit_radius'], eccentricity=values['eccentricity'],
-        inclination=math.radians(values['inclination']), raan=math.radians(values['raan']),
-        argument_of_perigee=math.radians(values['argument_of_perigee']),
-        true_anomaly=math.radians(values['true_anomaly']), mu=values['gravitational_parameter'],
-        j2=values['j2'])
-
-
-def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
-    """The CW model the parameters describe."""
-    from snn_estimator import ClohessyWiltshire
-    return ClohessyWiltshire(orbit_radius=values['orbit_radius'], mu=values['gravitational_parameter'],
-                             form=form, measured_axes=tuple(measured_axes))
-
-
-def measurement_model(values: dict, noise, **limits):
-    """The measurement model the parameters describe (snn_estimator.measurements): ``model`` with
-    R ``noise`` in its units, the sensor geometry, and ``limits`` (field of view, range) where
-    the caller has them."""
-    from snn_estimator.measurements import make_model
-    geometry = {spec.name: values[spec.name] for spec in SENSOR_GEOMETRY if spec.name != 'sensor_frame_id'}
-    return make_model(values['model'], noise, measured_axes=tuple(int(a) for a in values['measured_axes']),
-                      **geometry, **limits)
-
-
-# ---------------------------------------------------------------- generated files
-def _show(value) -> str:
+def show(value) -> str:
+    """A value as the docs, the YAML comments and error messages print it."""
     if value is None:
         return '(unset)'
     if isinstance(value, float):
         return f'{value:g}'
     if isinstance(value, list):
-        return '[' + ', '.join(_show(v) for v in value) + ']'
+        return '[' + ', '.join(show(v) for v in value) + ']'
     return str(value)
-
-
-def markdown() -> str:
-    """The parameter reference tables of docs/parameters.md."""
-    shared = {spec.name for spec in MODEL}
-    lines = []
-    for title, specs in (('all pipeline nodes', MODEL), *NODES.items()):
-        if specs is BASILISK_PLANT:  # only what it adds to cw_plant's
-            lines += ['**basilisk_plant** (cw_plant\'s parameters and these)', '',
-                      '| parameter | default | meaning |', '|---|---|---|']
-            lines += [_row(spec) for spec in BASILISK_PLANT[len(PLANT):]] + ['']
-            continue
-        lines += [f'**{title}**', '', '| parameter | default | meaning |', '|---|---|---|']
-        for spec in specs:
-            if specs is not MODEL and spec.name in shared:
-                continue
-            lines.append(_row(spec))
-        lines.append('')
-    lines += ['**estimator, each sensor of `sensors`** (declared as `<name>.<parameter>`, e.g. `lidar.model`)', '',
-              '| parameter | default | meaning |', '|---|---|---|']
-    lines += [_row(spec) for spec in SENSOR_INPUT] + ['']
-    return '\n'.join(lines)
-
-
-def _row(spec: Spec) -> str:
-    choices = ' (' + ' \\| '.join(spec.choices) + ')' if spec.choices else ''
-    runtime = '' if spec.read_only else ' **[runtime]**'
-    return f'| `{spec.name}` | `{_show(spec.default)}` | {spec.description}{choices}{runtime} |'
-
-
-def _yaml_float(value: float) -> str:
-    """Shortest exact text of ``value`` that YAML 1.1 (PyYAML, rcl) reads as a float: always
-    with a decimal point, large values in scientific notation."""
-    text = repr(value)
-    if abs(value) >= 1e7 and 'e' not in text:
-        mantissa, exponent = f'{value:.15e}'.split('e')
-        text = f"{mantissa.rstrip('0')}e{exponent}"
-    if 'e' in text:
-        mantissa, exponent = text.split('e')
-        text = f"{mantissa if '.' in mantissa else mantissa + '.0'}e{exponent}"
-        if mantissa.endswith('.'):
-            text = f'{mantissa}0e{exponent}'
-    return text
-
-
-def _yaml_value(value) -> str:
-    if isinstance(value, bool):
-        return 'true' if value else 'false'
-    if isinstance(value, float):
-        return _yaml_float(value)
-    if isinstance(value, list):
-        return '[' + ', '.join(_yaml_value(v) for v in value) + ']'
-    if isinstance(value, str):
-        return f"'{value}'" if value == '' else value
-    return str(value)
-
-
-#: The files in config/: name -> (header, estimator overrides).
-CONFIG_FILES = {
-    'rendezvous.yaml': (
-        "the paper's rendezvous scenario (Sec. 3.2, Table 6) with this package's numerical "
-        'defaults and a filter that does not know the truth (dispersed start).',
-        {'initial_state_dispersion': True}),
-    'rendezvous_as_published.yaml': (
-        'the rendezvous scenario with the network exactly as Table 6 gives it: no state scaling, '
-        'forward-Euler steps, the estimate starting at the truth. Expect ~0.1 m of spike quantisation.',
-        {'state_scale': [1.0] * 6, 'discretization': 'euler', 'initial_state_dispersion': False}),
-}
 
 
 def sensor_suites() -> dict[str, dict[str, dict]]:
     """Sensors that replace Table 6's position sensor: name -> node -> parameter values
-    (``make demo SENSOR=<name>``, config/sensor_<name>.yaml). The numbers are the core's
+    (``make demo SENSOR=<name>``, config/sensor_<name>.yaml; the sensor nodes each starts:
+    scenario_nodes.registry.SENSOR_NODES). The numbers are the core's
     (snn_estimator.defaults), as the offline ``sensor_rendezvous_scenario`` takes them: R per
     sample, the mounting that looks back at the target, the minimum range, and the estimator's
     R and boundary layer (Table 6's delta per component, one sensor sigma:
@@ -654,111 +406,3 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
         'lqr_controller': {'measurement_topics': ['camera', 'lidar']},
         'recorder': {'topics': topics}}
     return suites
-
-
-#: The sensor nodes of each suite: position_sensor renamed (and its `measurement` remapped to its
-#: name) when it is not the one sensor on `measurement`.
-SUITE_SENSOR_NODES = {'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar')}
-
-
-def sensor_overlay(name: str) -> str:
-    """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml."""
-    out = [f'# snn_rendezvous: the {name} sensor suite instead of the position sensor (docs/sensors.md).',
-           '# Generated from scenario_nodes/parameters.py (sensor_suites). Load it after the scenario file:',
-           '#   --ros-args --params-file config/rendezvous.yaml --params-file config/sensor_' + name + '.yaml',
-           '']
-    for node, values in sensor_suites()[name].items():
-        out.extend([f'/**/{node}:', '  ros__parameters:'])
-        specs = {spec.name: spec for spec in NODES.get(node, SENSOR)}  # a renamed sensor: SENSOR's
-        for key, value in values.items():
-            spec = specs.get(key) or {s.name: s for s in sensor_input_specs(key.rpartition('.')[0])}[key]
-            out.extend(f'    # {line}' for line in textwrap.wrap(spec.description, 92))
-            out.append(f'    {key}: {_yaml_value(value)}')
-        out.append('')
-    return '\n'.join(out)
-
-
-def yaml_document(header: str, estimator_overrides: dict) -> str:
-    """A parameter file for all nodes, every parameter commented (generated from the tables)."""
-    out = [f'# snn_rendezvous: {header}',
-           '# Generated from scenario_nodes/parameters.py (python -m scenario_nodes.parameters --write).',
-           '# Use with: ros2 run snn_rendezvous <node> --ros-args --params-file <this file>',
-           '# Matrices are flat lists: 1 value = scalar x identity, n values = diagonal, n*n = row-major.',
-           '# [runtime] parameters can be changed while running (ros2 param set); the others are read',
-           '# at start-up.', '']
-
-    def block(section: str, specs, extra: dict, skip=()):
-        if not extra and all(spec.name in skip for spec in specs):
-            return  # nothing of its own: an empty ros__parameters is a parse error for rcl
-        out.extend([f'{section}:', '  ros__parameters:'])
-        for name, (comment, value) in extra.items():
-            out.append(f'    # {comment}')
-            out.append(f'    {name}: {_yaml_value(value)}')
-        for spec in specs:
-            if spec.name in skip:
-                continue
-            runtime = ' [runtime]' if not spec.read_only else ''
-            choices = f" ({' | '.join(spec.choices)})" if spec.choices else ''
-            for line in textwrap.wrap(spec.description + choices + runtime, 92):
-                out.append(f'    # {line}')
-            value = estimator_overrides.get(spec.name, spec.default) if specs is ESTIMATOR else spec.default
-            if value != spec.default:
-                out.append(f'    # (this file; the default is {_yaml_value(spec.default)})')
-            prefix = '# ' if value is None else ''
-            out.append(f'    {prefix}{spec.name}: {_yaml_value(value if value is not None else [])}')
-        out.append('')
-
-    block('/**', MODEL, {'use_sim_time': ('stamps from /clock, which the plant publishes', True)})
-    shared = {spec.name for spec in MODEL}
-    for node, specs in NODES.items():
-        extra = ({'use_sim_time': ('the plant is the clock: it must not follow /clock itself', False)}
-                 if node.endswith('_plant') else {})
-        block(f'/**/{node}', specs, extra, skip=shared)
-    return '\n'.join(out)
-
-
-PARAMETERS_DOC = """\
-# Parameters
-
-Generated from `scenario_nodes/parameters.py` (`python -m scenario_nodes.parameters --write`; a
-test fails when this file, config/rendezvous.yaml or config/rendezvous_as_published.yaml is
-stale). Every parameter is declared with a descriptor carrying this text and its range
-(`ros2 param describe /estimator leak_rate`). Matrices are flat lists: 1 value = scalar x I,
-n values = diagonal, n x n values = row-major. **[runtime]** parameters may be changed while
-running (`ros2 param set`): they are validated and applied between two steps, or refused with a
-reason and nothing changes. The others are read at start-up (the estimator: at configure); an
-invalid value makes the node exit with code 2 (the estimator: fails `configure`) with a message
-that names the parameter and the fix.
-
-"""
-
-
-def generated_files() -> dict[Path, str]:
-    """Every file generated from the tables, with its content."""
-    files = {ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
-    files.update({ROOT / 'config' / f'sensor_{name}.yaml': sensor_overlay(name) for name in sensor_suites()})
-    files[ROOT / 'docs' / 'parameters.md'] = PARAMETERS_DOC + markdown()
-    for name in registry.executables():  # ros2 run entry points of a pip install (setup.py)
-        files[ROOT / 'wrappers' / name] = registry.WRAPPER.format(name=name)
-    return files
-
-
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description='Print the parameter tables, or --write the generated '
-                                                 'files (config/*.yaml, docs/parameters.md, wrappers/).')
-    parser.add_argument('--write', action='store_true')
-    args = parser.parse_args(argv)
-    if not args.write:
-        print(markdown())
-        return 0
-    for path, content in generated_files().items():
-        if not path.exists() or path.read_text() != content:
-            path.write_text(content)
-            if path.parent.name == 'wrappers':
-                path.chmod(0o755)
-            print(f'wrote {path}')
-    return 0
-
-
-if __name__ == '__main__':
-    raise SystemExit(main())
