@@ -1,4 +1,4 @@
-"""The golden runs of test/test_golden.py (test/data/golden.json): every filter kind on three
+"""The golden runs of test/core/test_golden.py (test/data/golden.json): every filter kind on three
 short closed loops, and the spiking networks' potentials after a fixed input, as this code
 computes them.
 

@@ -125,7 +125,7 @@ the defaults chosen by what the equations say:
   twin; the defaults stay with the equations (Q dt, as printed, A(x)x), and every reading is
   shown beside the paper. The ordinary RMSE stays far above the paper's numbers in every
   reading; filterpy's independent EKF gives the package's EKF RMSE on Table 1
-  (`test/test_independent_ekf.py`), so the paper's 0.0166 is not an ordinary RMSE of that set-up.
+  (`test/core/test_independent_ekf.py`), so the paper's 0.0166 is not an ordinary RMSE of that set-up.
 * **R_hat units.** Read as a spectral density (default), R_hat makes a Kalman-Bucy filter treat
   each sample as if its variance were R_hat / dt (100x at dt = 0.01 s), so its gain is small:
   this, more than the truth, sets the EKF's Van der Pol RMSE. Read per sample, the nominal EKF

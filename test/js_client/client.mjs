@@ -8,7 +8,7 @@
 // --subprotocol says otherwise, subscribes to every channel, decodes every message from its channel's
 // advertised schema, and when the server closes (or --seconds pass) prints one JSON summary on
 // stdout: per topic the messages, bytes, decode failures and log times going backwards; the server's
-// time messages; what the scene and the plots held. test/test_live_view_ros.py asserts on it.
+// time messages; what the scene and the plots held. test/ros/test_live_view_ros.py asserts on it.
 import { createHash } from "node:crypto";
 
 import wsProtocol from "@foxglove/ws-protocol"; // CommonJS: no named exports

@@ -19,7 +19,7 @@ from snn_estimator import FILTER_KINDS
 
 pytestmark = pytest.mark.cpu_sensitive
 
-GOLDEN = json.loads((Path(__file__).parent / 'data' / 'golden.json').read_text())
+GOLDEN = json.loads((Path(__file__).resolve().parents[1] / 'data' / 'golden.json').read_text())
 #: Relative to the largest entry of each state's series (trajectories) or of the array (potentials,
 #: rates): rounding differences between CPUs were seen up to ~3e-11 of it, a changed formula moves
 #: numbers by 1e-4 or more.

@@ -304,7 +304,7 @@ def run_python(code, home):
     env = {key: value for key, value in os.environ.items()
            if key not in ('XDG_CACHE_HOME', 'MPLCONFIGDIR', 'BSK_SUPPORT_DATA_CACHE')}
     env['HOME'] = str(home)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     script = CHILD_NETWORK_GUARD + textwrap.dedent(code)
     return subprocess.run([sys.executable, '-c', script], cwd=root, env=env,
                           capture_output=True, text=True, timeout=60, check=True).stdout

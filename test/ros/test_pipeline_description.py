@@ -13,7 +13,7 @@ import pytest
 
 from scenario_nodes import registry
 
-TEST_DIR = Path(__file__).resolve().parent
+TEST_DIR = Path(__file__).resolve().parents[1]  # test/: the helpers beside conftest
 CONFIG = TEST_DIR.parent / 'config' / 'rendezvous.yaml'
 LOOP = ['lqr_controller', 'estimator', 'position_sensor', 'cw_plant']
 

@@ -10,7 +10,7 @@ import scipy.optimize
 
 from snn_tools.experiments.paper_metrics import noise_floor, transient_metrics
 
-RESULTS = Path(__file__).resolve().parents[1] / 'results'
+RESULTS = Path(__file__).resolve().parents[2] / 'results'
 
 
 def test_transient_metrics_of_a_damped_oscillation_match_its_closed_form():

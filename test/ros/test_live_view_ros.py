@@ -31,7 +31,7 @@ from scenario_nodes.live_view_node import LiveViewNode  # noqa: E402
 from snn_tools.live.client import FoxgloveClient, free_port, protobuf_class  # noqa: E402
 
 SUBPROTOCOL = 'foxglove.sdk.v1'
-JS_CLIENT = Path(__file__).resolve().parent / 'js_client'
+JS_CLIENT = Path(__file__).resolve().parents[1] / 'js_client'
 
 
 def covariance_of(radii, quaternion, sigma):

@@ -26,7 +26,7 @@ from snn_estimator import EstimatorConfig, make_estimator, rendezvous_scenario, 
 from snn_estimator.filters.estimators import Estimator  # noqa: E402
 from snn_tools.run.parameter_files import CONFIG_FILES  # noqa: E402
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config'
+CONFIG = Path(__file__).resolve().parents[2] / 'config'
 NODES = {'cw_plant': PLANT, 'position_sensor': SENSOR, 'lqr_controller': CONTROLLER, 'estimator': ESTIMATOR,
          'recorder': RECORDER}
 

@@ -331,7 +331,7 @@ def test_the_registry_lists_every_model_and_refuses_an_unknown_one():
 
 
 def test_the_measurements_package_imports_numpy_and_validation_only():
-    root = Path(__file__).resolve().parents[1] / 'snn_estimator' / 'measurements'
+    root = Path(__file__).resolve().parents[2] / 'snn_estimator' / 'measurements'
     found = set()
     for path in root.glob('*.py'):
         for node in ast.walk(ast.parse(path.read_text())):
@@ -372,7 +372,7 @@ def test_sample_period_keeps_its_grid_whatever_the_truth_steps():
 
 
 def test_every_model_is_in_the_sensor_tables_of_the_docs():
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     for document in ('docs/sensors.md', 'README.md'):
         text = (root / document).read_text()
         missing = [name for name in MODELS if f'| `{name}`' not in text]

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 pytestmark = pytest.mark.slow
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = 'snn_rendezvous'
 NODES = ('cw_plant', 'position_sensor', 'lqr_controller', 'estimator', 'recorder')
 EXECUTABLES = NODES + ('report', 'live_view')

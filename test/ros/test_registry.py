@@ -12,7 +12,7 @@ import pytest
 
 from scenario_nodes import registry
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_the_wrappers_are_exactly_the_registrys_executables_and_can_run():
