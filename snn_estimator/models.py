@@ -23,6 +23,8 @@ from .validation import check_choice, check_positive
 DT_CACHE_SIZE = 64
 
 DISCRETIZATIONS = ('exact', 'euler')
+#: The relative-motion models a filter can predict with (:func:`relative_motion`).
+DYNAMICS_MODELS = ('cw', 'nonlinear_circular')
 
 
 class StateSpaceModel(ABC):
@@ -316,6 +318,15 @@ class NonlinearCircular(RelativeMotion):
         a[..., 3, 5] = 2.0 * n
         a[..., 5, 3] = -2.0 * n
         return a
+
+
+def relative_motion(dynamics_model: str = 'cw', orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
+                    measured_axes: Sequence[int] = (0, 1, 2)) -> RelativeMotion:
+    """The relative-motion model named ``dynamics_model`` (:data:`DYNAMICS_MODELS`): cw, the
+    standard :class:`ClohessyWiltshire`; nonlinear_circular, :class:`NonlinearCircular`."""
+    kind = check_choice(dynamics_model, DYNAMICS_MODELS, 'dynamics_model')
+    model = NonlinearCircular if kind == 'nonlinear_circular' else ClohessyWiltshire
+    return model(orbit_radius=orbit_radius, mu=mu, measured_axes=measured_axes)
 
 
 class VanDerPol(StateSpaceModel):
