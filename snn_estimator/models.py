@@ -197,6 +197,8 @@ class RelativeMotion(StateSpaceModel):
 
     state_names = ('x', 'y', 'z', 'vx', 'vy', 'vz')
     input_names = ('fx', 'fy', 'fz')
+    #: Its name in :data:`DYNAMICS_MODELS` (the estimator's ``dynamics_model`` must name it).
+    dynamics_model: str
 
     def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
                  measured_axes: Sequence[int] = (0, 1, 2)):
@@ -231,6 +233,7 @@ class ClohessyWiltshire(RelativeMotion):
     """
 
     is_linear = True
+    dynamics_model = 'cw'
 
     def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
                  form: str = 'standard', measured_axes: Sequence[int] = (0, 1, 2)):
@@ -279,6 +282,8 @@ class NonlinearCircular(RelativeMotion):
     ``expm1``/``log1p``, so it keeps full relative precision as the separation goes to 0 (the
     literal form subtracts two ~8.7 m/s^2 terms).
     """
+
+    dynamics_model = 'nonlinear_circular'
 
     def _gravity_factor(self, p: np.ndarray) -> np.ndarray:
         """``g = (R / r_c)^3 - 1`` without cancellation: ``(1 + q)^-1.5 - 1``, ``q = (r_c^2 - R^2)/R^2``."""

@@ -110,7 +110,7 @@ def _truth_settings(plant: str, basilisk, orbit_radius: float, model_truths=('cw
 
 
 def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: float = DEFAULT_ORBIT_RADIUS,
-                       dynamics_model: str = 'cw', **estimator_changes) -> Scenario:
+                       **estimator_changes) -> Scenario:
     """A V-bar approach from 5 km behind the target to a hold point 100 m behind it (where the
     paper's 100 m scenario begins), over about one orbit (not in the paper).
 
@@ -118,12 +118,13 @@ def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: flo
     (a point 5 km back on the straight V-bar drifts ~70 m per orbit in truth), J2, and the
     thrust limit. 1 s steps (far-range navigation rates); the LQR weights of defaults.FAR_RANGE_*
     reach the hold point in about an orbit within the thrust limit. Measurements as in Table 6.
-    ``dynamics_model`` (models.DYNAMICS_MODELS) is the filters' model: cw, or nonlinear_circular
+    The estimator's ``dynamics_model`` (schema) is the filters' model: cw, or nonlinear_circular
     (the nonlinear relative motion; the LQR is designed on its linearisation, CW). ``plant``:
     basilisk, or a model truth (cw, nonlinear_circular: two-body motion without J2).
     """
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, **estimator_changes})
     settings = _truth_settings(plant, basilisk, orbit_radius, model_truths=DYNAMICS_MODELS)
+    dynamics_model = config.dynamics_model
     model = relative_motion(dynamics_model, orbit_radius)
     truth = None if settings is not None or plant == dynamics_model else relative_motion(plant, orbit_radius)
     return Scenario(

@@ -81,7 +81,8 @@ def test_at_one_metre_the_nonlinear_and_cw_estimates_agree(kind):
     config = scenario.estimator.replace(initial_state=tuple(x0))
     plant = Plant(NonlinearCircular(), x0, scenario.process_noise, [4])
     sensor = PositionSensor(ClohessyWiltshire(), scenario.measurement_noise, [4])
-    cw, nonlinear = (make_estimator(kind, config, model) for model in (ClohessyWiltshire(), NonlinearCircular()))
+    cw, nonlinear = (make_estimator(kind, config.replace(dynamics_model=model.dynamics_model), model)
+                     for model in (ClohessyWiltshire(), NonlinearCircular()))
     for _ in range(300):
         z = sensor.measure(plant.x)[0]
         plant.step(np.zeros(3), 0.1)
@@ -93,6 +94,15 @@ def test_the_lqr_of_the_nonlinear_model_is_the_cw_lqr():
     weights = scenario.lqr_state_weight, scenario.lqr_input_weight
     np.testing.assert_allclose(lqr_gain(NonlinearCircular(), *weights), lqr_gain(ClohessyWiltshire(), *weights),
                                rtol=1e-9)
+
+
+def test_an_estimator_refuses_a_model_its_dynamics_model_does_not_name():
+    config = far_range_scenario(plant='cw').estimator  # dynamics_model cw, the default
+    with pytest.raises(ValueError, match='dynamics_model is cw but the filter is given the nonlinear_circular'):
+        make_estimator('ekf', config, NonlinearCircular())
+    scenario = far_range_scenario(plant='cw', dynamics_model='nonlinear_circular')
+    assert type(scenario.model) is NonlinearCircular and scenario.estimator.dynamics_model == 'nonlinear_circular'
+    assert type(scenario.truth_model) is ClohessyWiltshire
 
 
 def test_relative_motion_names_the_models_and_refuses_an_unknown_one():
