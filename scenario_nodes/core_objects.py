@@ -43,6 +43,15 @@ def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
                              form=form, measured_axes=tuple(measured_axes))
 
 
+def filter_model(values: dict, measured_axes=(0, 1, 2)):
+    """The estimator's model: ``dynamics_model`` cw (the ``cw_model`` form) or nonlinear_circular."""
+    if values['dynamics_model'] == 'cw':
+        return cw_model(values, form=values['cw_model'], measured_axes=measured_axes)
+    from snn_estimator.models import relative_motion
+    return relative_motion(values['dynamics_model'], orbit_radius=values['orbit_radius'],
+                           mu=values['gravitational_parameter'], measured_axes=tuple(measured_axes))
+
+
 def measurement_model(values: dict, noise, **limits):
     """The measurement model the parameters describe (snn_estimator.measurements): ``model`` with
     R ``noise`` in its units, the sensor geometry, and ``limits`` (field of view, range) where

@@ -49,7 +49,7 @@ from .codec import (
     state_of,
 )
 from .conversions import MEASUREMENT_CLASSES
-from .core_objects import cw_model, estimator_config, measurement_model, silenced_set
+from .core_objects import estimator_config, filter_model, measurement_model, silenced_set
 from .diagnostics import DiagnosticsPublisher
 from .history import collect_history
 from .parameter_tables import ESTIMATOR, ESTIMATOR_RUNTIME
@@ -331,7 +331,7 @@ class EstimatorNode(ProcessHooks, LifecycleNode):
             config = config.replace(measurement_noise=measurement.noise, boundary_layer=deltas)
         else:
             measurement = None if p['model'] == 'position' else measurement_model(p, config.measurement_noise)
-        estimator = make_estimator(p['filter_type'], config, cw_model(p, form=p['cw_model'], measured_axes=axes),
+        estimator = make_estimator(p['filter_type'], config, filter_model(p, measured_axes=axes),
                                    measurement=measurement)
         estimator.prepare(p['time_step'])  # leak and P0 against the step: names the fix
         estimator.warm_up()  # its kernels compiled (or loaded) now, not at the first step

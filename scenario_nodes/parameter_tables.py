@@ -246,7 +246,7 @@ def _from_schema(field) -> Spec:
 
 ESTIMATOR = MODEL + (
     Spec('filter_type', DEFAULT_FILTER, 'The estimator (README, "Filters")', choices=tuple(FILTER_KINDS)),
-    Spec('cw_model', 'standard', "CW matrix of the filter's model: standard, or Eq. 41 as printed",
+    Spec('cw_model', 'standard', "CW matrix of the filter's model (dynamics_model cw): standard, or Eq. 41 as printed",
          choices=('standard', 'as_published')),
     Spec('measured_axes', [0, 1, 2], 'Position axes in the measurement (must match the sensor)'),
     Spec('model', 'position', "Measurement model of the `measurement` input (the sensor's; position: "

@@ -26,7 +26,7 @@ _EXPORTS = {
     'EstimatorConfig': 'config', 'SPIKE_RULES': 'config',
     'FILTER_KINDS': 'catalog', 'TWIN_OF': 'catalog', 'Estimator': 'filters.estimators',
     'make_estimator': 'filters.estimators',
-    'ClohessyWiltshire': 'models', 'StateSpaceModel': 'models', 'VanDerPol': 'models',
+    'ClohessyWiltshire': 'models', 'NonlinearCircular': 'models', 'StateSpaceModel': 'models', 'VanDerPol': 'models',
     'Plant': 'plant.truth', 'PositionSensor': 'plant.sensors', 'Scenario': 'sim.scenarios',
     'lqr_control': 'plant.control', 'lqr_gain': 'plant.control', 'rendezvous_scenario': 'sim.scenarios',
     'simulate': 'sim.simulate', 'van_der_pol_scenario': 'sim.scenarios',

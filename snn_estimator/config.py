@@ -60,6 +60,11 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel, n_meas: int | None 
     if silenced and (silenced[0] < 0 or silenced[-1] >= neurons):
         raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {silenced}')
     values['max_spikes_per_step'] = values['max_spikes_per_step'] or 1000 * neurons
+    named = getattr(model, 'dynamics_model', values['dynamics_model'])  # relative motion names itself
+    if named != values['dynamics_model']:
+        raise ValueError(f"dynamics_model is {values['dynamics_model']} but the filter is given the "
+                         f'{named} model ({type(model).__name__}): set dynamics_model {named}, or build '
+                         f"the model with models.relative_motion('{values['dynamics_model']}')")
     return ResolvedConfig(**values, q_hat=values['process_noise_scale'] * values['process_noise'],
                           r_hat=values['measurement_noise_scale'] * values['measurement_noise'])
 

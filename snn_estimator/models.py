@@ -1,4 +1,5 @@
-"""Dynamical models: Clohessy-Wiltshire relative motion (paper Sec. 3.2) and Van der Pol (Sec. 3.1).
+"""Dynamical models: Clohessy-Wiltshire relative motion (paper Sec. 3.2), the nonlinear relative
+motion it linearises, and Van der Pol (Sec. 3.1).
 
 Every model implements :class:`StateSpaceModel`: ``x_dot = f(x, u)`` with Jacobians ``A(x)``
 and ``B``, and a *linear* measurement ``z = C x`` (both of the paper's problems measure a subset
@@ -22,6 +23,8 @@ from .validation import check_choice, check_positive
 DT_CACHE_SIZE = 64
 
 DISCRETIZATIONS = ('exact', 'euler')
+#: The relative-motion models a filter can predict with (:func:`relative_motion`).
+DYNAMICS_MODELS = ('cw', 'nonlinear_circular')
 
 
 class StateSpaceModel(ABC):
@@ -183,12 +186,39 @@ def expm(matrix: np.ndarray) -> np.ndarray:
     return result
 
 
-class ClohessyWiltshire(StateSpaceModel):
-    """Linearised relative motion about a circular orbit (Eq. 36-41, corrected).
+class RelativeMotion(StateSpaceModel):
+    """The chaser's motion relative to a target on a circular orbit of radius ``orbit_radius``.
 
     State ``[x, y, z, vx, vy, vz]`` (m, m/s) in the target's LVLH frame as the paper draws it
     (Fehse's convention): x along-track (V-bar), y opposite to the orbit normal (H-bar), z radial
-    toward Earth (R-bar). Input: specific force ``[f_x, f_y, f_z]`` in m/s^2.
+    toward Earth (R-bar). Input: specific force ``[f_x, f_y, f_z]`` in m/s^2 (B = [0; I]).
+    Measured: the position axes ``measured_axes`` (C selects them).
+    """
+
+    state_names = ('x', 'y', 'z', 'vx', 'vy', 'vz')
+    input_names = ('fx', 'fy', 'fz')
+    #: Its name in :data:`DYNAMICS_MODELS` (the estimator's ``dynamics_model`` must name it).
+    dynamics_model: str
+
+    def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
+                 measured_axes: Sequence[int] = (0, 1, 2)):
+        self.orbit_radius = check_positive(orbit_radius, 'orbit_radius (m)')
+        self.mu = check_positive(mu, 'mu (m^3/s^2)')
+        axes = tuple(int(a) for a in measured_axes)
+        if not axes or len(set(axes)) != len(axes) or not all(0 <= a <= 2 for a in axes):
+            raise ValueError(
+                f'measured_axes must be distinct position axes among 0 (x), 1 (y), 2 (z); got {axes}')
+        self.measured_axes = axes
+        self.measurement_names = tuple(self.state_names[a] for a in axes)
+        self.mean_motion = float(np.sqrt(self.mu / self.orbit_radius ** 3))  # Eq. 39, rad/s
+        self._b = np.vstack([np.zeros((3, 3)), np.eye(3)])
+        self._c = np.zeros((len(axes), 6))
+        self._c[np.arange(len(axes)), axes] = 1.0
+
+
+class ClohessyWiltshire(RelativeMotion):
+    """Linearised relative motion about a circular orbit (Eq. 36-41, corrected); axes, state
+    and input as :class:`RelativeMotion`.
 
     ``form='standard'`` (default) is the textbook CW system::
 
@@ -202,26 +232,14 @@ class ClohessyWiltshire(StateSpaceModel):
     gradient). It is kept so the difference can be measured.
     """
 
-    state_names = ('x', 'y', 'z', 'vx', 'vy', 'vz')
-    input_names = ('fx', 'fy', 'fz')
     is_linear = True
+    dynamics_model = 'cw'
 
     def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
                  form: str = 'standard', measured_axes: Sequence[int] = (0, 1, 2)):
-        self.orbit_radius = check_positive(orbit_radius, 'orbit_radius (m)')
-        self.mu = check_positive(mu, 'mu (m^3/s^2)')
+        super().__init__(orbit_radius, mu, measured_axes)
         self.form = check_choice(form, ('standard', 'as_published'), 'cw_model')
-        axes = tuple(int(a) for a in measured_axes)
-        if not axes or len(set(axes)) != len(axes) or not all(0 <= a <= 2 for a in axes):
-            raise ValueError(
-                f'measured_axes must be distinct position axes among 0 (x), 1 (y), 2 (z); got {axes}')
-        self.measured_axes = axes
-        self.measurement_names = tuple(self.state_names[a] for a in axes)
-        self.mean_motion = float(np.sqrt(self.mu / self.orbit_radius ** 3))  # Eq. 39, rad/s
         self._a = self.system_matrix(self.mean_motion, self.form)
-        self._b = np.vstack([np.zeros((3, 3)), np.eye(3)])
-        self._c = np.zeros((len(axes), 6))
-        self._c[np.arange(len(axes)), axes] = 1.0
 
     @staticmethod
     def system_matrix(n: float, form: str = 'standard') -> np.ndarray:
@@ -244,6 +262,76 @@ class ClohessyWiltshire(StateSpaceModel):
     def jacobian(self, x, u):
         x = np.asarray(x)
         return np.broadcast_to(self._a, x.shape[:-1] + (6, 6)).copy() if x.ndim > 1 else self._a.copy()
+
+
+class NonlinearCircular(RelativeMotion):
+    """The nonlinear equations of relative motion (two-body gravity on both spacecraft) about a
+    target on a circular orbit; axes, state and input as :class:`RelativeMotion`.
+
+    The target sits at ``(0, 0, -R)`` from Earth's centre, the frame turns at ``(0, -n, 0)``;
+    with ``d = p - (0, 0, R)`` the chaser's position from Earth's centre and ``r_c = |d|``::
+
+        x'' =  2 n z' + n^2 x - mu x / r_c^3                 + f_x
+        y'' =                 - mu y / r_c^3                 + f_y
+        z'' = -2 n x' + n^2 z + mu (R - z) / r_c^3 - mu / R^2 + f_z
+
+    (Fehse 2003, ch. 3; Alfriend et al. 2010, ch. 4). Linearising ``r_c^-3`` about ``R`` gives
+    :class:`ClohessyWiltshire` back. Exact for two-body motion at any separation: no curvature
+    error (a point 5 km back on the straight V-bar is 1.84 m above the orbit, which CW ignores).
+    The gravity difference is evaluated as ``-n^2 (p + g d)`` with ``g = (R / r_c)^3 - 1`` from
+    ``expm1``/``log1p``, so it keeps full relative precision as the separation goes to 0 (the
+    literal form subtracts two ~8.7 m/s^2 terms).
+    """
+
+    dynamics_model = 'nonlinear_circular'
+
+    def _gravity_factor(self, p: np.ndarray) -> np.ndarray:
+        """``g = (R / r_c)^3 - 1`` without cancellation: ``(1 + q)^-1.5 - 1``, ``q = (r_c^2 - R^2)/R^2``."""
+        radius = self.orbit_radius
+        q = ((p * p).sum(axis=-1) - 2.0 * radius * p[..., 2]) / (radius * radius)
+        return np.expm1(-1.5 * np.log1p(q))
+
+    def f(self, x, u):
+        x = np.asarray(x, dtype=float)
+        u = np.asarray(u, dtype=float)
+        n2, two_n = self.mean_motion ** 2, 2.0 * self.mean_motion
+        p, v = x[..., :3], x[..., 3:]
+        g = self._gravity_factor(p)
+        acceleration = np.stack([two_n * v[..., 2] - n2 * g * p[..., 0],
+                                 -n2 * (1.0 + g) * p[..., 1],
+                                 -two_n * v[..., 0] - n2 * g * (p[..., 2] - self.orbit_radius)], axis=-1)
+        return np.concatenate([v, acceleration + u @ self._b[3:].T], axis=-1)
+
+    def jacobian(self, x, u):
+        """``[[0, I], [G(p) + diag(n^2, 0, n^2), Omega]]``, ``G = -(mu / r_c^3)(I - 3 d d^T / r_c^2)``
+        (the gravity gradient at the chaser), ``Omega`` the Coriolis block of CW."""
+        x = np.asarray(x, dtype=float)
+        n = self.mean_motion
+        n2 = n * n
+        p = x[..., :3]
+        g = self._gravity_factor(p)
+        d = p.copy()
+        d[..., 2] -= self.orbit_radius
+        outer = d[..., :, None] * d[..., None, :] / (d * d).sum(axis=-1)[..., None, None]
+        a = np.zeros(x.shape[:-1] + (6, 6))
+        a[..., 0:3, 3:6] = np.eye(3)
+        block = 3.0 * (n2 * (1.0 + g))[..., None, None] * outer  # mu / r_c^3 = n^2 (1 + g)
+        block[..., 0, 0] -= n2 * g       # -mu / r_c^3 + n^2 without cancellation
+        block[..., 1, 1] -= n2 * (1.0 + g)
+        block[..., 2, 2] -= n2 * g
+        a[..., 3:6, 0:3] = block
+        a[..., 3, 5] = 2.0 * n
+        a[..., 5, 3] = -2.0 * n
+        return a
+
+
+def relative_motion(dynamics_model: str = 'cw', orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
+                    measured_axes: Sequence[int] = (0, 1, 2)) -> RelativeMotion:
+    """The relative-motion model named ``dynamics_model`` (:data:`DYNAMICS_MODELS`): cw, the
+    standard :class:`ClohessyWiltshire`; nonlinear_circular, :class:`NonlinearCircular`."""
+    kind = check_choice(dynamics_model, DYNAMICS_MODELS, 'dynamics_model')
+    model = NonlinearCircular if kind == 'nonlinear_circular' else ClohessyWiltshire
+    return model(orbit_radius=orbit_radius, mu=mu, measured_axes=measured_axes)
 
 
 class VanDerPol(StateSpaceModel):

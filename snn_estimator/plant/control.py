@@ -10,10 +10,13 @@ from snn_estimator.validation import as_matrix, check_covariance
 
 
 def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
-    """Continuous-time LQR gain K (u = -K x, Eq. 42) from python-control, for a linear model."""
-    if not model.is_linear:
-        raise ValueError('LQR design needs a linear model')
+    """Continuous-time LQR gain K (u = -K x, Eq. 42) from python-control, for a linear model or
+    for the linearisation A(0) of a nonlinear one about its equilibrium at the origin (for the
+    nonlinear relative motion, CW: the target is where the chaser docks)."""
     n, m = model.n_state, model.n_input
+    if not model.is_linear and np.any(model.f(np.zeros(n), np.zeros(m)) != 0.0):
+        raise ValueError(f'LQR design needs a linear model or one at rest at the origin; '
+                         f'{type(model).__name__} is neither')
     q = check_covariance(as_matrix(state_weight, (n, n), 'lqr_state_weight (Qc)'),
                          'lqr_state_weight (Qc)', allow_singular=True)
     r = check_covariance(as_matrix(input_weight, (m, m), 'lqr_input_weight (Rc)'),

@@ -11,7 +11,14 @@ import numpy as np
 
 from snn_estimator import defaults as D
 from snn_estimator.config import EstimatorConfig, sensor_boundary_layer
-from snn_estimator.models import DEFAULT_ORBIT_RADIUS, ClohessyWiltshire, StateSpaceModel, VanDerPol
+from snn_estimator.models import (
+    DEFAULT_ORBIT_RADIUS,
+    DYNAMICS_MODELS,
+    ClohessyWiltshire,
+    StateSpaceModel,
+    VanDerPol,
+    relative_motion,
+)
 
 
 @dataclass(frozen=True)
@@ -91,12 +98,13 @@ def rendezvous_scenario(preset: str = 'default', cw_model: str = 'standard',
         basilisk=_truth_settings(plant, basilisk, orbit_radius))
 
 
-def _truth_settings(plant: str, basilisk, orbit_radius: float):
-    """None for the CW truth; Basilisk settings (default: J2, circular orbit of orbit_radius)."""
-    if plant == 'cw':
+def _truth_settings(plant: str, basilisk, orbit_radius: float, model_truths=('cw',)):
+    """None for a model truth (one of ``model_truths``); Basilisk settings (default: J2,
+    circular orbit of orbit_radius)."""
+    if plant in model_truths:
         return None
     if plant != 'basilisk':
-        raise ValueError(f"plant must be one of cw, basilisk; got {plant!r}")
+        raise ValueError(f"plant must be one of {', '.join(model_truths)}, basilisk; got {plant!r}")
     from snn_estimator.plant.basilisk_truth import BasiliskSettings, OrbitSettings
     return basilisk or BasiliskSettings(orbit=OrbitSettings(semi_major_axis=orbit_radius))
 
@@ -110,17 +118,23 @@ def far_range_scenario(plant: str = 'basilisk', basilisk=None, orbit_radius: flo
     (a point 5 km back on the straight V-bar drifts ~70 m per orbit in truth), J2, and the
     thrust limit. 1 s steps (far-range navigation rates); the LQR weights of defaults.FAR_RANGE_*
     reach the hold point in about an orbit within the thrust limit. Measurements as in Table 6.
+    The estimator's ``dynamics_model`` (schema) is the filters' model: cw, or nonlinear_circular
+    (the nonlinear relative motion; the LQR is designed on its linearisation, CW). ``plant``:
+    basilisk, or a model truth (cw, nonlinear_circular: two-body motion without J2).
     """
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, **estimator_changes})
-    model = ClohessyWiltshire(orbit_radius=orbit_radius)
+    settings = _truth_settings(plant, basilisk, orbit_radius, model_truths=DYNAMICS_MODELS)
+    dynamics_model = config.dynamics_model
+    model = relative_motion(dynamics_model, orbit_radius)
+    truth = None if settings is not None or plant == dynamics_model else relative_motion(plant, orbit_radius)
     return Scenario(
         name='far_range', model=model, x0=np.array(D.FAR_RANGE_X0), dt=D.FAR_RANGE_TIME_STEP,
         duration=D.FAR_RANGE_DURATION, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
         measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config,
         lqr_state_weight=D.FAR_RANGE_LQR_STATE_WEIGHT * np.eye(6),
         lqr_input_weight=D.FAR_RANGE_LQR_INPUT_WEIGHT * np.eye(3),
-        metric_window=D.FAR_RANGE_METRIC_WINDOW, setpoint=np.array(D.FAR_RANGE_SETPOINT),
-        basilisk=_truth_settings(plant, basilisk, orbit_radius))
+        metric_window=D.FAR_RANGE_METRIC_WINDOW, setpoint=np.array(D.FAR_RANGE_SETPOINT), truth_model=truth,
+        basilisk=settings)
 
 
 def sensor_rendezvous_scenario(sensor: str = 'range_azimuth_elevation', preset: str = 'default', noise=None,

@@ -1,10 +1,12 @@
-"""Models against independent computations: matrix exponentials, CW closed forms, finite differences."""
+"""Models against independent computations: matrix exponentials, CW closed forms, finite differences,
+two-body integration in an inertial frame."""
 
 import numpy as np
 import pytest
 import scipy.linalg
+from scipy.integrate import solve_ivp
 
-from snn_estimator.models import EARTH_MU, ClohessyWiltshire, VanDerPol
+from snn_estimator.models import EARTH_MU, ClohessyWiltshire, NonlinearCircular, VanDerPol
 
 
 def cw_free_motion(state0, n, t):
@@ -143,3 +145,97 @@ def test_small_argument_expm_matches_scipy():
     for scale in (1e-4, 1e-2, 0.0125, 0.3):
         matrices = rng.normal(0.0, scale, (5, 3, 3))
         np.testing.assert_allclose(expm(matrices), scipy.linalg.expm(matrices), rtol=1e-14, atol=1e-15)
+
+
+# ------------------------------------------------------------ nonlinear relative motion (NERM)
+def _central_differences(model, x, steps):
+    u = np.zeros(3)
+    return np.column_stack([(model.f(x + h * e, u) - model.f(x - h * e, u)) / (2 * h)
+                            for e, h in zip(np.eye(6), steps)])
+
+
+def test_nonlinear_jacobian_equals_central_differences_near_and_far():
+    model = NonlinearCircular()
+    states = np.array([[-5000.0, 100.0, 50.0, 0.5, 0.1, -0.3], [1e3, -2e3, 3e3, 1.0, 2.0, 3.0],
+                       [-50e3, 0.0, 0.0, 0.0, 0.0, 0.0], [0.3, -0.2, 0.1, 0.0, 0.0, 0.0]])
+    jacobians = model.jacobian(states, np.zeros((4, 3)))
+    for x, jac in zip(states, jacobians):
+        numeric = _central_differences(model, x, [1.0] * 3 + [1e-3] * 3)
+        # the gravity block is ~n^2 = 1.3e-6 1/s^2; the truncation error of 1 m steps is ~1e-13
+        np.testing.assert_allclose(jac, numeric, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(jac, model.jacobian(x, np.zeros(3)), rtol=0, atol=0)
+    # and it is not CW's: the gravity gradient turns with the line to Earth's centre at 50 km
+    cw = ClohessyWiltshire().jacobian(np.zeros(6), np.zeros(3))
+    assert np.abs(jacobians[2] - cw).max() > 1e-2 * model.mean_motion ** 2
+
+
+@pytest.mark.parametrize('separation', [1.0, 100.0, 1e4])
+def test_nonlinear_acceleration_tends_to_cw_as_the_separation_goes_to_zero(separation):
+    """The difference from CW is second order: relative to CW's acceleration it is ~ r / R."""
+    model, cw = NonlinearCircular(), ClohessyWiltshire()
+    rng = np.random.default_rng(39)
+    radius = model.orbit_radius
+    for direction in rng.normal(size=(5, 3)):
+        position = separation * direction / np.linalg.norm(direction)
+        x = np.concatenate([position, 1e-3 * separation * rng.normal(size=3)])
+        a_nerm, a_cw = model.f(x, np.zeros(3))[3:], cw.f(x, np.zeros(3))[3:]
+        relative = np.linalg.norm(a_nerm - a_cw) / np.linalg.norm(a_cw)
+        assert relative < 5.0 * separation / radius
+    np.testing.assert_allclose(model.jacobian(np.zeros(6), np.zeros(3)), cw.jacobian(np.zeros(6), np.zeros(3)),
+                               rtol=1e-14, atol=1e-20)
+
+
+def _lvlh_axes(target):
+    """Rows: the LVLH x (V-bar), y (-h_hat), z (-r_hat) axes in inertial components, and the
+    frame's angular velocity in LVLH components (written out here, not taken from the package)."""
+    r, v = target[:3], target[3:]
+    h = np.cross(r, v)
+    r_hat, h_hat = r / np.linalg.norm(r), h / np.linalg.norm(h)
+    return np.array([np.cross(h_hat, r_hat), -h_hat, -r_hat]), np.array([0.0, -np.linalg.norm(h) / (r @ r), 0.0])
+
+
+def _two_body_relative_motion(x0, duration):
+    """Target and chaser integrated in an inertial frame under point-mass gravity, the chaser's
+    final state returned in the target's LVLH frame."""
+    radius, mu = ClohessyWiltshire().orbit_radius, EARTH_MU
+    target = np.array([radius, 0.0, 0.0, 0.0, np.sqrt(mu / radius), 0.0])
+    axes, omega = _lvlh_axes(target)
+    chaser = target + np.concatenate([axes.T @ x0[:3], axes.T @ (x0[3:] + np.cross(omega, x0[:3]))])
+
+    def gravity(_, s):
+        r1, r2 = s[0:3], s[6:9]
+        return np.concatenate([s[3:6], -mu * r1 / np.linalg.norm(r1) ** 3, s[9:12], -mu * r2 / np.linalg.norm(r2) ** 3])
+
+    end = solve_ivp(gravity, (0.0, duration), np.concatenate([target, chaser]), method='DOP853',
+                    rtol=1e-13, atol=1e-9).y[:, -1]
+    axes, omega = _lvlh_axes(end[:6])
+    p = axes @ (end[6:9] - end[0:3])
+    return np.concatenate([p, axes @ (end[9:12] - end[3:6]) - np.cross(omega, p)])
+
+
+# CW's position error after one orbit from a point at rest on V-bar (issue 39: 2.8 m, 69.5 m, 6.95 km)
+@pytest.mark.parametrize('behind, cw_error', [(1e3, 2.78), (5e3, 69.5), (50e3, 6953.0)])
+def test_nonlinear_model_follows_two_body_motion_over_one_orbit_where_cw_does_not(behind, cw_error):
+    model, cw = NonlinearCircular(), ClohessyWiltshire()
+    period = 2.0 * np.pi / model.mean_motion
+    x0 = np.array([-behind, 0.0, 0.0, 0.0, 0.0, 0.0])
+    truth = _two_body_relative_motion(x0, period)
+    steps = int(np.ceil(period))  # the filters' propagation: RK4, ~1 s steps
+    x = x0
+    for _ in range(steps):
+        x = model.transition(x, np.zeros(3), period / steps)
+    assert np.linalg.norm(x[:3] - truth[:3]) < 1e-4  # m; measured ~1e-7 at all three ranges
+    assert np.linalg.norm(x[3:] - truth[3:]) < 1e-8  # m/s
+    phi, _ = cw.discrete_matrices(period)
+    assert np.linalg.norm(phi[:3] @ x0 - truth[:3]) == pytest.approx(cw_error, rel=2e-3)
+
+
+def test_nonlinear_model_follows_two_body_motion_from_a_moving_out_of_plane_start():
+    model = NonlinearCircular()
+    period = 2.0 * np.pi / model.mean_motion
+    x0 = np.array([-5000.0, 100.0, 50.0, 0.5, 0.1, -0.3])
+    truth = _two_body_relative_motion(x0, period)
+    x = x0
+    for _ in range(556):  # ~10 s steps of two RK4 substeps
+        x = model.transition(x, np.zeros(3), period / 556, substeps=2)
+    assert np.linalg.norm(x[:3] - truth[:3]) < 1e-3

@@ -109,8 +109,9 @@ def test_the_runtime_parameters_are_exactly_what_the_core_can_change_between_ste
 
 
 def test_the_schema_repeats_the_choices_of_the_models():
-    from snn_estimator.models import DISCRETIZATIONS
+    from snn_estimator.models import DISCRETIZATIONS, DYNAMICS_MODELS
     assert schema.BY_NAME['discretization'].choices == DISCRETIZATIONS
+    assert schema.BY_NAME['dynamics_model'].choices == DYNAMICS_MODELS
 
 
 def test_yaml_estimator_parameters_build_the_core_default_configuration():
