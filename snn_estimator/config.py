@@ -60,6 +60,9 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel, n_meas: int | None 
     if silenced and (silenced[0] < 0 or silenced[-1] >= neurons):
         raise ValueError(f'silenced_neurons must be indices in [0, {neurons - 1}], got {silenced}')
     values['max_spikes_per_step'] = values['max_spikes_per_step'] or 1000 * neurons
+    if values['boundary_layer_mode'] != 'fixed' and values['gain_schedule'] != 'time_varying':
+        raise ValueError(f"boundary_layer_mode {values['boundary_layer_mode']} follows P each step: it needs "
+                         f"gain_schedule time_varying, got {values['gain_schedule']}")
     return ResolvedConfig(**values, q_hat=values['process_noise_scale'] * values['process_noise'],
                           r_hat=values['measurement_noise_scale'] * values['measurement_noise'])
 
