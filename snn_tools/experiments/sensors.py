@@ -36,7 +36,7 @@ import scipy.linalg
 
 from snn_estimator import defaults as D
 from snn_estimator.catalog import FILTER_KINDS, TWIN_OF
-from snn_estimator.sim.results import consistency_check
+from snn_estimator.sim.results import CONTACT_RANGE, consistency_check, contact_conditions
 from snn_estimator.sim.scenarios import (
     angles_only_scenario,
     docking_scenario,
@@ -53,8 +53,6 @@ ANGLES_TIMES = (0.0, 500.0, 1000.0, 2000.0, 3000.0)
 FINAL_RANGE_GOAL = 0.1
 #: The sensor suites: name -> scenario factory (snn_estimator.sim.scenarios).
 SUITES = {'lidar': sensor_rendezvous_scenario, 'camera+lidar': handover_scenario, 'docking': docking_scenario}
-#: Contact conditions are read where the chaser first comes within this range of the target, m.
-CONTACT_RANGE = 1.0
 #: The filters of the ROS demo (`make demo SENSOR=<suite> [ESTIMATOR=...]`): its default and the
 #: robust one issue 22 names.
 DEMO_FILTERS = ('snn_ekf', 'snn_emsif_weighted')
@@ -167,21 +165,17 @@ def _blind_flight(result) -> dict | None:
 
 
 def _contact(result) -> dict | None:
-    """Contact conditions of the runs that did not diverge, where each first comes within
-    CONTACT_RANGE of the target: the closing speed (the velocity toward the target, m/s), the
-    offset from the docking axis (LVLH x, the close sensors' line of sight: hypot(y, z), m) and
-    the estimate's velocity error there; medians and maxima."""
+    """Contact conditions (sim.results.contact_conditions) of the runs that did not diverge:
+    closing speed, offset from the docking axis and the estimate's velocity error where each
+    first comes within CONTACT_RANGE; medians and maxima."""
     closing, offset, velocity = [], [], []
     for b in np.flatnonzero(~result.diverged):
-        position = result.truth[b, :, :3]
-        ranges = np.linalg.norm(position, axis=1)
-        inside = np.flatnonzero(ranges < CONTACT_RANGE)
-        if not inside.size:
+        contact = contact_conditions(result.truth[b], CONTACT_RANGE)
+        if contact is None:
             continue
-        k = int(inside[0])
-        closing.append(-float(result.truth[b, k, 3:] @ position[k]) / ranges[k])
-        offset.append(float(np.hypot(position[k, 1], position[k, 2])))
-        velocity.append(float(np.linalg.norm(result.error[b, k, 3:])))
+        closing.append(contact['closing_speed_m_s'])
+        offset.append(contact['axis_offset_m'])
+        velocity.append(float(np.linalg.norm(result.error[b, contact['step'], 3:])))
     if not closing:
         return None
     return {'runs': len(closing), **{f'{name}_{stat}': float(fn(values)) for name, values in
