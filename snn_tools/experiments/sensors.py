@@ -8,8 +8,8 @@ of results/REPORT.md (between its markers).
   one filter; final range, RMSE, NEES/NIS, spikes, twin ratio, the runs that diverged; beside
   them the variants that show why (the paper's network, delta in variance units, the printed CW matrix,
   no start error, a noise-free sensor);
-* where each run's error comes from: the last sample before the sensors fall silent (0.3 m) and
-  the error there, flown blind to the end;
+* where each run's error comes from: the last sample before the sensors fall silent (0.3 m; 5 cm
+  on the docking suite) and the error there, flown blind to the end;
 * the docking suite (issue 38: a LIDAR as flown far, the docking camera to 5 cm), and on every
   suite the MSIF family with the variable boundary layer (Decision 48) beside the fixed one;
 * contact conditions: the closing speed and the offset from the docking axis (LVLH x, along which
@@ -486,7 +486,8 @@ def _suite_findings(results: dict, suite: str) -> str | None:
         text += f" (the paper's network: {paper['twin_ratio']:.2f}x at {100 * paper['spike_fraction']:.1f} %)"
     text += f". EMSIF-W {_docking(weighted)}; SNN-EMSIF-W {_docking(snn_weighted)}."
     blind_w, blind_e = weighted['blind'], ekf['blind']
-    text += (f" The sensors fall silent inside 0.3 m; EMSIF-W's last sample comes at "
+    silent = blind_w.get('silent_below_m', D.CLOSE_SENSOR_MIN_RANGE)
+    text += (f" The sensors fall silent inside {silent:g} m; EMSIF-W's last sample comes at "
              f"{blind_w['last_sample_s_median']:.0f} s (median; the EKF's at {blind_e['last_sample_s_median']:.0f} s), "
              f"where its velocity error is {_g(blind_w['velocity_error_m_s_median'], 2)} m/s (EKF "
              f"{_g(blind_e['velocity_error_m_s_median'], 2)}); that error propagated to the end gives every final "
@@ -499,6 +500,10 @@ def _suite_findings(results: dict, suite: str) -> str | None:
                  "sensor noise its non-decaying gain, floor R_hat / delta = 0.5 /s, lets in); with a noise-free sensor "
                  f"{_g(clean['final_range_median_m'])} / {_g(clean['final_range_max_m'])} m "
                  f"({_g(clean['blind']['velocity_error_m_s_median'], 2)} m/s: the start error not yet removed).")
+    variable = rows.get('emsif_weighted, variable layer')
+    if variable and 'final_range_max_m' in variable and variable.get('blind'):
+        text += (f" With the variable boundary layer (Decision 48) EMSIF-W {_docking(variable)}, its velocity error "
+                 f"at the last sample {_g(variable['blind']['velocity_error_m_s_median'], 2)} m/s.")
     variance = rows.get('emsif_weighted, delta in variance units')
     if variance and 'final_range_max_m' in variance:
         lost, kept = variance.get('p_indefinite') or {}, weighted.get('p_indefinite') or {}
@@ -545,7 +550,8 @@ def _where_the_msif_helps(results: dict) -> str:
                    'the Kalman gain is the optimal one. The literal EMSIF, ESIF and SNN-EMSIF* never correct a '
                    'velocity from these '
                    'sensors (C^+ has zero velocity rows, Decision 16), and the weighted gain, which does, keeps a '
-                   'bandwidth (floor R_hat / delta) that the Kalman gain lets decay.')
+                   'bandwidth (floor R_hat / delta) that the Kalman gain lets decay, unless its boundary layer is '
+                   'variable (Decision 48): then it is the Kalman gain inside the layer.')
 
 
 def findings(results: dict) -> list[str]:
