@@ -259,7 +259,8 @@ class RelativeGeometry(MeasurementModel):
         if not self.state_dependent_noise:
             return noise
         r = np.linalg.norm(self.line_of_sight(x), axis=-1)
-        grown = np.square(self.range_noise_growth * np.nan_to_num(r) ** self.range_noise_exponent)
+        r = np.where(np.isfinite(r), r, 0.0)  # a broken truth: not measured (validity), its draw the floor's
+        grown = np.square(self.range_noise_growth * r ** self.range_noise_exponent)
         noise = noise.copy()
         i = self.range_component
         noise[..., i, i] += grown

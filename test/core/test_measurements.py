@@ -415,6 +415,9 @@ def test_a_ranger_without_range_noise_growth_draws_the_same_numbers_as_before():
     lidar = make_model('range_azimuth_elevation', NOISE['range_azimuth_elevation'], range_noise_growth=3.3e-4)
     r = np.linalg.norm(x[0, :3])
     assert lidar.noise_at(x)[0, 0, 0] == pytest.approx(1e-4 + (3.3e-4 * r) ** 2, rel=1e-12)
+    broken = np.array([[np.inf, 0.0, 0.0, 0.0, 0.0, 0.0], [np.nan, 1.0, 0.0, 0.0, 0.0, 0.0]])
+    sample = MeasurementSensor(make_model('docking_camera', NOISE['docking_camera']), range(2)).measure(broken)
+    assert sample.counts() == {'non_finite': 2}  # a broken truth is not measured; its draw does not fail
     with pytest.raises(ValueError, match='range_noise_growth: line_of_sight measures no range'):
         make_model('line_of_sight', NOISE['line_of_sight'], range_noise_growth=1e-3)
 
