@@ -80,7 +80,7 @@ def client():
     ({'settings': {'duration': 5.0, 'metric_window': 6.0}}, 'metric_window'),
     ({'filters': ['snn_kalman']}, 'snn_kalman'),
     ({'filters': []}, 'filters'),
-    ({'scenario': 'docking'}, 'scenario'),
+    ({'scenario': 'lunar_landing'}, 'scenario'),
     ({'runs': 0}, 'runs'),
     ({'runs': 2.5}, 'runs'),
     ({'seed': -1}, 'seed'),
