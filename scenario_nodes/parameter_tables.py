@@ -21,7 +21,7 @@ from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMI
 from snn_estimator.config import sensor_boundary_layer
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
-from snn_estimator.plant.sensors import FUSED_SEED_OFFSET
+from snn_estimator.plant.sensors import FUSED_SEED_OFFSET, design_noise, docking_sensors
 
 from . import registry
 from .topics import MEASUREMENT, PIPELINE_TOPICS
@@ -163,6 +163,10 @@ SENSOR = MODEL + (
          'outside it no measurement (counted)', low=1e-9, high=2.0 * np.pi),
     Spec('min_range', 0.0, 'Shortest range measured, m (range 0 is never measured)', low=0.0),
     Spec('max_range', 0.0, 'Longest range measured, m (0: no limit)', low=0.0),
+    Spec('range_noise_growth', -1.0, 'Growth g of the range noise with the range r: sigma_r^2 = R_rr + '
+         '(g r^e)^2, m^(1-e), e = 1 for range_azimuth_elevation and range, 2 for docking_camera '
+         "(docs/sensors.md); negative: the model's own (docking_camera: its pinhole law, 2.09e-4 /m; "
+         'the others: 0, R at every range)', low=-1.0),
     Spec('dropout_probability', 0.0, 'Probability that a sample is lost (own random stream 6)',
          low=0.0, high=1.0),
     Spec('measurement_period', 0.0, 'Simulated s between samples (0: every truth): a sample at the first '
@@ -405,4 +409,30 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
         'estimator': fused, 'cw_plant': {'measurement_topics': ['camera', 'lidar']},
         'lqr_controller': {'measurement_topics': ['camera', 'lidar']},
         'recorder': {'topics': topics}}
+    suites['docking'] = _docking_suite(network)
     return suites
+
+
+def _docking_suite(network: dict) -> dict[str, dict]:
+    """The docking suite (offline: snn_estimator.sim.scenarios.docking_scenario): a LIDAR as flown
+    far and the docking camera close (D.DOCKING_LIDAR, D.DOCKING_CAMERA), each its own node on
+    its own topic; the sensors draw R(range), the estimator takes R_hat at each one's design
+    range (docs/decisions.md, 46)."""
+    mounting = [float(v) for v in D.CLOSE_SENSOR_MOUNTING]
+    estimator = {'sensors': ['lidar', 'camera'], **network}
+    nodes = {}
+    for i, (name, model, spec) in enumerate(zip(('lidar', 'camera'), docking_sensors(field_of_view=False),
+                                                (D.DOCKING_LIDAR, D.DOCKING_CAMERA))):
+        floor = [float(v) for v in spec['noise']]
+        nodes[name] = {'model': model.name, 'measurement_noise': floor, 'mounting_rotation': mounting,
+                       'sensor_frame_id': name, 'min_range': float(spec['min_range']),
+                       'max_range': float(spec['max_range']), 'range_noise_growth': float(model.range_noise_growth),
+                       'measurement_period': round(spec['period_steps'] * D.RENDEZVOUS_TIME_STEP, 9),
+                       'seed': i * FUSED_SEED_OFFSET}
+        r_hat = [float(f'{v:.15g}') for v in np.diag(design_noise(model, spec['design_range']))]
+        estimator.update({f'{name}.model': model.name, f'{name}.measurement_noise': r_hat,
+                          f'{name}.mounting_rotation': mounting,
+                          f'{name}.boundary_layer': list(sensor_boundary_layer(r_hat))})
+    topics = [t for t in PIPELINE_TOPICS if t != 'measurement'] + ['lidar', 'camera']
+    return {**nodes, 'estimator': estimator, 'cw_plant': {'measurement_topics': ['lidar', 'camera']},
+            'lqr_controller': {'measurement_topics': ['lidar', 'camera']}, 'recorder': {'topics': topics}}

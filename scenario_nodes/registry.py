@@ -88,7 +88,8 @@ TOOLS = {
 #: The sensor nodes of each sensor choice (snn_demo --sensor; the suites' parameter values are
 #: scenario_nodes.parameter_tables.sensor_suites): the sensor node renamed, and its
 #: `measurement` remapped to its name, when it is not the one sensor on `measurement`.
-SENSOR_NODES = {'position': ('position_sensor',), 'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar')}
+SENSOR_NODES = {'position': ('position_sensor',), 'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar'),
+                'docking': ('lidar', 'camera')}
 
 
 def executables() -> dict:

@@ -46,7 +46,8 @@ class SensorNode(ProcessHooks, Node):
         self._p = p
         self._axes = tuple(int(a) for a in p['measured_axes'])
         model = measurement_model(p, p['measurement_noise'],
-                                  **{name: p[name] for name in ('field_of_view', 'min_range', 'max_range')})
+                                  **{name: p[name] for name in ('field_of_view', 'min_range', 'max_range',
+                                                                   'range_noise_growth')})
         self._model = model
         self._frame = p['frame_id'] if model.message_form == 'point' else p['sensor_frame_id']
         self._sensor = MeasurementSensor(model, seeds=[p['seed']], dropout_probability=p['dropout_probability'])

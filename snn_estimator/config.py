@@ -65,6 +65,9 @@ def resolve(config: EstimatorConfig, model: StateSpaceModel, n_meas: int | None 
         raise ValueError(f"dynamics_model is {values['dynamics_model']} but the filter is given the "
                          f'{named} model ({type(model).__name__}): set dynamics_model {named}, or build '
                          f"the model with models.relative_motion('{values['dynamics_model']}')")
+    if values['boundary_layer_mode'] != 'fixed' and values['gain_schedule'] != 'time_varying':
+        raise ValueError(f"boundary_layer_mode {values['boundary_layer_mode']} follows P each step: it needs "
+                         f"gain_schedule time_varying, got {values['gain_schedule']}")
     return ResolvedConfig(**values, q_hat=values['process_noise_scale'] * values['process_noise'],
                           r_hat=values['measurement_noise_scale'] * values['measurement_noise'])
 

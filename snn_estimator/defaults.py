@@ -68,7 +68,8 @@ FAR_RANGE_ESTIMATOR = {
 #: R per sample of each sensor model in its units: LIDAR range 0.1 m (Table 6's position sigma)
 #: and angles 1 mrad; camera angles 1 mrad.
 SENSOR_NOISE = {'position': RENDEZVOUS_MEASUREMENT_NOISE, 'range_azimuth_elevation': (1e-2, 1e-6, 1e-6),
-                'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6}
+                'line_of_sight': (1e-6, 1e-6), 'range': 1e-2, 'range_rate': 1e-6,
+                'docking_camera': (2.5e-5, 1e-6, 1e-6)}
 #: A sensor's boundary layer delta per component from its noise R (Decision 35): Table 6's delta =
 #: 0.1 is one sigma of its R = 1e-2 m^2 and also 10 R. 'sigma': delta_j = sqrt(R_jj) (the
 #: default: 0.1 m for a range, 1e-3 rad for a 1 mrad angle); 'variance': delta_j = 10 R_jj, in
@@ -93,6 +94,25 @@ CLOSE_SENSOR_MIN_RANGE = 0.3
 #: the steps between two samples of each sensor (camera 10 Hz, LIDAR 5 Hz at dt = 0.1 s).
 HANDOVER_LIDAR_MAX_RANGE = 30.0
 HANDOVER_PERIODS = (1, 2)
+
+# ---------------------------------------------------------------- the docking suite (issue 38; not in the paper)
+#: Sensors as flown (docs/sensors.md, "The docking suite", gives the source of every value). A
+#: rendezvous LIDAR of the Jena-Optronik RVS class (ATV, HTV, Cygnus): 1.8 m (ATV's
+#: telegoniometer) to 3000 m, range noise sqrt(0.033^2 + (3.3e-4 r)^2) m (0.1 m 3 sigma close in;
+#: 0.1 % of r 3 sigma, the time-of-flight class), angles 0.13 deg (< 0.4 deg 3 sigma), 3 Hz: a
+#: sample every 3 steps of 0.1 s. No field-of-view limit: the chaser's attitude (its pointing)
+#: is not in the state (Decision 46). R_hat, the filter's R, is the R at ``design_range`` m
+#: (Decision 46: the filters take one R per sensor).
+DOCKING_LIDAR = {'noise': (1.089e-3, 5.29e-6, 5.29e-6),  # (0.033 m)^2, (2.3e-3 rad)^2
+                 'range_noise_growth': 3.3e-4,
+                 'min_range': 1.8, 'max_range': 3000.0, 'period_steps': 3, 'design_range': 100.0}
+#: A docking camera (videometer, VGS class) on a retro-reflector pattern: range and line of sight
+#: (docking_camera.py's pinhole law: sigma_r = sqrt(0.005^2 + (r^2 0.2 / (1911 x 0.5))^2) m,
+#: angles 1 mrad), 30 deg full field of view, from 5 cm (a short-range pattern at the docking
+#: port) to 30 m, 5 Hz: a sample every 2 steps.
+DOCKING_CAMERA = {'noise': (2.5e-5, 1e-6, 1e-6),  # (5 mm)^2, (1 mrad)^2
+                  'field_of_view': 0.5235987755982988,
+                  'min_range': 0.05, 'max_range': 30.0, 'period_steps': 2, 'design_range': 10.0}
 #: Angles-only far approach (open loop): the chaser 1 km behind the target and 50 m below its
 #: orbit (z toward Earth) drifts toward it under free CW motion (x' = 1.5 n z); a camera on the
 #: chaser looks forward (identity mounting: boresight LVLH +x). 1 s samples over 3000 s.

@@ -27,6 +27,10 @@ MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 #: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
 #: state (constant network weights, what a neuromorphic chip holds).
 GAIN_SCHEDULES = ('time_varying', 'steady_state', 'switched')
+#: The MSIF gains' boundary layer (docs/decisions.md, 48): fixed, delta as given (Eq. 8: the
+#: paper); variable, delta_j sized each step from P so that inside the layer the gain is the
+#: sampled Kalman gain (Gadsden & Habibi's variable boundary layer), saturated outside it.
+BOUNDARY_LAYER_MODES = ('fixed', 'variable')
 #: The spiking network's arithmetic: float64, or Loihi's integer formats (snn_estimator/spiking/chip.py).
 PRECISIONS = ('float64', 'loihi')
 #: What the spiking network integrates as its prediction (docs/decisions.md, 13): linearized,
@@ -164,6 +168,12 @@ FIELDS: tuple[Field, ...] = (
           '(M)SIF gain, per measured axis or one for all, in the units of what the gain divides by it: '
           'diag(P^zz) for the MSIF gains (m^2 on position), |z - z_hat| for the SIF (m)', symbol='delta',
           equation='Eq. 7-8, 21-24; Table 6: 0.1', low=0.0, strict=True, size='m', runtime=True),
+    Field('boundary_layer_mode', 'choice', 'fixed', 'the MSIF gains\' boundary layer: fixed, delta '
+          '(Eq. 8, the paper); variable, delta_j = P^zz_jj dt (C P C^T + R_d)_jj / (C P C^T)_jj each '
+          'step, so that inside the layer the correction is the Kalman gain of the sampled step '
+          '(the weighted MSIF: K; the C^+ forms: C K) and outside it saturates as Eq. 8 does '
+          '(Gadsden & Habibi 2013; docs/decisions.md, 48); time_varying gains only',
+          equation='Eq. 8, 21-22 (variable: not in the paper)', choices=BOUNDARY_LAYER_MODES),
     Field('decoder_variance', 'real', D.RENDEZVOUS_DECODER_VARIANCE, 'Variance of the decoder '
           'entries, D ~ N(0, var)', equation='Sec. 3.2: 1/15', low=0.0, strict=True),
     Field('seed', 'integer', 0, 'Seed of the decoder, membrane noise and dispersed start (streams 3 '

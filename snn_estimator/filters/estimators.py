@@ -168,7 +168,8 @@ class Estimator:
         dims = {'runs': self.runs, 'n': n, 'm': m, 'nu': n_u, 'N': self.network.r.shape[1], 'w': n + n_u}
         return kernels.Packed(
             dims, c=self.linearisation.c, c_pinv=self.linearisation.c_pinv, q_step=np.zeros((n, n)),
-            r_sample=np.eye(m), **_settings_constants(self.settings), scale=self._scale, fixed_gain=np.zeros((n, m)),
+            r_sample=np.eye(m), layer_step=np.zeros(m), **_settings_constants(self.settings), scale=self._scale,
+            fixed_gain=np.zeros((n, m)),
             **self.state.arrays(), **self.network.arrays)
 
     def warm_up(self) -> None:
@@ -494,7 +495,8 @@ class Estimator:
     def _set_step(self, dt: float) -> None:
         """What depends on a checked ``dt``: the process noise of a step Q_d, the variance of a
         sample R_d = R / dt (R of Eq. 5-6) and a constant gain."""
-        changes = {'q_step': self._noise.process(dt), 'r_sample': self._noise.sample(dt)}
+        changes = {'q_step': self._noise.process(dt), 'r_sample': self._noise.sample(dt),
+                   'layer_step': np.full(self._n_meas, dt if self.settings.boundary_layer_mode == 'variable' else 0.0)}
         if self.constant_gain:
             changes['fixed_gain'] = np.ascontiguousarray(steady_state_gain(self.gain_law, self.model, self.settings,
                                                                            dt))

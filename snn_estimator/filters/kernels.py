@@ -56,7 +56,7 @@ STATUS_COVARIANCE = 3    # a run's P is not positive definite or its gain not fi
 #: for a run whose last step left P not positive definite or its gain not finite.
 _CONSTANT_SHAPES = {'c': ('d', 'm', 'n'), 'c_pinv': ('d', 'n', 'm'), 'q_step': ('n', 'n'), 'r_sample': ('m', 'm'),
                     'r_hat_diag': ('m',), 'delta': ('m',), 'scale': ('n',), 'fixed_gain': ('n', 'm'), 'leak': (),
-                    'max_spikes': ()}
+                    'max_spikes': (), 'layer_step': ('m',)}
 CONSTANTS = tuple((name, _CONSTANT_SHAPES[name]) for name in gains.PIECE_CONSTANTS)
 STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')), ('fault', ('runs',)))
 NETWORK = (('decoder', ('runs', 'n', 'N')), ('gram', ('runs', 'N', 'N')), ('thresholds', ('runs', 'N')),
@@ -93,7 +93,7 @@ structref.define_proxy(PackedRef, PackedType, ['constants', 'state', 'network'])
 #: Constants a step of another dt changes (Estimator.prepare): :meth:`Packed.update` writes them
 #: into the packed array (a private copy, made at the start) instead of replacing it, so a filter
 #: fed measurements at jittered stamps does not rebuild its :class:`PackedRef` every step.
-STEP_CONSTANTS = ('q_step', 'r_sample', 'fixed_gain')
+STEP_CONSTANTS = ('q_step', 'r_sample', 'fixed_gain', 'layer_step')
 
 
 class Packed:

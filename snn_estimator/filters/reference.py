@@ -178,8 +178,9 @@ def written_out_gain(source: Estimator, p: np.ndarray, innovation: np.ndarray, d
         return written_out_steady_state_gain(source, dt)
     c = source.model.measurement_matrix if c is None else c
     phi, _, r_sample = sampled_step(source, np.zeros(len(p)) if x_hat is None else x_hat, dt)
-    return gains.law(source.gain_law).reference(p, c, innovation, gains.SampledStep(phi, dt, r_sample), s.r_hat,
-                                                s.boundary_layer)
+    law = gains.law(source.gain_law)
+    layer = {'mode': s.boundary_layer_mode} if getattr(law, 'VARIABLE_LAYER', False) else {}  # the MSIF laws (48)
+    return law.reference(p, c, innovation, gains.SampledStep(phi, dt, r_sample), s.r_hat, s.boundary_layer, **layer)
 
 
 def written_out_covariance_step(source: Estimator, p: np.ndarray, x_hat: np.ndarray, gain: np.ndarray,

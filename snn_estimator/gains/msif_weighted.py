@@ -19,6 +19,8 @@ USES_P = True
 USES_KALMAN = False
 #: The MSIF piece runs first (its saturations); this one replaces C^+ by P C^T (C P C^T)^-1.
 BASE = 'msif'
+#: Takes boundary_layer_mode variable through the MSIF piece's saturations (msif.py).
+VARIABLE_LAYER = True
 #: The covariance its filters propagate: riccati (Eq. 6) | gain (that of the gain used) | none.
 COVARIANCE = 'gain'
 #: Its filter kinds: the direct filter, then its spiking twin: name -> (label, summary).
@@ -39,9 +41,8 @@ def _inverse(cpc):
     return np.linalg.inv(cpc)
 
 
-def reference(p, c, innovation, step, r_hat, delta):
-    p_zz = c @ p @ c.T + r_hat                                             # Eq. 9
-    saturation = np.diag(np.minimum(np.diag(p_zz) / delta, 1.0))           # Eq. 8
+def reference(p, c, innovation, step, r_hat, delta, mode='fixed'):
+    saturation = np.diag(msif.saturations(p, c, step, r_hat, delta, mode))  # Eq. 8-9, delta fixed or variable
     return p @ c.T @ _inverse(c @ p @ c.T) @ saturation
 
 

@@ -31,6 +31,7 @@ from .base import (  # noqa: F401 (the interface, re-exported)
     rotation_from_quaternion,
     wrap_angle,
 )
+from .docking_camera import DockingCamera
 from .position import Position
 from .range_rate import RangeRate
 from .ranging import Range
@@ -43,6 +44,7 @@ MODELS: dict[str, type[MeasurementModel]] = {
     'line_of_sight': LineOfSight,
     'range': Range,
     'range_rate': RangeRate,
+    'docking_camera': DockingCamera,
 }
 
 
@@ -56,4 +58,5 @@ def make_model(name: str, noise, **parameters) -> MeasurementModel:
 
 
 __all__ = ['MODELS', 'MeasurementModel', 'REASONS', 'make_model', 'wrap_angle',
-           'Position', 'RangeAzimuthElevation', 'LineOfSight', 'Range', 'RangeRate']
+           'Position', 'RangeAzimuthElevation', 'LineOfSight', 'Range', 'RangeRate',
+           'DockingCamera']

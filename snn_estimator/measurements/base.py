@@ -151,6 +151,16 @@ class MeasurementModel(ABC):
     def valid(self, x) -> np.ndarray:
         return self.validity(x) == VALID
 
+    #: True when the noise of a sample depends on the true state (:meth:`noise_at`); the sensor
+    #: then draws each sample with R(x). The filters take R_hat from their configuration.
+    state_dependent_noise: bool = False
+
+    def noise_at(self, x) -> np.ndarray:
+        """R of a sample of the true state ``x``, shape ``(..., m, m)``: :attr:`noise` unless
+        the model's noise grows with the state (a range that grows noisier with distance)."""
+        x = np.asarray(x, dtype=float)
+        return np.broadcast_to(self.noise, x.shape[:-1] + self.noise.shape)
+
     def position_of(self, z) -> np.ndarray | None:
         """The LVLH position (x, y, z) of the state that ``z`` measures, shape ``(..., 3)``, when
         one sample determines it (range and both angles); None otherwise (angles only, range,
@@ -167,16 +177,29 @@ class RelativeGeometry(MeasurementModel):
     observer, mounting offset and rotation, field of view and range limits."""
 
     parameters = ('observer', 'field_of_view', 'min_range', 'max_range', 'mounting_offset',
-                  'mounting_rotation')
+                  'mounting_rotation', 'range_noise_growth')
     #: True for models with angle components: the sensor's z axis is a singular direction.
     has_angles = False
     #: Index of the range among the components (None: no range measured).
     range_component: int | None = None
+    #: The range noise's growth with range r: sigma_r(r)^2 = R_rr + (g r^e)^2, with g =
+    #: ``range_noise_growth`` (m^(1-e); a negative or None value: the model's own default
+    #: below) and e = this exponent (1: a time-of-flight ranger, 0.1 % of r; 2: a camera on a
+    #: pattern of known size, docking_camera). g = 0: R as given at every range.
+    range_noise_exponent: int = 1
+    default_range_noise_growth: float = 0.0
 
     def __init__(self, noise, observer: str = 'chaser', field_of_view: float = FULL_CIRCLE,
                  min_range: float = 0.0, max_range: float = 0.0, mounting_offset=(0.0, 0.0, 0.0),
-                 mounting_rotation=(0.0, 0.0, 0.0, 1.0), n_state: int = 6):
+                 mounting_rotation=(0.0, 0.0, 0.0, 1.0), range_noise_growth: float | None = None,
+                 n_state: int = 6):
         super().__init__(noise, n_state)
+        if range_noise_growth is None or float(range_noise_growth) < 0.0:
+            range_noise_growth = self.default_range_noise_growth
+        self.range_noise_growth = check_positive(range_noise_growth, 'range_noise_growth', strict=False)
+        if self.range_noise_growth and self.range_component is None:
+            raise ValueError(f'range_noise_growth: {self.name} measures no range; set it to 0')
+        self.state_dependent_noise = self.range_noise_growth > 0.0
         if self.n_state < 6:
             raise ValueError(f'{self.name} needs a state [x, y, z, vx, vy, vz]; got {self.n_state} states')
         self.observer = check_choice(observer, OBSERVERS, 'observer')
@@ -228,6 +251,20 @@ class RelativeGeometry(MeasurementModel):
         for mask, code in reversed(checks):  # the first failing check gives the reason
             codes[mask] = code
         return codes
+
+    def noise_at(self, x) -> np.ndarray:
+        """R of a sample of ``x``: R with the range variance grown by (g r^e)^2 at the true
+        range r (class attributes above); R itself where g = 0 or the range is undefined."""
+        noise = super().noise_at(x)
+        if not self.state_dependent_noise:
+            return noise
+        r = np.linalg.norm(self.line_of_sight(x), axis=-1)
+        r = np.where(np.isfinite(r), r, 0.0)  # a broken truth: not measured (validity), its draw the floor's
+        grown = np.square(self.range_noise_growth * r ** self.range_noise_exponent)
+        noise = noise.copy()
+        i = self.range_component
+        noise[..., i, i] += grown
+        return noise
 
     def check_measured(self, z) -> np.ndarray:
         codes = super().check_measured(z)

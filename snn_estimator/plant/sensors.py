@@ -1,5 +1,6 @@
 """The sensors of the loop: Table 6's position sensor, a measurement model's sensor (limits,
-dropouts) and several sensors fused on their own periods (random streams: truth.py).
+dropouts) and several sensors fused on their own periods (random streams: truth.py); the
+docking suite's two sensors.
 """
 
 from __future__ import annotations
@@ -8,7 +9,8 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
-from snn_estimator.measurements import DROPOUT, NON_FINITE, REASONS, VALID, MeasurementModel
+from snn_estimator import defaults as D
+from snn_estimator.measurements import DROPOUT, NON_FINITE, REASONS, VALID, MeasurementModel, make_model
 from snn_estimator.models import StateSpaceModel
 from snn_estimator.validation import as_matrix, check_covariance
 
@@ -79,7 +81,7 @@ class MeasurementSensor:
         model = self.model
         if model.has_limits:
             reason = model.validity(x).astype(np.int8)
-            z = model.normalize(model.h(x) + self._noise.draw() @ self._root.T)
+            z = model.normalize(model.h(x) + self._draw(x))
             reason = np.where(reason == VALID, model.check_measured(z), reason).astype(np.int8)
         else:  # position: PositionSensor's two operations, and a finiteness check
             z = model.h(x) + self._noise.draw() @ self._root.T
@@ -92,6 +94,15 @@ class MeasurementSensor:
         if reason.any():
             z[reason != VALID] = np.nan
         return Measurement(z, reason)
+
+    def _draw(self, x) -> np.ndarray:
+        """One noise row per run: L v with L L^T = R, or R(x) per run where the model's noise
+        depends on the state (a range noise growing with range: measurements.base)."""
+        draw = self._noise.draw()
+        if not self.model.state_dependent_noise:
+            return draw @ self._root.T
+        roots = np.linalg.cholesky(self.model.noise_at(x))
+        return np.einsum('...ij,...j->...i', roots, draw)
 
 
 #: Sensor i of a stacked measurement draws run b's noise with seed b + i * FUSED_SEED_OFFSET (over
@@ -159,3 +170,26 @@ class SamplePeriod:
     def reset(self) -> None:
         """Start the grid again at the next stamp (the time base restarted)."""
         self.next_ns = None
+
+
+def docking_sensors(field_of_view: bool = True):
+    """The docking suite's two sensors (defaults.DOCKING_LIDAR, DOCKING_CAMERA) on the chaser,
+    looking back at the target (defaults.CLOSE_SENSOR_MOUNTING): the LIDAR far (1.8 m - 3 km),
+    the docking camera close (5 cm - 30 m; its field of view unless ``field_of_view`` is False).
+    Each one's range limits hand the approach over: the LIDAR alone beyond 30 m, both between
+    30 m and 1.8 m, the camera alone inside."""
+    lidar, camera = D.DOCKING_LIDAR, D.DOCKING_CAMERA
+    mounting = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING}
+    return (make_model('range_azimuth_elevation', lidar['noise'], range_noise_growth=lidar['range_noise_growth'],
+                       min_range=lidar['min_range'], max_range=lidar['max_range'], **mounting),
+            make_model('docking_camera', camera['noise'], min_range=camera['min_range'],
+                       max_range=camera['max_range'],
+                       **({'field_of_view': camera['field_of_view']} if field_of_view else {}), **mounting))
+
+
+def design_noise(model, design_range: float) -> np.ndarray:
+    """R_hat of a sensor whose noise grows with range: its R at ``design_range`` m on its
+    boresight (Decision 46: the filters take one R per sensor)."""
+    x = np.zeros(6)
+    x[:3] = model.sign * (design_range * model.rotation[0] + model.offset)  # rho = (r, 0, 0)
+    return model.noise_at(x)

@@ -187,3 +187,25 @@ def normalised_squares(errors: np.ndarray, covariances: np.ndarray) -> np.ndarra
 def twin_of(kind: str) -> str | None:
     """The non-spiking filter a spiking filter implements (None for a non-spiking kind)."""
     return TWIN_OF.get(kind)
+
+
+#: Contact conditions are read where the chaser first comes within this range of the target, m
+#: (docs/decisions.md, 49).
+CONTACT_RANGE = 1.0
+
+
+def contact_conditions(truth: np.ndarray, within: float = CONTACT_RANGE) -> dict | None:
+    """Where one run's truth ``(steps, 6)`` first comes within ``within`` m of the target: the
+    step, the closing speed (the velocity toward the target, m/s) and the offset from the docking
+    axis (LVLH x, along which the close sensors look back: hypot(y, z), m); None if it never does
+    (docs/decisions.md, 49)."""
+    truth = np.asarray(truth, dtype=float)
+    ranges = np.linalg.norm(truth[:, :3], axis=1)
+    inside = np.flatnonzero(ranges < within)
+    if not inside.size:
+        return None
+    k = int(inside[0])
+    position, velocity = truth[k, :3], truth[k, 3:6]
+    closing = -float(velocity @ position) / ranges[k] if ranges[k] > 0.0 else float(np.linalg.norm(velocity))
+    return {'step': k, 'closing_speed_m_s': closing, 'axis_offset_m': float(np.hypot(position[1], position[2]))}
+

@@ -201,6 +201,31 @@ def handover_scenario(preset: str = 'default', lidar_max_range: float = D.HANDOV
                    measurement_noise=model.noise, sensor_periods=tuple(periods))
 
 
+def docking_scenario(preset: str = 'default', boundary_layer_units: str = D.SENSOR_BOUNDARY_LAYER_UNITS,
+                     field_of_view: bool = False, **estimator_changes) -> Scenario:
+    """Sec. 3.2 flown to contact on the docking suite (issue 38; not in the paper): a LIDAR as
+    flown far and a docking camera close, fused in one filter (:func:`docking_sensors`; the
+    sensors' ranges hand over), each at its own rate. R_hat = scale * blockdiag(R_lidar(100 m),
+    R_camera(10 m)) (Decision 46); delta and the network as in :func:`sensor_rendezvous_scenario`.
+    The camera's 30 deg field of view applies only with ``field_of_view``: the state has no
+    attitude to point it, and Sec. 3.2's LQR path crosses the target's position (Decision 46)."""
+    from snn_estimator.measurements.stacked import Stacked
+    from snn_estimator.plant.sensors import design_noise, docking_sensors
+    base = rendezvous_scenario(preset, **_sensor_network(preset, estimator_changes))
+    lidar, camera = docking_sensors(field_of_view)
+    model = Stacked([lidar, camera])
+    r_hat = np.zeros((6, 6))
+    r_hat[:3, :3] = design_noise(lidar, D.DOCKING_LIDAR['design_range'])
+    r_hat[3:, 3:] = design_noise(camera, D.DOCKING_CAMERA['design_range'])
+    config = base.estimator
+    if 'measurement_noise' not in estimator_changes:
+        config = config.replace(measurement_noise=r_hat)
+    if 'boundary_layer' not in estimator_changes:
+        config = config.replace(boundary_layer=sensor_boundary_layer(r_hat, boundary_layer_units))
+    return replace(base, name='rendezvous_docking', sensor=model, estimator=config, measurement_noise=r_hat,
+                   sensor_periods=(D.DOCKING_LIDAR['period_steps'], D.DOCKING_CAMERA['period_steps']))
+
+
 def angles_only_scenario(maneuver: bool = False, noise=None, **estimator_changes) -> Scenario:
     """An angles-only far approach (issue 22; not in the paper): a camera (line_of_sight) on the
     chaser, 1 km behind the target and 50 m below its orbit, drifting toward it under free CW

@@ -20,6 +20,7 @@ from scenario_nodes import codec
 from scenario_nodes.topics import PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
 from snn_estimator.models import ClohessyWiltshire
 from snn_estimator.plant.sensors import SamplePeriod
+from snn_estimator.sim.results import contact_conditions
 
 STATES = ClohessyWiltshire.state_names
 NS = codec.NS
@@ -325,6 +326,8 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'steps': int(_number(plant, 'steps')),
         'rmse_last_60s': {state: float(value) for state, value in zip(STATES, rmse)},
         'final_range_m': float(np.linalg.norm(run.truth[-1, :3])) if run.truth.size else float('nan'),
+        # within the last metre: closing speed, offset from the docking axis (docs/decisions.md, 49)
+        'contact': _contact(run),
         'spikes_total': spikes_total,
         'spike_fraction': spikes_total / (neurons * spike_steps) if neurons and spike_steps else 0.0,
         'control_timeouts': int(_number(plant, 'control_timeouts')),
@@ -337,6 +340,14 @@ def summarize(run: RunData, window: float = 60.0) -> dict:
         'messages': {name: {'published': published[name], 'recorded': recorded[name]} for name in published},
         **completeness,
     }
+
+
+def _contact(run: RunData) -> dict | None:
+    """The contact conditions of the recorded truth, with the simulated time of that sample."""
+    contact = contact_conditions(run.truth) if run.truth.size else None
+    if contact is None:
+        return None
+    return {'t_s': float(run.truth_t[contact.pop('step')]), **contact}
 
 
 def _completeness(run: RunData, estimator: dict, published: dict, recorded: dict, sensors: dict) -> dict:

@@ -116,6 +116,14 @@ def _markdown(loaded, figures, out: Path) -> str:
             f"{r['x']:.3e}, {r['y']:.3e}, {r['z']:.3e} | {r['vx']:.3e}, {r['vy']:.3e}, {r['vz']:.3e} | "
             f"{s['spikes_total']} | {100 * s['spike_fraction']:.2f}% | {s['control_timeouts']} | "
             f"{s['measurements_rejected']} |")
+    lines += ['', '## Contact conditions: where the chaser first comes within 1 m (docs/decisions.md, 49)', '',
+              '| run | time [s] | closing speed [m/s] | offset from the docking axis (LVLH x) [m] |',
+              '|---|---|---|---|']
+    for label, _, s in loaded:
+        contact = s.get('contact')
+        lines.append(f"| {label} | " + ('never within 1 m | - | - |' if not contact else
+                                         f"{contact['t_s']:.1f} | {contact['closing_speed_m_s']:.3f} | "
+                                         f"{contact['axis_offset_m']:.3f} |"))
     lines += ['', '## Messages recorded / published', '']
     for label, _, s in loaded:
         counts = ', '.join(f"{k} {v['recorded']}/{v['published']}" for k, v in s['messages'].items())

@@ -27,7 +27,13 @@ import numpy as np
 
 from snn_estimator.config import EstimatorConfig, silenced_neurons
 from snn_estimator.sim.results import consistency_check
-from snn_estimator.sim.scenarios import Scenario, far_range_scenario, rendezvous_scenario, van_der_pol_scenario
+from snn_estimator.sim.scenarios import (
+    Scenario,
+    docking_scenario,
+    far_range_scenario,
+    rendezvous_scenario,
+    van_der_pol_scenario,
+)
 from snn_estimator.sim.simulate import simulate
 from snn_tools.paths import PACKAGE, SOURCE_ROOT
 
@@ -36,10 +42,11 @@ SCENARIOS: dict[str, Callable[..., Scenario]] = {
     'rendezvous': rendezvous_scenario,
     'far_range': far_range_scenario,
     'van_der_pol': van_der_pol_scenario,
+    'docking': docking_scenario,  # Sec. 3.2 to contact on the docking suite (docs/sensors.md)
 }
 #: Scenarios whose truth starts with a relative position (m): their rows get final_range_*,
 #: delta_v_* and saturated_steps_mean.
-RANGE_SCENARIOS = ('rendezvous', 'far_range')
+RANGE_SCENARIOS = ('rendezvous', 'far_range', 'docking')
 #: Runs stepped together in one task by default (100 rendezvous runs: ~3 s, ~60 MB of arrays).
 RUNS_PER_TASK = 100
 
@@ -88,7 +95,8 @@ _ORBITAL = ('rendezvous', 'far_range')
 SETTINGS: dict[str, Setting] = {
     **{field.name: Setting(ESTIMATOR, 'see EstimatorConfig (snn_estimator/config.py)')
        for field in dataclasses.fields(EstimatorConfig) if field.name != 'seed'},
-    'preset': Setting(FACTORY, 'default | as_published (the paper\'s literal network)', ('rendezvous', 'van_der_pol')),
+    'preset': Setting(FACTORY, 'default | as_published (the paper\'s literal network)',
+                      ('rendezvous', 'van_der_pol', 'docking')),
     'cw_model': Setting(FACTORY, 'standard | as_published (filters and LQR use the printed Eq. 41)',
                         _RENDEZVOUS),
     'orbit_radius': Setting(FACTORY, 'target orbit radius, m', _ORBITAL),

@@ -8,8 +8,12 @@ of results/REPORT.md (between its markers).
   one filter; final range, RMSE, NEES/NIS, spikes, twin ratio, the runs that diverged; beside
   them the variants that show why (the paper's network, delta in variance units, the printed CW matrix,
   no start error, a noise-free sensor);
-* where each run's error comes from: the last sample before the sensors fall silent (0.3 m) and
-  the error there, flown blind to the end;
+* where each run's error comes from: the last sample before the sensors fall silent (0.3 m; 5 cm
+  on the docking suite) and the error there, flown blind to the end;
+* the docking suite (issue 38: a LIDAR as flown far, the docking camera to 5 cm), and on every
+  suite the MSIF family with the variable boundary layer (Decision 48) beside the fixed one;
+* contact conditions: the closing speed and the offset from the docking axis (LVLH x, along which
+  the close sensors look back) where the chaser first comes within 1 m, beside the final range;
 * the ROS demo's run (run 0, which `make demo SENSOR=...` equals to 1e-9);
 * angles-only navigation (line_of_sight) of a far approach under free CW drift, with and
   without a known radial burn: the range error along the way, and its filter sigma.
@@ -32,8 +36,13 @@ import scipy.linalg
 
 from snn_estimator import defaults as D
 from snn_estimator.catalog import FILTER_KINDS, TWIN_OF
-from snn_estimator.sim.results import consistency_check
-from snn_estimator.sim.scenarios import angles_only_scenario, handover_scenario, sensor_rendezvous_scenario
+from snn_estimator.sim.results import CONTACT_RANGE, consistency_check, contact_conditions
+from snn_estimator.sim.scenarios import (
+    angles_only_scenario,
+    docking_scenario,
+    handover_scenario,
+    sensor_rendezvous_scenario,
+)
 from snn_estimator.sim.simulate import simulate
 from snn_tools.campaign.cells import code_version
 from snn_tools.paths import SOURCE_ROOT, replace_between_markers
@@ -43,7 +52,7 @@ ANGLES_TIMES = (0.0, 500.0, 1000.0, 2000.0, 3000.0)
 #: The goal of issue 22 for the closed loop from the dispersed start.
 FINAL_RANGE_GOAL = 0.1
 #: The sensor suites: name -> scenario factory (snn_estimator.sim.scenarios).
-SUITES = {'lidar': sensor_rendezvous_scenario, 'camera+lidar': handover_scenario}
+SUITES = {'lidar': sensor_rendezvous_scenario, 'camera+lidar': handover_scenario, 'docking': docking_scenario}
 #: The filters of the ROS demo (`make demo SENSOR=<suite> [ESTIMATOR=...]`): its default and the
 #: robust one issue 22 names.
 DEMO_FILTERS = ('snn_ekf', 'snn_emsif_weighted')
@@ -81,6 +90,8 @@ def variants(suite: str) -> list[tuple[str, str, dict]]:
     rows += [('ekf, printed CW matrix', 'ekf', {'cw_model': 'as_published'}),
              ('emsif_weighted, printed CW matrix', 'emsif_weighted', {'cw_model': 'as_published'}),
              ('emsif_weighted, no start error', 'emsif_weighted', {'initial_state_dispersion': False})]
+    rows += [(f'{kind}, variable layer', kind, {'boundary_layer_mode': 'variable'})  # Decision 48
+             for kind in ('emsif', 'emsif_weighted', 'snn_emsif_weighted')]
     if suite == 'lidar':  # the filter keeps its R_hat and delta; the samples have no noise
         rows.append(('emsif_weighted, noise-free sensor', 'emsif_weighted',
                      {'noise': 1e-12 * scenario.sensor.noise, 'measurement_noise': scenario.sensor.noise,
@@ -126,10 +137,11 @@ def _blind_flight(result) -> dict | None:
     that did not diverge."""
     scenario = result.scenario
     jacobian = scenario.model.jacobian(np.zeros(6), np.zeros(3))
+    silent = min(part.min_range for part in getattr(scenario.sensor, 'parts', (scenario.sensor,)))
     times, positions, velocities, along, explained = [], [], [], [], []
     for b in range(result.truth.shape[0]):
         ranges = np.linalg.norm(result.truth[b, :, :3], axis=1)
-        outside = np.flatnonzero(ranges[:-1] >= D.CLOSE_SENSOR_MIN_RANGE)
+        outside = np.flatnonzero(ranges[:-1] >= silent)
         k = int(outside[-1]) + 1 if outside.size else 0
         if result.diverged[b] and result.diverged_at[b] < k:
             continue
@@ -144,12 +156,32 @@ def _blind_flight(result) -> dict | None:
             explained.append(np.linalg.norm(predicted[:3] + result.estimate[b, -1, :3] - result.truth[b, -1, :3]))
     if not times:
         return None
-    return {'runs': len(times), 'last_sample_s_median': float(np.median(times)),
+    return {'runs': len(times), 'silent_below_m': float(silent), 'last_sample_s_median': float(np.median(times)),
             'position_error_m_median': float(np.median(positions)),
             'velocity_error_m_s_median': float(np.median(velocities)),
             'velocity_error_m_s_max': float(np.max(velocities)),
             'velocity_error_along_los_m_s_median': float(np.median(along)),
             'blind_propagation_vs_final_m_max': float(np.max(explained)) if explained else None}
+
+
+def _contact(result) -> dict | None:
+    """Contact conditions (sim.results.contact_conditions) of the runs that did not diverge:
+    closing speed, offset from the docking axis and the estimate's velocity error where each
+    first comes within CONTACT_RANGE; medians and maxima."""
+    closing, offset, velocity = [], [], []
+    for b in np.flatnonzero(~result.diverged):
+        contact = contact_conditions(result.truth[b], CONTACT_RANGE)
+        if contact is None:
+            continue
+        closing.append(contact['closing_speed_m_s'])
+        offset.append(contact['axis_offset_m'])
+        velocity.append(float(np.linalg.norm(result.error[b, contact['step'], 3:])))
+    if not closing:
+        return None
+    return {'runs': len(closing), **{f'{name}_{stat}': float(fn(values)) for name, values in
+                                     (('closing_speed_m_s', closing), ('axis_offset_m', offset),
+                                      ('velocity_error_m_s', velocity))
+                                     for stat, fn in (('median', np.median), ('max', np.max))}}
 
 
 def _row(suite: str, label: str, kind: str, scenario, runs: int) -> tuple[dict, object]:
@@ -179,6 +211,7 @@ def _row(suite: str, label: str, kind: str, scenario, runs: int) -> tuple[dict, 
                                'range_m_median': float(np.median(ranges)) if lost.size else None}
         row['p_smallest_eigenvalue_ratio'] = float(watch.smallest_ratio[kept].min()) if kept.any() else None
     row['blind'] = _blind_flight(result)
+    row['contact'] = _contact(result)
     if not kept.any():
         return row, result
     rmse = [float(v) for v in result.rmse(60.0)]
@@ -218,8 +251,10 @@ def suite_rows(runs: int, workers: int = 1) -> list[dict]:
         done = [_case(*case) for case in cases]
     squares = {(case[0], case[1]): square for case, (_, square) in zip(cases, done)}
     rows = []
-    for (suite, _, kind, _, count), (row, square) in zip(cases, done):
-        twin = squares.get((suite, TWIN_OF.get(kind)))
+    for (suite, label, kind, _, count), (row, square) in zip(cases, done):
+        # a variant's twin is the twin's same variant where there is one (the variable layer), else the twin
+        suffix = label[len(kind):] if label.startswith(kind) else ''
+        twin = squares.get((suite, f'{TWIN_OF.get(kind)}{suffix}'), squares.get((suite, TWIN_OF.get(kind))))
         row['twin_ratio'] = None
         if twin is not None:
             both = np.isfinite(square) & np.isfinite(twin[:count])
@@ -312,7 +347,7 @@ def _suite_table(results: dict) -> list[str]:
     lines = [f'### Every filter kind on each sensor suite (dispersed start, {runs} runs)', '',
              'Final range and RMSE (last 60 s) over the runs that did not diverge; "< 0.1 m": runs '
              'ending within the goal of issue 22. NEES (6 dof) over the last 60 s, NIS (3 dof for the '
-             'LIDAR, 5 for camera + LIDAR, at the steps every sensor measured) over the first 100 s, '
+             'LIDAR, 5 for camera + LIDAR, 6 for docking, at the steps every sensor measured) over the first 100 s, '
              'against their 95 % chi-square bounds (Bar-Shalom); no NEES where P was indefinite in the '
              'window. min eig P: the smallest ratio of P\'s smallest to its largest eigenvalue over every '
              'step of every run that did not diverge (negative: P indefinite). Twin ratio: a spiking filter\'s '
@@ -339,8 +374,8 @@ def _suite_table(results: dict) -> list[str]:
 
 def _blind_table(results: dict) -> list[str]:
     lines = ['### Where the final range comes from: the last sample, then blind flight', '',
-             'Inside 0.3 m the sensors give nothing, so every filter flies the rest of the approach on its '
-             'prediction. Medians over the runs: when the chaser last was outside 0.3 m (the last sample), '
+             'Inside 0.3 m (docking: 5 cm) the sensors give nothing, so every filter flies the rest of the approach '
+             'on its prediction. Medians over the runs: when the chaser last was outside that range (the last sample), '
              'the position and velocity errors there (and the velocity error along the line of sight, the '
              'LIDAR\'s range direction), the final range, and how closely the error at the last sample, '
              'propagated by the CW transition to the end, gives the final position (max over runs). Last '
@@ -365,6 +400,27 @@ def _blind_table(results: dict) -> list[str]:
                      f"{_g(blind['position_error_m_median'], 2)} | {velocity} | "
                      f"{_g(blind['velocity_error_along_los_m_s_median'], 2)} | {final} | "
                      f"{'-' if explained is None else _g(explained, 2)} | {indefinite} |")
+    return lines
+
+
+def _contact_table(results: dict) -> list[str]:
+    lines = [f'### Contact conditions: where the chaser first comes within {CONTACT_RANGE:g} m', '',
+             'Medians / maxima over the runs that did not diverge: the closing speed (toward the target), the '
+             'offset from the docking axis (LVLH x, along which the close sensors look back: hypot(y, z)), the '
+             "estimate's velocity error there, and the final range. For scale: ATV docked within 10 cm at "
+             'under 10 cm/s (ESA); Sec. 3.2\'s LQR is no docking guidance (docs/decisions.md, 49).', '',
+             '| suite | filter | closing speed (m/s) | offset from the axis (m) | velocity error (m/s) '
+             '| final range median / max (m) |', '|---|---|---|---|---|---|']
+    for row in results['suites']:
+        contact = row.get('contact')
+        if not contact or not (row['filter'] in DIAGNOSED or row['filter'].endswith('variable layer')):
+            continue
+        final = (f"{_g(row['final_range_median_m'])} / {_g(row['final_range_max_m'])}" if 'final_range_max_m' in row
+                 else '-')
+        lines.append(f"| {row['suite']} | {row['filter']} | {_g(contact['closing_speed_m_s_median'], 2)} / "
+                     f"{_g(contact['closing_speed_m_s_max'], 2)} | {_g(contact['axis_offset_m_median'], 2)} / "
+                     f"{_g(contact['axis_offset_m_max'], 2)} | {_g(contact['velocity_error_m_s_median'], 2)} / "
+                     f"{_g(contact['velocity_error_m_s_max'], 2)} | {final} |")
     return lines
 
 
@@ -430,7 +486,8 @@ def _suite_findings(results: dict, suite: str) -> str | None:
         text += f" (the paper's network: {paper['twin_ratio']:.2f}x at {100 * paper['spike_fraction']:.1f} %)"
     text += f". EMSIF-W {_docking(weighted)}; SNN-EMSIF-W {_docking(snn_weighted)}."
     blind_w, blind_e = weighted['blind'], ekf['blind']
-    text += (f" The sensors fall silent inside 0.3 m; EMSIF-W's last sample comes at "
+    silent = blind_w.get('silent_below_m', D.CLOSE_SENSOR_MIN_RANGE)
+    text += (f" The sensors fall silent inside {silent:g} m; EMSIF-W's last sample comes at "
              f"{blind_w['last_sample_s_median']:.0f} s (median; the EKF's at {blind_e['last_sample_s_median']:.0f} s), "
              f"where its velocity error is {_g(blind_w['velocity_error_m_s_median'], 2)} m/s (EKF "
              f"{_g(blind_e['velocity_error_m_s_median'], 2)}); that error propagated to the end gives every final "
@@ -443,6 +500,10 @@ def _suite_findings(results: dict, suite: str) -> str | None:
                  "sensor noise its non-decaying gain, floor R_hat / delta = 0.5 /s, lets in); with a noise-free sensor "
                  f"{_g(clean['final_range_median_m'])} / {_g(clean['final_range_max_m'])} m "
                  f"({_g(clean['blind']['velocity_error_m_s_median'], 2)} m/s: the start error not yet removed).")
+    variable = rows.get('emsif_weighted, variable layer')
+    if variable and 'final_range_max_m' in variable and variable.get('blind'):
+        text += (f" With the variable boundary layer (Decision 48) EMSIF-W {_docking(variable)}, its velocity error "
+                 f"at the last sample {_g(variable['blind']['velocity_error_m_s_median'], 2)} m/s.")
     variance = rows.get('emsif_weighted, delta in variance units')
     if variance and 'final_range_max_m' in variance:
         lost, kept = variance.get('p_indefinite') or {}, weighted.get('p_indefinite') or {}
@@ -489,7 +550,8 @@ def _where_the_msif_helps(results: dict) -> str:
                    'the Kalman gain is the optimal one. The literal EMSIF, ESIF and SNN-EMSIF* never correct a '
                    'velocity from these '
                    'sensors (C^+ has zero velocity rows, Decision 16), and the weighted gain, which does, keeps a '
-                   'bandwidth (floor R_hat / delta) that the Kalman gain lets decay.')
+                   'bandwidth (floor R_hat / delta) that the Kalman gain lets decay, unless its boundary layer is '
+                   'variable (Decision 48): then it is the Kalman gain inside the layer.')
 
 
 def findings(results: dict) -> list[str]:
@@ -508,7 +570,8 @@ def findings(results: dict) -> list[str]:
 def markdown(results: dict) -> str:
     lines = [f"Offline, commit {results['commit']} (`make sensors`, snn_tools/experiments/sensors.py).", '']
     lines += findings(results) + ['']
-    lines += _suite_table(results) + [''] + _blind_table(results) + [''] + _divergence_table(results)
+    lines += _suite_table(results) + [''] + _blind_table(results) + [''] + _contact_table(results)
+    lines += [''] + _divergence_table(results)
     lines += [''] + _demo_table(results)
     times = ' | '.join(f't = {t:.0f} s' for t in ANGLES_TIMES)
     lines += ['', '### Angles only (line_of_sight, one seed): range error |r_hat - r|, m (% of range)', '',

@@ -343,6 +343,10 @@ def print_summary(summary: dict, run_dir: Path) -> None:
           f"{summary['wall_time_s']:.2f} s wall (real-time factor {summary['real_time_factor']:.0f}), "
           f"{summary['steps']} steps")
     print(f"  final range        {summary['final_range_m']:.4f} m")
+    contact = summary.get('contact')
+    if contact:  # docs/decisions.md, 49
+        print(f"  within 1 m at {contact['t_s']:.1f} s: closing {contact['closing_speed_m_s']:.3f} m/s, "
+              f"{contact['axis_offset_m']:.3f} m off the docking axis (LVLH x)")
     print('  RMSE last 60 s     ' + '  '.join(f'{k} {rmse[k]:.2e} m' for k in ('x', 'y', 'z')))
     print('                     ' + '  '.join(f'{k} {rmse[k]:.2e} m/s' for k in ('vx', 'vy', 'vz')))
     print(f"  spikes             {summary['spikes_total']} ({100 * summary['spike_fraction']:.2f}% of "

@@ -90,3 +90,56 @@ def test_the_laws_declare_the_filter_kinds_direct_filters_first_then_their_spiki
         if spec.spiking:
             assert FILTER_KINDS[spec.twin].gain == spec.gain and not FILTER_KINDS[spec.twin].spiking
 
+
+
+@pytest.mark.parametrize('kind', ['emsif_weighted', 'snn_emsif_weighted', 'emsif', 'snn_emsif'])
+def test_the_variable_boundary_layer_gives_the_kalman_gain_inside_the_layer_and_saturates_outside(kind):
+    """boundary_layer_mode variable (Decision 48): inside the layer the MSIF's correction dt K is
+    the Kalman gain of the sampled step, K_d = P C^T (C P C^T + R_d)^-1, written out here (the
+    weighted inverse: K itself, velocity rows included; the C^+ forms: C K); outside it the
+    saturation is 1, as Eq. 8's; the spiking twins take the same gain."""
+    dt, r_d = 0.1, 0.05 / 0.1  # R_hat = 5 x 1e-2 (a density), R_d = R_hat / dt
+    c = np.hstack([np.eye(3), np.zeros((3, 3))])
+    for a, inside in ((0.01, True), (1.0, False)):  # C P C^T = a I: a / (a + R_d) below or above dt
+        p = np.block([[a * np.eye(3), 0.3 * a * np.eye(3)], [0.3 * a * np.eye(3), 0.2 * a * np.eye(3)]])
+        p[0, 1] = p[1, 0] = 0.2 * a  # correlated position axes: C P C^T is not diagonal
+        estimator = make_estimator(kind, EstimatorConfig(boundary_layer_mode='variable'))
+        estimator.set_state(estimator.x_hat, p)
+        estimator.step(c @ estimator.x_hat + 0.01, np.zeros(3), dt)
+        cpc = c @ p @ c.T
+        if inside:
+            kalman = p @ c.T @ np.linalg.inv(cpc + r_d * np.eye(3))   # K_d
+            # the decoupled z axis: the Kalman gain exactly (the whole column for the weighted inverse);
+            # the correlated x, y axes: per component (diagonal of C P C^T), the saturations below
+            if 'weighted' in kind:
+                np.testing.assert_allclose(dt * estimator.gain[:, 2], kalman[:, 2], rtol=1e-12)
+            np.testing.assert_allclose(dt * (c @ estimator.gain)[:, 2], (c @ kalman)[:, 2], rtol=1e-12, atol=1e-15)
+            per_axis = np.diag(cpc) / (np.diag(cpc) + r_d) / dt       # the saturations
+            weighted = p @ c.T @ np.linalg.inv(cpc) if 'weighted' in kind else np.linalg.pinv(c)
+            np.testing.assert_allclose(estimator.gain, weighted @ np.diag(per_axis), rtol=1e-12)
+        else:
+            weighted = p @ c.T @ np.linalg.inv(cpc) if 'weighted' in kind else np.linalg.pinv(c)
+            np.testing.assert_allclose(estimator.gain, weighted, rtol=1e-12)  # saturated: sat = 1
+        fixed = make_estimator(kind, EstimatorConfig())
+        fixed.set_state(fixed.x_hat, p)
+        fixed.step(c @ fixed.x_hat + 0.01, np.zeros(3), dt)
+        floor = 0.05 / 0.1  # the fixed layer's R_hat / delta: never below it
+        assert np.all(np.diag(c @ fixed.gain) >= floor) and (not inside or np.all(np.diag(c @ estimator.gain) < floor))
+
+
+def test_the_variable_layer_reference_equals_the_kalman_gain_where_c_p_ct_and_r_d_are_diagonal():
+    """msif_weighted.reference with mode variable (the numpy form the kernel is held to): its
+    dt K equals K_d = P C^T (C P C^T + R_d)^-1 for a P whose C P C^T is diagonal."""
+    rng = np.random.default_rng(4)
+    c = np.hstack([np.eye(3), np.zeros((3, 3))])
+    cross = rng.normal(size=(3, 3)) * 1e-3
+    p = np.block([[np.diag([0.01, 0.02, 0.005]), cross], [cross.T, 1e-2 * np.eye(3)]])
+    r_d, dt = np.diag([0.5, 0.4, 0.6]), 0.1
+    step = gains.SampledStep(np.eye(6), dt, r_d)
+    k = gains.law('msif_weighted').reference(p, c, None, step, 0.05 * np.eye(3), np.full(3, 0.1), mode='variable')
+    np.testing.assert_allclose(dt * k, p @ c.T @ np.linalg.inv(c @ p @ c.T + r_d), rtol=1e-12)
+
+
+def test_the_variable_layer_needs_a_time_varying_gain():
+    with pytest.raises(ValueError, match='boundary_layer_mode variable .* gain_schedule time_varying'):
+        make_estimator('emsif_weighted', EstimatorConfig(boundary_layer_mode='variable', gain_schedule='steady_state'))

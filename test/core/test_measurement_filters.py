@@ -417,7 +417,7 @@ def test_the_ekf_keeps_p_positive_definite_through_the_lidar_approach():
 @pytest.mark.slow
 def test_make_sensors_writes_the_tables_the_docs_the_report_and_the_readme_quote(tmp_path):
     """results/sensors.{json,md} and the sensor section of REPORT.md (make sensors): every kind and
-    variant on both suites, the LIDAR approach closes in (ekf, snn_ekf below 0.1 m), the error at
+    variant on every suite, the LIDAR approach closes in (ekf, snn_ekf below 0.1 m), the error at
     the last sample propagated blind gives the final position, and bearings alone leave the range
     error at ~2 % under free drift, a known burn takes it below 1 % (what README and
     docs/sensors.md say). make sensors and make experiments write the same REPORT section."""
@@ -442,6 +442,10 @@ def test_make_sensors_writes_the_tables_the_docs_the_report_and_the_readme_quote
     assert {row['suite'] for row in results['demo']} == set(sensor_results.SUITES)
     text = (tmp_path / 'sensors.md').read_text()
     assert '### Every filter kind on each sensor suite' in text and '### Runs that diverged' in text
+    assert '### Contact conditions' in text  # within the last metre (Decision 49)
+    contact = suites[('docking', 'ekf')]['contact']
+    assert contact['runs'] == 1 and 0.0 < contact['closing_speed_m_s_median'] < 1.0
+    assert suites[('docking', 'emsif_weighted, variable layer')]['final_range_max_m'] < 0.1  # Decision 48
     report = (tmp_path / 'REPORT.md').read_text()
     assert report.startswith('# report') and report.endswith('## after\n')
     assert sensor_results.report_section(results) in report

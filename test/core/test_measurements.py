@@ -24,9 +24,9 @@ from snn_estimator.measurements import (
 from snn_estimator.plant.sensors import MeasurementSensor, PositionSensor, SamplePeriod
 
 GEOMETRIC = [name for name in MODELS if name != 'position']
-ANGLE_MODELS = ('range_azimuth_elevation', 'line_of_sight')
+ANGLE_MODELS = ('range_azimuth_elevation', 'line_of_sight', 'docking_camera')
 NOISE = {'position': 1e-2, 'range_azimuth_elevation': [1e-4, 1e-6, 1e-6], 'line_of_sight': [1e-6, 1e-6],
-         'range': 1e-4, 'range_rate': 1e-6}
+         'range': 1e-4, 'range_rate': 1e-6, 'docking_camera': [2.5e-5, 1e-6, 1e-6]}
 
 
 def random_quaternion(rng):
@@ -164,7 +164,7 @@ def test_position_of_inverts_h_where_one_sample_determines_the_position(name):
         x = np.concatenate([rng.uniform(-80.0, 80.0, size=(20, 3)), rng.normal(size=(20, 3))], axis=1)
         x = x[model.valid(x)]
         p = model.position_of(model.h(x))
-        if name in ('position', 'range_azimuth_elevation'):
+        if name in ('position', 'range_azimuth_elevation', 'docking_camera'):
             np.testing.assert_allclose(p, x[:, :3], rtol=0, atol=1e-9)
         else:
             assert p is None
@@ -320,7 +320,8 @@ def test_bad_geometry_parameters_are_refused_with_the_field_named(changes, messa
 
 
 def test_the_registry_lists_every_model_and_refuses_an_unknown_one():
-    assert set(MODELS) == {'position', 'range_azimuth_elevation', 'line_of_sight', 'range', 'range_rate'}
+    assert set(MODELS) == {'position', 'range_azimuth_elevation', 'line_of_sight', 'range', 'range_rate',
+                           'docking_camera'}
     for name, cls in MODELS.items():
         model = make_model(name, NOISE[name])
         assert model.name == name and isinstance(model, cls)
@@ -377,3 +378,61 @@ def test_every_model_is_in_the_sensor_tables_of_the_docs():
         text = (root / document).read_text()
         missing = [name for name in MODELS if f'| `{name}`' not in text]
         assert not missing, f'{document} has no table row for {missing}'
+
+
+def test_docking_camera_range_noise_grows_as_range_squared_and_its_angles_do_not():
+    """sigma_r = sqrt(sigma_r0^2 + (r^2 sigma_px / (f b))^2), sigma_theta constant (the pinhole
+    law, docking_camera.py), written out here from f = 1911 px, sigma_px = 0.2 px, b = 0.5 m;
+    and the sensor's samples spread by it."""
+    floor, angle = 0.005, 1e-3
+    model = make_model('docking_camera', [floor ** 2, angle ** 2, angle ** 2],
+                       mounting_rotation=[0.0, 0.0, 1.0, 0.0])  # looks back along -x, as in the suites
+    ranges = np.array([0.5, 3.0, 10.0, 20.0, 30.0])
+    x = np.zeros((len(ranges), 6))
+    x[:, 0] = ranges  # the chaser ahead of the target on V-bar
+    law = np.sqrt(floor ** 2 + (ranges ** 2 * 0.2 / (1911.0 * 0.5)) ** 2)
+    noise = model.noise_at(x)
+    np.testing.assert_allclose(np.sqrt(noise[:, 0, 0]), law, rtol=1e-12)
+    np.testing.assert_allclose(np.sqrt(noise[:, 0, 0])[[2, 4]], [0.0215, 0.188], rtol=0.01)  # 2.2 cm, 19 cm
+    np.testing.assert_allclose(noise[:, 1:, 1:], np.broadcast_to(angle ** 2 * np.eye(2), (5, 2, 2)))
+    assert np.all(noise[:, 0, 1:] == 0.0)
+    runs = 4000
+    for r, sigma in zip(ranges[[1, 3]], law[[1, 3]]):
+        truth = np.tile([r, 0.0, 0.0, 0.0, 0.0, 0.0], (runs, 1))
+        z = MeasurementSensor(model, seeds=range(runs)).measure(truth).z
+        assert abs(np.std(z[:, 0] - r) / sigma - 1.0) < 0.05
+        assert abs(np.std(z[:, 1]) / angle - 1.0) < 0.05
+
+
+def test_a_ranger_without_range_noise_growth_draws_the_same_numbers_as_before():
+    """range_noise_growth 0 (every model but docking_camera) keeps R constant and the noise
+    draws unchanged; a model that measures no range refuses a growth."""
+    x = np.tile([20.0, 1.0, -2.0, 0.0, 0.0, 0.0], (5, 1))
+    plain = MeasurementSensor(make_model('range_azimuth_elevation', NOISE['range_azimuth_elevation']), range(5))
+    law = make_model('docking_camera', NOISE['range_azimuth_elevation'], range_noise_growth=0.0)
+    assert not law.state_dependent_noise
+    np.testing.assert_array_equal(plain.measure(x).z, MeasurementSensor(law, range(5)).measure(x).z)
+    lidar = make_model('range_azimuth_elevation', NOISE['range_azimuth_elevation'], range_noise_growth=3.3e-4)
+    r = np.linalg.norm(x[0, :3])
+    assert lidar.noise_at(x)[0, 0, 0] == pytest.approx(1e-4 + (3.3e-4 * r) ** 2, rel=1e-12)
+    broken = np.array([[np.inf, 0.0, 0.0, 0.0, 0.0, 0.0], [np.nan, 1.0, 0.0, 0.0, 0.0, 0.0]])
+    sample = MeasurementSensor(make_model('docking_camera', NOISE['docking_camera']), range(2)).measure(broken)
+    assert sample.counts() == {'non_finite': 2}  # a broken truth is not measured; its draw does not fail
+    with pytest.raises(ValueError, match='range_noise_growth: line_of_sight measures no range'):
+        make_model('line_of_sight', NOISE['line_of_sight'], range_noise_growth=1e-3)
+
+
+def test_docking_camera_limits_contact_to_thirty_metres_in_a_thirty_degree_cone():
+    """The docking suite's camera (defaults.DOCKING_CAMERA): from a few cm to 30 m, 30 deg full
+    field of view about its boresight; nothing closer, farther or outside the cone."""
+    from snn_estimator import defaults as D
+    camera = D.DOCKING_CAMERA
+    model = make_model('docking_camera', camera['noise'], observer='target', field_of_view=camera['field_of_view'],
+                       min_range=camera['min_range'], max_range=camera['max_range'])
+    assert camera['min_range'] <= 0.05 and camera['max_range'] == 30.0
+    assert camera['field_of_view'] == pytest.approx(math.radians(30.0))
+    off = math.tan(math.radians(14.0)), math.tan(math.radians(16.0))
+    x = np.array([[0.06, 0, 0, 0, 0, 0], [0.04, 0, 0, 0, 0, 0], [29.0, 0, 0, 0, 0, 0], [31.0, 0, 0, 0, 0, 0],
+                  [10.0, 10.0 * off[0], 0, 0, 0, 0], [10.0, 0, 10.0 * off[1], 0, 0, 0]])
+    assert [REASONS[c] for c in model.validity(x)] == ['valid', 'too_close', 'valid', 'too_far', 'valid',
+                                                       'out_of_view']

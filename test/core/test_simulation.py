@@ -365,3 +365,21 @@ def test_a_longer_fit_window_leaves_a_smaller_velocity_error():
     sigmas = [window_standard_deviations(model, seconds, 0.1, 1e-2 * np.eye(3))[3] for seconds in (2, 5, 10, 30)]
     assert all(a > b for a, b in zip(sigmas, sigmas[1:]))
     assert 0.002 < sigmas[2] < 0.005  # 10 s: the default window, ~3.5 mm/s
+
+
+def test_contact_conditions_read_the_closing_speed_and_axis_offset_where_the_chaser_first_comes_within_1_m():
+    """A straight approach written out by hand: from (3, 0.4, -0.3) m toward the target at
+    0.1 m/s along -x; it first comes within 1 m at the first sample inside, where the closing
+    speed is -v . p / |p| and the offset from the docking axis (LVLH x) hypot(y, z) = 0.5 m."""
+    from snn_estimator.sim.results import contact_conditions
+    t = np.arange(0.0, 40.0, 0.1)
+    truth = np.zeros((t.size, 6))
+    truth[:, 0] = 3.0 - 0.1 * t
+    truth[:, 1], truth[:, 2], truth[:, 3] = 0.4, -0.3, -0.1
+    contact = contact_conditions(truth)
+    k = int(np.argmax(np.sqrt(truth[:, 0] ** 2 + 0.25) < 1.0))  # x < sqrt(0.75) = 0.866 m
+    assert contact['step'] == k and 0.85 < truth[k, 0] < 0.87
+    closing = 0.1 * truth[k, 0] / np.sqrt(truth[k, 0] ** 2 + 0.25)
+    assert contact['closing_speed_m_s'] == pytest.approx(closing, rel=1e-12)
+    assert contact['axis_offset_m'] == pytest.approx(0.5, rel=1e-12)
+    assert contact_conditions(truth[:10]) is None  # never within 1 m

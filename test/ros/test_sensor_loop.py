@@ -170,6 +170,26 @@ def test_single_process_mode_runs_the_two_sensor_nodes_of_the_suite(tmp_path):
     np.testing.assert_allclose(data.estimate[inside], offline.estimate[0, stamps[inside]], rtol=0, atol=1e-9)
 
 
+def test_the_docking_suite_over_ros_equals_the_offline_docking_scenario_through_the_hand_over(tmp_path):
+    """``--sensor docking`` (config/sensor_docking.yaml), single process, 60 s: the LIDAR alone
+    beyond 30 m, both sensors, then the camera alone inside the LIDAR's 1.8 m; each sensor draws
+    R at the true range. The estimates equal docking_scenario() offline to 1e-9."""
+    from snn_estimator.sim.scenarios import docking_scenario
+    result = run_pipeline(tmp_path, estimator='snn_ekf', sensor='docking', duration=60.0, single_process=True,
+                          timeout=300.0)
+    assert result['exit_codes'] == {'cw_plant': 0}
+    data = read_bag(result['bag'])
+    summary = summarize(data)
+    assert set(summary['sensors']) == {'lidar', 'camera'} and summary['recording_complete'], summary['messages']
+    offline = simulate(docking_scenario(initial_state_dispersion=True), 'snn_ekf')
+    truth_range = np.linalg.norm(offline.truth[0, :601, :3], axis=1)
+    assert truth_range[0] > 30.0 and truth_range.min() < 1.8  # the run crosses both hand-overs
+    stamps = np.round(data.estimate_t / 0.1).astype(int)
+    inside = stamps <= 600
+    assert inside.sum() == 601
+    np.testing.assert_allclose(data.estimate[inside], offline.estimate[0, stamps[inside]], rtol=0, atol=1e-9)
+
+
 @pytest.fixture(scope='module')
 def lidar_dropout_run(tmp_path_factory):
     """The fused loop for 60 s with the LIDAR dropping 5 % of its samples (not published)."""

@@ -245,3 +245,21 @@ def test_a_sensor_sampling_every_half_second_is_complete_and_its_own_dropout_is_
     assert (sensor['expected'], sensor['recorded'], sensor['missing'], sensor['lost']) == (4, 3, 1, 0)
     assert sensor['gaps'] == [[1.0, 1.0]] and sensor['period_s'] == 0.5 and sensor['node'] == 'position_sensor'
     assert summary['recording_complete']
+
+
+def test_the_summary_and_report_give_the_contact_conditions_within_the_last_metre(tmp_path):
+    """A recorded approach along -x at 1 m/s from (3, 0, 0.5) m: it first comes within 1 m at
+    the truth of 2.2 s (x = 0.8 m), closing at 1 m/s x 0.8 / hypot(0.8, 0.5), 0.5 m off the axis."""
+    messages = []
+    for k in range(30):
+        x = np.array([3.0 - 0.1 * k, 0.0, 0.5, -1.0, 0.0, 0.0])
+        messages.append(('/truth', KNOWN_TYPES['truth'], encode_odometry(x, None, k * STEP_NS, 'lvlh', 'chaser')))
+        messages.append(('/estimate', KNOWN_TYPES['estimate'], encode_odometry(x, np.eye(6), k * STEP_NS, 'lvlh',
+                                                                               'chaser')))
+    bag = write_bag(tmp_path / 'bag', messages)
+    contact = summarize(read_bag(bag))['contact']
+    assert contact['t_s'] == pytest.approx(2.2)
+    assert contact['closing_speed_m_s'] == pytest.approx(0.8 / np.hypot(0.8, 0.5), rel=1e-9)
+    assert contact['axis_offset_m'] == pytest.approx(0.5)
+    write_report([bag], tmp_path / 'report')
+    assert '| 2.2 | 0.848 | 0.500 |' in (tmp_path / 'report' / 'report.md').read_text()

@@ -80,7 +80,7 @@ def client():
     ({'settings': {'duration': 5.0, 'metric_window': 6.0}}, 'metric_window'),
     ({'filters': ['snn_kalman']}, 'snn_kalman'),
     ({'filters': []}, 'filters'),
-    ({'scenario': 'docking'}, 'scenario'),
+    ({'scenario': 'lunar_landing'}, 'scenario'),
     ({'runs': 0}, 'runs'),
     ({'runs': 2.5}, 'runs'),
     ({'seed': -1}, 'seed'),
@@ -126,7 +126,7 @@ def test_numbers_written_1e_3_are_numbers(tmp_path):
 
 
 def test_the_shipped_specs_are_valid():
-    for name in ('campaigns/example.yaml', 'campaigns/bench.yaml'):
+    for name in ('campaigns/example.yaml', 'campaigns/bench.yaml', 'campaigns/docking.yaml'):
         validate(load_spec(name))
 
 
