@@ -148,7 +148,8 @@ class ApproachGuidance:
         self.holds, self.legs, self.corridor = tuple(holds), tuple(legs), corridor
         self.n, self.final_speed, self.cam_delta_v = float(mean_motion), float(final_speed), float(cam_delta_v)
         #: Index of the first hold whose go allows entering the keep-out sphere.
-        self.keep_out_hold = next(i for i, h in enumerate(self.holds) if h.distance <= keep_out_radius) - 1
+        self.keep_out_hold = next((i for i, h in enumerate(self.holds) if h.distance <= keep_out_radius),
+                                  len(self.holds)) - 1
         self.phase, self.index = 'hold', 0
         self.gonogo = GoNoGo(self.holds[0], 0.0)
         self.decisions: list[GoNoGo] = []

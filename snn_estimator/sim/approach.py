@@ -65,6 +65,9 @@ class ApproachScenario:
     final_speed: float = 0.04
     cam_delta_v: float = 0.4
     lqr_weights: tuple = (LQR_STATE_WEIGHT, LQR_INPUT_WEIGHT)
+    #: A fault: from ``disturbance[0]`` s on, the truth feels ``disturbance[1]`` m/s^2 (3,) that
+    #: neither the filters nor the guidance know of (a stuck thruster); None: no fault.
+    disturbance: tuple | None = None
 
     def guidance(self) -> ApproachGuidance:
         return ApproachGuidance(self.holds, self.legs, self.corridor, self.model.mean_motion,
@@ -73,22 +76,26 @@ class ApproachScenario:
 
 def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circular',
                       orbit_radius: float = DEFAULT_ORBIT_RADIUS, dt: float = 1.0,
-                      max_duration: float = 30000.0, **estimator_changes) -> ApproachScenario:
+                      max_duration: float = 30000.0, holds=HOLDS, legs=LEGS, disturbance=None,
+                      **estimator_changes) -> ApproachScenario:
     """5 km behind the target on V-bar to contact, measured by Table 6's position sensor (R =
     1e-2 m^2 per 1 s sample at every range: no sensor hand-over yet), on a model truth
     (``plant``: cw or nonlinear_circular, two-body without J2); the filters predict with
     ``dynamics_model``, the LQR is designed on its linearisation at the port (CW). The filters
-    start dispersed about the truth as in the far-range scenario (defaults.FAR_RANGE_ESTIMATOR)."""
+    start dispersed about the truth as in the far-range scenario (defaults.FAR_RANGE_ESTIMATOR),
+    at the first of ``holds`` (one of ``legs`` between two holds); ``disturbance``: see
+    :class:`ApproachScenario`."""
     for name, value in (('dynamics_model', dynamics_model), ('plant', plant)):
         if value not in DYNAMICS_MODELS:
             raise ValueError(f"{name} must be one of {', '.join(DYNAMICS_MODELS)}; got {value!r}")
-    x0 = np.array([-HOLDS[0].distance, 0.0, 0.0, 0.0, 0.0, 0.0])
+    x0 = np.array([-holds[0].distance, 0.0, 0.0, 0.0, 0.0, 0.0])
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, 'initial_state': tuple(x0),
                                           'dynamics_model': dynamics_model, **estimator_changes})
     return ApproachScenario(
         model=relative_motion(dynamics_model, orbit_radius), truth=relative_motion(plant, orbit_radius), x0=x0,
         dt=dt, max_duration=max_duration, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
-        measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config)
+        measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config, holds=tuple(holds),
+        legs=tuple(legs), disturbance=disturbance)
 
 
 def free_drift_ranges(model: StateSpaceModel, x, duration: float, dt: float = DRIFT_STEP) -> np.ndarray:
@@ -121,9 +128,12 @@ class _Safety:
 
     def __init__(self, scenario: ApproachScenario, guidance: ApproachGuidance):
         self.scenario, self.guidance = scenario, guidance
-        self.ellipsoid_hold = max(i for i, h in enumerate(scenario.holds) if h.distance >= APPROACH_ELLIPSOID[0])
+        #: The hold whose go allows entering the approach ellipsoid (None: the approach starts inside).
+        self.ellipsoid_hold = max((i for i, h in enumerate(scenario.holds) if h.distance >= APPROACH_ELLIPSOID[0]),
+                                  default=None)
         self.delta_v = 0.0
         self.corridor_violation_time = 0.0
+        self.corridor_exit = None
         self.max_corridor_excess = 0.0
         self.keep_out_entry = self.ellipsoid_entry = None
         self.ellipsoid_depth_before_go = 0.0
@@ -140,11 +150,12 @@ class _Safety:
         corridor = s.corridor
         if corridor.applies(p) and p[0] < 0.0 and not corridor.contains(p):
             self.corridor_violation_time += dt
+            self.corridor_exit = t if self.corridor_exit is None else self.corridor_exit
             self.max_corridor_excess = max(self.max_corridor_excess, corridor.lateral(p) - corridor.radius(p[0]))
         if self.keep_out_entry is None and np.linalg.norm(p) < KEEP_OUT_RADIUS:
             self.keep_out_entry = {'time': t, 'after_go': g.go_time(g.keep_out_hold) is not None}
         depth = 1.0 - np.sqrt(np.sum((p / np.array(APPROACH_ELLIPSOID)) ** 2))
-        if depth > 0.0:
+        if depth > 0.0 and self.ellipsoid_hold is not None:
             if g.go_time(self.ellipsoid_hold) is None:
                 self.ellipsoid_depth_before_go = max(self.ellipsoid_depth_before_go, depth * APPROACH_ELLIPSOID[0])
             elif self.ellipsoid_entry is None:
@@ -156,7 +167,7 @@ class _Safety:
                                **passive_safety(s.truth, x)})
         self.seen_decisions = len(g.decisions)
         if g.phase == 'abort' and self.cam is None:
-            self.cam = {'time': t, **passive_safety(s.truth, x)}
+            self.cam = {'time': t, 'delta_v': (np.asarray(u) * dt).tolist(), **passive_safety(s.truth, x)}
         if g.active and x[0] >= 0.0:
             g.contact(t)
             self.contact = {'time': t, 'closing_speed': float(x[3]), 'lateral': corridor.lateral(p)}
@@ -167,7 +178,7 @@ class _Safety:
                    and contact['lateral'] <= CONTACT_LATERAL and self.corridor_violation_time == 0.0
                    and (self.keep_out_entry or {}).get('after_go', True))
         return {'outcome': g.phase, 'success': bool(success), 'delta_v': self.delta_v,
-                'corridor_violation_time': self.corridor_violation_time,
+                'corridor_violation_time': self.corridor_violation_time, 'corridor_exit': self.corridor_exit,
                 'max_corridor_excess': self.max_corridor_excess, 'keep_out_entry': self.keep_out_entry,
                 'ellipsoid_entry': self.ellipsoid_entry, 'ellipsoid_depth_before_go': self.ellipsoid_depth_before_go,
                 'contact': contact, 'holds': self.holds, 'cam': self.cam,
@@ -200,7 +211,8 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
                 x_ref, u_ff, cam = g.update(t, dt, x_hat[b], covariance[b])
                 u[b] = cam if g.phase == 'abort' else u_ff - gain @ (x_hat[b] - x_ref)
         estimator.step(sensor.measure(plant.x), u, dt)
-        plant.step(u, dt)
+        fault = scenario.disturbance
+        plant.step(u if fault is None or t < fault[0] else u + np.asarray(fault[1], dtype=float), dt)
         if estimator.spiking:
             spikes += estimator.batch_spikes.sum(axis=1)
         k += 1
@@ -232,6 +244,11 @@ def summarize(flights: list[dict], holds=HOLDS) -> dict:
         'outcomes': {o: sum(f['outcome'] == o for f in flights) for o in OUTCOMES},
         'success': sum(f['success'] for f in flights),
         'corridor_violation_runs': sum(f['corridor_violation_time'] > 0.0 for f in flights),
+        'max_corridor_excess': _stats(f['max_corridor_excess'] for f in flights),
+        'abort_after_corridor_exit': _stats(f['cam']['time'] - f['corridor_exit'] for f in flights
+                                            if f['cam'] is not None and f['corridor_exit'] is not None),
+        'cam_drift_enters_keep_out': sum(f['cam']['enters_keep_out'] for f in flights if f['cam'] is not None),
+        'cam_drift_min_range': _stats(f['cam']['min_range'] for f in flights if f['cam'] is not None),
         'keep_out_entry_before_go': sum(not (f['keep_out_entry'] or {}).get('after_go', True) for f in flights),
         'ellipsoid_depth_before_go': _stats(f['ellipsoid_depth_before_go'] for f in flights),
         'passive_safety_keep_out_entries': sum(d['enters_keep_out'] for f in flights for d in f['holds']),

@@ -6,7 +6,7 @@ import pytest
 
 from snn_estimator.models import ClohessyWiltshire
 from snn_estimator.plant.approach import ApproachGuidance, Corridor, GoNoGo, HoldPoint, Leg, position_three_sigma
-from snn_estimator.sim.approach import approach_scenario, fly_approach, passive_safety
+from snn_estimator.sim.approach import HOLDS, LEGS, approach_scenario, fly_approach, passive_safety
 
 HOLD = HoldPoint('250 m', 250.0, error_bound=1.0, sigma_bound=0.5, speed_bound=0.01, dwell=100.0, timeout=1000.0)
 SMALL_P = np.diag([1e-3, 1e-3, 1e-3, 1e-6, 1e-6, 1e-6])  # 3-sigma 0.095 m
@@ -110,3 +110,18 @@ def test_a_closed_loop_from_the_5_km_hold_reaches_the_2_km_hold_and_its_go_on_th
     assert flight['keep_out_entry'] is None and flight['ellipsoid_depth_before_go'] < 0.5
     floor = 2.0 * scenario.model.mean_motion * 3000.0
     assert floor < flight['delta_v'] < floor + 2.0 * scenario.legs[0].max_speed + 0.5
+
+
+def test_a_stuck_thruster_after_the_keep_out_go_ends_in_an_abort_whose_drift_stays_out_of_the_keep_out_sphere():
+    """From the 250 m hold, 2 mm/s^2 along y from 400 s that neither the filter nor the guidance
+    knows: the estimate's 3-sigma leaves the cone, the guidance aborts and commands the CAM
+    (0.4 m/s back along -x, in the delta-v); its two-orbit free drift does not enter the
+    keep-out sphere."""
+    scenario = approach_scenario('cw', plant='nonlinear_circular', holds=HOLDS[2:], legs=LEGS[2:],
+                                 disturbance=(400.0, (0.0, 2e-3, 0.0)))
+    flight, = fly_approach(scenario, 'ekf', runs=1, seed=0, max_duration=2000.0)
+    assert [name for _, name in flight['events']] == ['go 250 m', 'abort']
+    assert flight['outcome'] == 'abort' and flight['contact'] is None
+    assert flight['cam'] is not None and not flight['cam']['enters_keep_out']
+    np.testing.assert_allclose(flight['cam']['delta_v'], [-scenario.cam_delta_v, 0.0, 0.0], rtol=1e-12)
+    assert flight['delta_v'] > scenario.cam_delta_v
