@@ -193,6 +193,9 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
     ``max_duration`` s (default the scenario's)."""
     seeds = [seed + b for b in range(runs)]
     estimator = make_estimator(kind, scenario.estimator.replace(seed=seed), scenario.model, runs=runs, seeds=seeds)
+    if not estimator.has_covariance:
+        raise ValueError(f'the approach decides its holds and its corridor on the covariance, and {kind} has none: '
+                         'use a filter kind with a covariance (ekf, emsif, snn_ekf, snn_emsif, ...)')
     plant = Plant(scenario.truth, scenario.x0, scenario.process_noise, seeds)
     sensor = PositionSensor(scenario.truth, scenario.measurement_noise, seeds)
     gain = lqr_gain(scenario.model, scenario.lqr_weights[0] * np.eye(6), scenario.lqr_weights[1] * np.eye(3))

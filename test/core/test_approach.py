@@ -125,3 +125,8 @@ def test_a_stuck_thruster_after_the_keep_out_go_ends_in_an_abort_whose_drift_sta
     assert flight['cam'] is not None and not flight['cam']['enters_keep_out']
     np.testing.assert_allclose(flight['cam']['delta_v'], [-scenario.cam_delta_v, 0.0, 0.0], rtol=1e-12)
     assert flight['delta_v'] > scenario.cam_delta_v
+
+
+def test_a_filter_without_a_covariance_cannot_fly_the_approach():
+    with pytest.raises(ValueError, match='esif has none'):
+        fly_approach(approach_scenario(), 'esif', max_duration=10.0)
