@@ -29,7 +29,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget sensors \
+	spike-budget sensors approach \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -105,6 +105,11 @@ spike-budget: $(STAMP)
 # the LIDAR close approach (dispersed) and angles-only navigation, offline (docs/sensors.md)
 sensors: $(STAMP)
 	$(BIN)/python -m snn_tools.experiments.sensors $(if $(RUNS),--runs $(RUNS)) --out results
+
+# 5 km to contact through the holds, a few dispersed runs per filter and model (docs/decisions.md, 55-57);
+# one BLAS thread: the nonlinear filters' small matrix exponentials are ~40x slower threaded on a loaded machine
+approach: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach $(if $(RUNS),--runs $(RUNS)) --out results
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json

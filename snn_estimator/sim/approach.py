@@ -1,0 +1,268 @@
+"""The approach from 5 km behind the target to contact (issue 39, parts 2-3), offline: hold
+points at 5 km, 2 km, 250 m and 20 m on V-bar, each left on a go from the estimate and its
+covariance, then a final approach in a 10 deg cone to contact (snn_estimator.plant.approach).
+The loop steps the blocks simulate() steps (truth Plant, PositionSensor, an Estimator, the LQR),
+with the guidance giving the LQR its setpoint, u = u_ff - K (x_hat - x_ref), and records the
+safety figures of each run (docs/decisions.md, 55-57).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from snn_estimator import defaults as D
+from snn_estimator.config import EstimatorConfig
+from snn_estimator.filters.estimators import make_estimator
+from snn_estimator.models import DEFAULT_ORBIT_RADIUS, DYNAMICS_MODELS, StateSpaceModel, relative_motion
+from snn_estimator.plant.approach import (
+    APPROACH_ELLIPSOID,
+    KEEP_OUT_RADIUS,
+    ApproachGuidance,
+    Corridor,
+    HoldPoint,
+    Leg,
+)
+from snn_estimator.plant.control import lqr_gain
+from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.plant.truth import Plant
+
+#: The holds (docs/decisions.md, 55): 5 km (HTV's AI point), 2 km (the approach ellipsoid's
+#: V-bar boundary), 250 m (ATV S3, HTV-4, Dragon: outside the 200 m keep-out sphere), 20 m
+#: (ATV S4). Go bounds: hold error, position 3-sigma, speed, dwell, timeout.
+HOLDS = (HoldPoint('5 km', 5000.0, 25.0, 10.0, 0.05, 300.0, 3000.0),
+         HoldPoint('2 km', 2000.0, 10.0, 5.0, 0.05, 300.0, 3000.0),
+         HoldPoint('250 m', 250.0, 1.0, 0.5, 0.01, 300.0, 3000.0),
+         HoldPoint('20 m', 20.0, 0.2, 0.1, 0.005, 120.0, 3000.0))
+#: Transfers between them: the setpoint's top speed, m/s, time constant, s, and floor speed, m/s.
+LEGS = (Leg(1.0, 300.0, 0.02), Leg(0.5, 300.0, 0.02), Leg(0.1, 300.0, 0.01))
+#: LQR weights of the tracking loop (response ~ 200 s, Rc^(1/4) ~ 56 s time constant).
+LQR_STATE_WEIGHT, LQR_INPUT_WEIGHT = 1.0, 1e7
+#: Contact: closing speed (m/s) and lateral offset (m) the docking mechanism accepts (IDSS-class
+#: 0.03-0.05 m/s closing, 0.1 m lateral: notes of issues 38-39, item 6).
+CONTACT_SPEED, CONTACT_LATERAL = (0.03, 0.05), 0.1
+#: Free drift for the passive-safety figure: two orbits (issue 39), sampled every 10 s.
+DRIFT_ORBITS, DRIFT_STEP = 2.0, 10.0
+
+
+@dataclass(frozen=True)
+class ApproachScenario:
+    """The filters' ``model``, the ``truth`` model, the start, the step and the guidance's
+    parts; ``max_duration`` s ends a run that has not ended otherwise."""
+
+    model: StateSpaceModel
+    truth: StateSpaceModel
+    x0: np.ndarray
+    dt: float
+    max_duration: float
+    process_noise: np.ndarray
+    measurement_noise: np.ndarray
+    estimator: EstimatorConfig
+    holds: tuple = HOLDS
+    legs: tuple = LEGS
+    corridor: Corridor = field(default_factory=Corridor)
+    final_speed: float = 0.04
+    cam_delta_v: float = 0.4
+    lqr_weights: tuple = (LQR_STATE_WEIGHT, LQR_INPUT_WEIGHT)
+    #: A fault: from ``disturbance[0]`` s on, the truth feels ``disturbance[1]`` m/s^2 (3,) that
+    #: neither the filters nor the guidance know of (a stuck thruster); None: no fault.
+    disturbance: tuple | None = None
+
+    def guidance(self) -> ApproachGuidance:
+        return ApproachGuidance(self.holds, self.legs, self.corridor, self.model.mean_motion,
+                                final_speed=self.final_speed, cam_delta_v=self.cam_delta_v)
+
+
+def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circular',
+                      orbit_radius: float = DEFAULT_ORBIT_RADIUS, dt: float = 1.0,
+                      max_duration: float = 30000.0, holds=HOLDS, legs=LEGS, disturbance=None,
+                      **estimator_changes) -> ApproachScenario:
+    """5 km behind the target on V-bar to contact, measured by Table 6's position sensor (R =
+    1e-2 m^2 per 1 s sample at every range: no sensor hand-over yet), on a model truth
+    (``plant``: cw or nonlinear_circular, two-body without J2); the filters predict with
+    ``dynamics_model``, the LQR is designed on its linearisation at the port (CW). The filters
+    start dispersed about the truth as in the far-range scenario (defaults.FAR_RANGE_ESTIMATOR),
+    at the first of ``holds`` (one of ``legs`` between two holds); ``disturbance``: see
+    :class:`ApproachScenario`."""
+    for name, value in (('dynamics_model', dynamics_model), ('plant', plant)):
+        if value not in DYNAMICS_MODELS:
+            raise ValueError(f"{name} must be one of {', '.join(DYNAMICS_MODELS)}; got {value!r}")
+    x0 = np.array([-holds[0].distance, 0.0, 0.0, 0.0, 0.0, 0.0])
+    config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, 'initial_state': tuple(x0),
+                                          'dynamics_model': dynamics_model, **estimator_changes})
+    return ApproachScenario(
+        model=relative_motion(dynamics_model, orbit_radius), truth=relative_motion(plant, orbit_radius), x0=x0,
+        dt=dt, max_duration=max_duration, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
+        measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config, holds=tuple(holds),
+        legs=tuple(legs), disturbance=disturbance)
+
+
+def free_drift_ranges(model: StateSpaceModel, x, duration: float, dt: float = DRIFT_STEP) -> np.ndarray:
+    """Ranges (m) from the target along the noise-free free drift of ``model`` from ``x``, every
+    ``dt`` s over ``duration`` s (the first sample is ``x``'s)."""
+    x = np.asarray(x, dtype=float)
+    ranges = [np.linalg.norm(x[:3])]
+    for _ in range(int(round(duration / dt))):
+        x = model.transition(x, np.zeros(model.n_input), dt, substeps=4)
+        ranges.append(np.linalg.norm(x[:3]))
+    return np.array(ranges)
+
+
+def passive_safety(model: StateSpaceModel, x, keep_out: float = KEEP_OUT_RADIUS) -> dict:
+    """Free drift from ``x`` for two orbits: its closest range (m), and whether it enters the
+    keep-out sphere from outside (True when it starts outside and comes within ``keep_out``; from
+    inside, when it leaves the sphere and comes back)."""
+    ranges = free_drift_ranges(model, x, DRIFT_ORBITS * 2.0 * np.pi / model.mean_motion)
+    outside = ranges > keep_out
+    if outside[0]:
+        enters = bool((~outside).any())
+    else:
+        first_out = np.argmax(outside) if outside.any() else len(ranges)
+        enters = bool((~outside[first_out:]).any())
+    return {'min_range': float(ranges.min()), 'enters_keep_out': enters}
+
+
+class _Safety:
+    """The safety figures of one run, from its truth, control and guidance, step by step."""
+
+    def __init__(self, scenario: ApproachScenario, guidance: ApproachGuidance):
+        self.scenario, self.guidance = scenario, guidance
+        #: The hold whose go allows entering the approach ellipsoid (None: the approach starts inside).
+        self.ellipsoid_hold = max((i for i, h in enumerate(scenario.holds) if h.distance >= APPROACH_ELLIPSOID[0]),
+                                  default=None)
+        self.delta_v = 0.0
+        self.corridor_violation_time = 0.0
+        self.corridor_exit = None
+        self.max_corridor_excess = 0.0
+        self.keep_out_entry = self.ellipsoid_entry = None
+        self.ellipsoid_depth_before_go = 0.0
+        self.contact = None
+        self.holds: list[dict] = []
+        self.cam = None
+        self.seen_decisions = 0
+
+    def step(self, t: float, dt: float, x, x_hat, u) -> None:
+        """After the step to ``t``: the truth ``x``, the estimate ``x_hat``, the control ``u`` held."""
+        g, s = self.guidance, self.scenario
+        self.delta_v += float(np.linalg.norm(u)) * dt
+        p = x[:3]
+        corridor = s.corridor
+        if corridor.applies(p) and p[0] < 0.0 and not corridor.contains(p):
+            self.corridor_violation_time += dt
+            self.corridor_exit = t if self.corridor_exit is None else self.corridor_exit
+            self.max_corridor_excess = max(self.max_corridor_excess, corridor.lateral(p) - corridor.radius(p[0]))
+        if self.keep_out_entry is None and np.linalg.norm(p) < KEEP_OUT_RADIUS:
+            self.keep_out_entry = {'time': t, 'after_go': g.go_time(g.keep_out_hold) is not None}
+        depth = 1.0 - np.sqrt(np.sum((p / np.array(APPROACH_ELLIPSOID)) ** 2))
+        if depth > 0.0 and self.ellipsoid_hold is not None:
+            if g.go_time(self.ellipsoid_hold) is None:
+                self.ellipsoid_depth_before_go = max(self.ellipsoid_depth_before_go, depth * APPROACH_ELLIPSOID[0])
+            elif self.ellipsoid_entry is None:
+                self.ellipsoid_entry = t
+        for decision in g.decisions[self.seen_decisions:]:
+            self.holds.append({'hold': decision.hold.name, 'decision': decision.decision, 'time': t,
+                               'estimate_error': float(np.linalg.norm(x_hat[:3] - p)),
+                               'hold_error': float(np.linalg.norm(p - decision.hold.state[:3])),
+                               **passive_safety(s.truth, x)})
+        self.seen_decisions = len(g.decisions)
+        if g.phase == 'abort' and self.cam is None:
+            self.cam = {'time': t, 'delta_v': (np.asarray(u) * dt).tolist(), **passive_safety(s.truth, x)}
+        if g.active and x[0] >= 0.0:
+            g.contact(t)
+            self.contact = {'time': t, 'closing_speed': float(x[3]), 'lateral': corridor.lateral(p)}
+
+    def figures(self) -> dict:
+        g, contact = self.guidance, self.contact
+        success = (contact is not None and CONTACT_SPEED[0] <= contact['closing_speed'] <= CONTACT_SPEED[1]
+                   and contact['lateral'] <= CONTACT_LATERAL and self.corridor_violation_time == 0.0
+                   and (self.keep_out_entry or {}).get('after_go', True))
+        return {'outcome': g.phase, 'success': bool(success), 'delta_v': self.delta_v,
+                'corridor_violation_time': self.corridor_violation_time, 'corridor_exit': self.corridor_exit,
+                'max_corridor_excess': self.max_corridor_excess, 'keep_out_entry': self.keep_out_entry,
+                'ellipsoid_entry': self.ellipsoid_entry, 'ellipsoid_depth_before_go': self.ellipsoid_depth_before_go,
+                'contact': contact, 'holds': self.holds, 'cam': self.cam,
+                'events': [(e.time, e.name) for e in g.events]}
+
+
+def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int = 0,
+                 max_duration: float | None = None) -> list[dict]:
+    """Fly ``runs`` approaches (seeds seed..seed+runs-1, random streams as simulate()'s) with
+    filter ``kind``; each run's safety figures (:class:`_Safety`), its spikes and filter steps.
+    A run ends at contact, abort or no-go; the loop ends when every run has ended or after
+    ``max_duration`` s (default the scenario's)."""
+    seeds = [seed + b for b in range(runs)]
+    estimator = make_estimator(kind, scenario.estimator.replace(seed=seed), scenario.model, runs=runs, seeds=seeds)
+    if not estimator.has_covariance:
+        raise ValueError(f'the approach decides its holds and its corridor on the covariance, and {kind} has none: '
+                         'use a filter kind with a covariance (ekf, emsif, snn_ekf, snn_emsif, ...)')
+    plant = Plant(scenario.truth, scenario.x0, scenario.process_noise, seeds)
+    sensor = PositionSensor(scenario.truth, scenario.measurement_noise, seeds)
+    gain = lqr_gain(scenario.model, scenario.lqr_weights[0] * np.eye(6), scenario.lqr_weights[1] * np.eye(3))
+    guidance = [scenario.guidance() for _ in seeds]
+    safety = [_Safety(scenario, g) for g in guidance]
+    dt = scenario.dt
+    steps = int(round((max_duration or scenario.max_duration) / dt))
+    spikes = np.zeros(runs, dtype=np.int64)
+    k = 0
+    while k < steps and any(g.active for g in guidance):
+        x_hat, covariance, t = estimator.batch_x_hat.copy(), estimator.batch_P, k * dt
+        u = np.zeros((runs, 3))
+        flying = [g.active for g in guidance]
+        for b, g in enumerate(guidance):
+            if g.active:
+                x_ref, u_ff, cam = g.update(t, dt, x_hat[b], covariance[b])
+                u[b] = cam if g.phase == 'abort' else u_ff - gain @ (x_hat[b] - x_ref)
+        estimator.step(sensor.measure(plant.x), u, dt)
+        fault = scenario.disturbance
+        plant.step(u if fault is None or t < fault[0] else u + np.asarray(fault[1], dtype=float), dt)
+        if estimator.spiking:
+            spikes += estimator.batch_spikes.sum(axis=1)
+        k += 1
+        for b in np.flatnonzero(flying):
+            safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b])
+    return [{'seed': s, 'kind': kind, 'dynamics_model': scenario.estimator.dynamics_model,
+             'spikes': int(spikes[b]) if estimator.spiking else None, 'steps': k, **safety[b].figures()}
+            for b, s in enumerate(seeds)]
+
+
+#: How a run ends: contact, abort (CAM), no-go at a hold, or still flying at max_duration.
+OUTCOMES = ('contact', 'abort', 'no_go', 'hold', 'transfer', 'final')
+
+
+def _stats(values) -> dict | None:
+    values = np.array([v for v in values if v is not None], dtype=float)
+    if values.size == 0:
+        return None
+    return {'mean': float(values.mean()), 'min': float(values.min()), 'max': float(values.max()), 'n': int(values.size)}
+
+
+def summarize(flights: list[dict], holds=HOLDS) -> dict:
+    """The figures of a batch of runs (:func:`fly_approach`): counts by outcome, safety counts,
+    delta-v, contact conditions, and at each hold's go the estimate's and the hold's errors."""
+    contacts = [f['contact'] for f in flights if f['contact'] is not None]
+    decided = {h.name: [d for f in flights for d in f['holds'] if d['hold'] == h.name] for h in holds}
+    return {
+        'runs': len(flights),
+        'outcomes': {o: sum(f['outcome'] == o for f in flights) for o in OUTCOMES},
+        'success': sum(f['success'] for f in flights),
+        'corridor_violation_runs': sum(f['corridor_violation_time'] > 0.0 for f in flights),
+        'max_corridor_excess': _stats(f['max_corridor_excess'] for f in flights),
+        'abort_after_corridor_exit': _stats(f['cam']['time'] - f['corridor_exit'] for f in flights
+                                            if f['cam'] is not None and f['corridor_exit'] is not None),
+        'cam_drift_enters_keep_out': sum(f['cam']['enters_keep_out'] for f in flights if f['cam'] is not None),
+        'cam_drift_min_range': _stats(f['cam']['min_range'] for f in flights if f['cam'] is not None),
+        'keep_out_entry_before_go': sum(not (f['keep_out_entry'] or {}).get('after_go', True) for f in flights),
+        'ellipsoid_depth_before_go': _stats(f['ellipsoid_depth_before_go'] for f in flights),
+        'passive_safety_keep_out_entries': sum(d['enters_keep_out'] for f in flights for d in f['holds']),
+        'delta_v': _stats(f['delta_v'] for f in flights),
+        'closing_speed': _stats(c['closing_speed'] for c in contacts),
+        'lateral_at_contact': _stats(c['lateral'] for c in contacts),
+        'contact_time': _stats(c['time'] for c in contacts),
+        'spikes': _stats(f['spikes'] for f in flights),
+        'holds': {name: {'go': sum(d['decision'] == 'go' for d in ds),
+                         'estimate_error': _stats(d['estimate_error'] for d in ds),
+                         'hold_error': _stats(d['hold_error'] for d in ds),
+                         'drift_min_range': _stats(d['min_range'] for d in ds)}
+                  for name, ds in decided.items()},
+    }
