@@ -26,10 +26,12 @@ import numpy as np
 #: The constants a law's compiled ``gain`` piece receives as ``consts``, in this order (the
 #: step kernel's, snn_estimator.filters.kernels.CONSTANTS, gives their shapes): H and its
 #: pseudo-inverse, the process noise of a step Q_d, a sample's variance R_d, diag(R_hat), delta,
-#: the network's state scale, a constant gain, the leak and the spike cap.
+#: the network's state scale, a constant gain, the leak, the spike cap, and the synchronous
+#: rule's ticks per sample, threshold widening, refractory ticks and firing slots.
 PIECE_CONSTANTS = ('c', 'c_pinv', 'q_step', 'r_sample', 'r_hat_diag', 'delta', 'scale', 'fixed_gain', 'leak',
-                   'max_spikes')
-C, C_PINV, Q_STEP, R_SAMPLE, R_HAT_DIAG, DELTA, SCALE, FIXED_GAIN, LEAK, MAX_SPIKES = range(len(PIECE_CONSTANTS))
+                   'max_spikes', 'ticks', 'widening', 'refractory', 'slots')
+(C, C_PINV, Q_STEP, R_SAMPLE, R_HAT_DIAG, DELTA, SCALE, FIXED_GAIN, LEAK, MAX_SPIKES, TICKS, WIDENING, REFRACTORY,
+ SLOTS) = range(len(PIECE_CONSTANTS))
 
 
 class SampledStep(NamedTuple):

@@ -351,6 +351,65 @@ def test_spike_rules_do_what_they_say():
                 assert np.all(estimator.potentials <= estimator.thresholds + 1e-12)
 
 
+# ---------------------------------------------------------------- the synchronous (local) rule
+@pytest.mark.parametrize('kind', ['snn_ekf', 'snn_emsif_weighted'])
+@pytest.mark.parametrize('changes', [{}, {'refractory_ticks': 2, 'firing_slots': 3, 'ticks_per_sample': 20},
+                                     {'network_coding': 'deviation', 'state_scale': (1e-3,) * 3 + (1e-5,) * 3}])
+def test_compiled_synchronous_rule_equals_the_dense_network_spike_for_spike(kind, changes):
+    assert_compiled_equals_dense(kind, spike_rule='synchronous', neuron_count=60, **changes)
+
+
+@pytest.mark.parametrize('kind', ['snn_ekf', 'snn_emsif'])
+def test_synchronous_rule_with_one_tick_and_no_remedy_is_the_all_above_rule(kind):
+    scenario, zs, us = rendezvous_inputs(steps=100)
+    local = make_estimator(kind, scenario.estimator.replace(
+        spike_rule='synchronous', ticks_per_sample=1, threshold_widening=0.0, refractory_ticks=0, firing_slots=1))
+    all_above = make_estimator(kind, scenario.estimator.replace(spike_rule='all_above'))
+    for z, u in zip(zs, us):
+        local.step(z, u, 0.1)
+        all_above.step(z, u, 0.1)
+        np.testing.assert_array_equal(local.spikes, all_above.spikes)
+        np.testing.assert_array_equal(local.x_hat, all_above.x_hat)
+    assert local.total_spikes > 0
+
+
+def test_synchronous_rule_compares_no_neurons_two_above_threshold_in_a_tick_both_fire():
+    """A step without input (r = 0, z = 0, u = 0) from potentials that put neurons 0 and 1,
+    which code the same direction, above threshold: the synchronous rule fires both in the
+    first tick (each from its own potential); greedy fires the larger only (its spike takes the
+    other below threshold). Neuron 2, below its threshold, stays silent under both."""
+    scenario = rendezvous_scenario()
+    config = scenario.estimator.replace(neuron_count=3, ticks_per_sample=4, threshold_widening=0.0, firing_slots=1)
+    fired = {}
+    for rule in ('synchronous', 'greedy'):
+        estimator = make_estimator('snn_ekf', config.replace(spike_rule=rule))
+        net = estimator.network
+        net.decoder[0] = 0.0
+        net.decoder[0, 0, :] = (1.0, 1.0, 0.1)
+        net.gram[0] = net.decoder[0].T @ net.decoder[0]
+        net.thresholds[0] = 0.5 * np.sum(net.decoder[0] ** 2, axis=0)   # 0.5, 0.5, 0.005
+        net.r[0] = 0.0
+        net.v[0] = (0.6, 0.7, 0.0)
+        estimator.state.x_hat[0] = 0.0
+        estimator.step(np.zeros(3), np.zeros(3), 0.1)
+        fired[rule] = estimator.spikes.copy()
+    np.testing.assert_array_equal(fired['synchronous'], [1, 1, 0])
+    np.testing.assert_array_equal(fired['greedy'], [0, 1, 0])
+
+
+def test_synchronous_rule_fires_each_neuron_only_in_its_slot_and_after_its_refractory_ticks():
+    scenario, zs, us = rendezvous_inputs(steps=60)
+    ticks, slots = 12, 4
+    config = scenario.estimator.replace(spike_rule='synchronous', ticks_per_sample=ticks, firing_slots=slots,
+                                        refractory_ticks=slots, neuron_count=40)
+    estimator = make_estimator('snn_ekf', config)
+    for z, u in zip(zs, us):
+        estimator.step(z, u, 0.1)
+        # slots: at most ticks / slots spikes per neuron per step; refractory >= slots: every other slot
+        assert estimator.spikes.max() <= ticks // slots // 2 + 1
+    assert estimator.total_spikes > 0
+
+
 @pytest.mark.slow
 def test_a_fine_decoder_reproduces_the_non_spiking_twin():
     scenario = rendezvous_scenario()
