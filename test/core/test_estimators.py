@@ -571,6 +571,11 @@ def test_a_state_the_network_cannot_represent_is_refused_quietly_and_changes_not
     ({'measurement_noise_units': 'variance'}, 'measurement_noise_units'),
     ({'silenced_neurons': (200,)}, 'silenced_neurons'),
     ({'initial_state': (np.nan, 0, 0, 0, 0, 0)}, 'finite'),
+    ({'ticks_per_sample': 0}, 'ticks_per_sample'),
+    ({'firing_slots': 0}, 'firing_slots'),
+    ({'threshold_widening': -0.5}, 'threshold_widening'),
+    ({'refractory_ticks': -1}, 'refractory_ticks'),
+    ({'spike_rule': 'synchronous', 'precision': 'loihi', 'gain_schedule': 'steady_state'}, 'float64 network only'),
 ])
 def test_bad_configuration_raises_a_value_error_saying_what_to_fix(changes, message):
     with pytest.raises(ValueError, match=message):
