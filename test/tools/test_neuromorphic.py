@@ -296,3 +296,17 @@ def test_a_time_varying_gain_adds_the_weight_refresh_on_the_host():
     assert varying.host_macs == 292 + 638 + refresh  # gain and covariance of the EKF, then F_k and Omega_k
     assert varying.dense_macs - constant.dense_macs == varying.host_macs
     assert varying.synops == constant.synops
+
+
+@pytest.mark.slow
+def test_the_local_rule_table_rates_each_rule_against_the_twin_and_greedy_of_the_same_runs():
+    from snn_tools.neuromorphic.local_rule import SETTINGS, markdown, measure
+    data = measure({'position': 2}, kinds=('snn_ekf',), settings=SETTINGS[:1], report=lambda line: None)
+    twin, greedy, local = data['rows']
+    assert (twin['rule'], twin['kind'], greedy['rule'], local['rule']) == ('twin', 'ekf', 'greedy', 'synchronous')
+    assert twin['rmse_ratio'] == 1.0 and greedy['spike_ratio'] == 1.0
+    assert local['rmse_ratio'] == pytest.approx(local['rmse_position_m'] / twin['rmse_position_m'])
+    assert local['spike_ratio'] == pytest.approx(local['spikes_per_step'] / greedy['spikes_per_step'])
+    assert local['ticks_per_sample'] == 100 and local['lost'] == 0
+    table = [line for line in markdown(data) if line.startswith('| position')]
+    assert len(table) == 3 and f"{local['rmse_position_m']:.4g}" in table[2]
