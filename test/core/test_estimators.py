@@ -321,10 +321,12 @@ def test_a_large_p0_or_a_long_step_keeps_p_positive_definite():
 
 
 @pytest.mark.parametrize('changes', [{}, {'network_coding': 'deviation'},
-                                     {'network_coding': 'deviation', 'network_drive': 'nonlinear'}],
-                         ids=['paper', 'deviation', 'deviation_f_drive'])
+                                     {'network_coding': 'deviation', 'network_drive': 'nonlinear'},
+                                     {'spike_rule': 'synchronous', 'ticks_per_sample': 20, 'firing_slots': 2}],
+                         ids=['paper', 'deviation', 'deviation_f_drive', 'synchronous'])
 def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol(changes):
-    """The paper's coding, and the deviation coding (test_network_coding.py) on either drive."""
+    """The paper's coding, the deviation coding (test_network_coding.py) on either drive, and the
+    synchronous rule."""
     scenario = van_der_pol_scenario(**changes)
     rng = np.random.default_rng(3)
     fast = make_estimator('snn_emsif', scenario.estimator, scenario.model)
@@ -335,6 +337,7 @@ def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol(
         dense.step(z, np.zeros(1), 0.01)
         np.testing.assert_array_equal(fast.spikes, dense.spikes)
         np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-9, atol=1e-12)
+    assert fast.total_spikes > 0
 
 
 def test_spike_rules_do_what_they_say():
