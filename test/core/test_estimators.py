@@ -376,6 +376,21 @@ def test_synchronous_rule_with_one_tick_and_no_remedy_is_the_all_above_rule(kind
     assert local.total_spikes > 0
 
 
+def test_the_synchronous_rules_tick_settings_retune_between_steps_as_if_built_with_them():
+    scenario, zs, us = rendezvous_inputs(steps=80)
+    tick = {'ticks_per_sample': 30, 'threshold_widening': 0.5, 'refractory_ticks': 2, 'firing_slots': 3}
+    config = scenario.estimator.replace(spike_rule='synchronous', neuron_count=60)
+    retuned = make_estimator('snn_ekf', config)
+    built = make_estimator('snn_ekf', config.replace(**tick))
+    retuned.retune(**tick)
+    for z, u in zip(zs, us):
+        retuned.step(z, u, 0.1)
+        built.step(z, u, 0.1)
+        np.testing.assert_array_equal(retuned.spikes, built.spikes)
+    np.testing.assert_array_equal(retuned.x_hat, built.x_hat)
+    assert built.total_spikes > 0
+
+
 def test_synchronous_rule_compares_no_neurons_two_above_threshold_in_a_tick_both_fire():
     """A step without input (r = 0, z = 0, u = 0) from potentials that put neurons 0 and 1,
     which code the same direction, above threshold: the synchronous rule fires both in the
