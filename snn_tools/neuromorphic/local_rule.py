@@ -70,6 +70,7 @@ def measure(runs: dict, seed: int = 0, kinds=KINDS, settings=SETTINGS, report=pr
     for name, count in runs.items():
         scenario = SCENARIOS[name]()
         out.setdefault('sample_period_s', scenario.dt)
+        out.setdefault('neurons', int(scenario.estimator.neuron_count))
         for kind in kinds:
             twin = _run(scenario, TWIN_OF[kind], count, seed, None, {})
             greedy = _run(scenario, kind, count, seed, 'greedy', {})
@@ -94,6 +95,16 @@ def setting_label(row: dict) -> str:
             f"R = {row['refractory_ticks']}")
 
 
+def neuron_updates(row: dict, neurons: int) -> str:
+    """Neuron updates per estimate: T ticks of all N neurons (synchronous); one pass over the N
+    neurons per spike plus the one that finds none above threshold (greedy's argmax)."""
+    if row['rule'] == 'synchronous':
+        return f"{row['ticks_per_sample'] * neurons:.0f}"
+    if row['rule'] == 'greedy':
+        return f"{(row['spikes_per_step'] + 1.0) * neurons:.0f}"
+    return ''
+
+
 def markdown(data: dict) -> list[str]:
     """The section of results/neuromorphic.md."""
     runs = ', '.join(f'{name} {count}' for name, count in data['runs'].items())
@@ -106,19 +117,21 @@ def markdown(data: dict) -> list[str]:
               "twin's; spikes per 0.1 s step, ratio to the greedy rule's. `synchronous`: T ticks per sample, "
               'every neuron in its slot ((t + i) mod K = 0) whose potential is above (1 + w) ||D_i||^2 / 2 '
               'fires, all in the same tick, R refractory ticks (docs/decisions.md, 55-56). A chip spends T '
-              'ticks per estimate (each N neuron updates); greedy spends one argmax pass over N per spike '
-              f'(no chip runs it). Lost: runs whose position RMSE exceeds {data["lost_m"]:g} m; diverged: '
+              f'ticks per estimate, each updating all N = {data["neurons"]} neurons; greedy spends one argmax '
+              'pass over the N per spike and one more (no chip runs it): neuron updates per estimate count '
+              'both, synaptic events (N per spike, the Gram row) come on top alike. '
+              f'Lost: runs whose position RMSE exceeds {data["lost_m"]:g} m; diverged: '
               'runs left out by simulate (non-finite, or the spike cap).'), '',
              '| scenario | kind | rule | setting | RMSE pos. (m) | / twin | spikes/step | / greedy | ticks/sample '
-             '| lost | diverged |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             '| neuron updates/estimate | lost | diverged |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for row in data['rows']:
         spikes = f"{row['spikes_per_step']:.1f}" if 'spikes_per_step' in row else ''
         ratio = f"{row['spike_ratio']:.2f}" if 'spike_ratio' in row else ''
         ticks = row.get('ticks_per_sample', '') if row['rule'] == 'synchronous' else ''
         lines.append(f"| {row['scenario']} | {row['kind']} | {row['rule']} | {setting_label(row)} | "
                      f"{row['rmse_position_m']:.4g} | {row['rmse_ratio']:.3f} | {spikes} | {ratio} | {ticks} | "
-                     f"{row['lost']} | {row['diverged']} |")
+                     f"{neuron_updates(row, data['neurons'])} | {row['lost']} | {row['diverged']} |")
     met = [row for row in data['rows'] if row['rule'] == 'synchronous' and row['rmse_ratio'] <= GOAL_RMSE_RATIO
            and row['spike_ratio'] <= GOAL_SPIKE_RATIO and not row['lost'] and not row['diverged']]
     lines += ['', (f'Goal of issue 40 (RMSE within {GOAL_RMSE_RATIO}x the twin and spikes within '
