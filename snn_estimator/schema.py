@@ -219,8 +219,8 @@ FIELDS: tuple[Field, ...] = (
     Field('spike_rule', 'choice', 'greedy', 'How neurons above threshold fire in one step: greedy (the '
           'largest overshoot first until none is above; a global comparison), one_per_step, all_above '
           '(all at once, once), synchronous (a chip\'s local rule over ticks_per_sample ticks; '
-          'docs/decisions.md, 55)', choices=SPIKE_RULES),
-    # the synchronous rule's parameters (docs/decisions.md, 55-56; defaults from results/neuromorphic.md)
+          'docs/decisions.md, 58)', choices=SPIKE_RULES),
+    # the synchronous rule's parameters (docs/decisions.md, 58-59; defaults from results/neuromorphic.md)
     Field('ticks_per_sample', 'integer', D.SYNCHRONOUS_TICKS, 'spike_rule synchronous: chip ticks per step; '
           'each tick every neuron integrates 1/T of the step\'s input and fires on its own potential',
           symbol='T', low=1, high=100000, runtime=True),

@@ -126,7 +126,7 @@ class Estimator:
                              'the model: it takes no measurement model; use precision float64')
         if chip.wanted(config) and s.spike_rule == 'synchronous':
             raise ValueError('spike_rule synchronous runs on the float64 network only (the chip network is '
-                             'not yet ticked, docs/decisions.md, 55): use precision float64 and gain_schedule '
+                             'not yet ticked, docs/decisions.md, 58): use precision float64 and gain_schedule '
                              'steady_state or time_varying, or another spike_rule')
         net = self.network
         self.chip = (chip.ChipNetwork(kind, model, config, s, net.decoder, net.alive, self.state.x_hat, net.spikes,

@@ -542,7 +542,7 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
 
 
 def _synchronous_template(b, dt, increment, noise, consts, state, network, scratch):
-    """The local, synchronous rule (spike_rule synchronous; docs/decisions.md, 55): the step is
+    """The local, synchronous rule (spike_rule synchronous; docs/decisions.md, 58): the step is
     T = ``ticks`` chip ticks. The step's input D^T drive + noise (as :func:`_spiking_template`)
     is spread evenly over them; each tick every neuron leaks by (1 - lambda dt)^(1/T) (r too)
     and integrates 1/T of it, then every live neuron fires whose potential exceeds its own

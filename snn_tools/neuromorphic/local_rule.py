@@ -1,7 +1,7 @@
 """The local, synchronous spike rule against the greedy one and the non-spiking twin (issue 40).
 
 A chip resolves no global argmax: each tick every neuron fires from its own potential
-(``spike_rule: synchronous``, docs/decisions.md, 55-56). Per scenario (position, LIDAR; dispersed
+(``spike_rule: synchronous``, docs/decisions.md, 58-59). Per scenario (position, LIDAR; dispersed
 start) and spiking kind, :func:`measure` flies the closed loop with the twin, the greedy rule
 and the synchronous rule at its defaults and the other SETTINGS, the same seeds for all, and
 keeps position RMSE over the metric window, spikes per step, ticks per sample and the runs that
@@ -116,7 +116,7 @@ def markdown(data: dict) -> list[str]:
               + ' Position RMSE over the last 60 s (norm of the x, y, z RMSE), ratio to the non-spiking '
               "twin's; spikes per 0.1 s step, ratio to the greedy rule's. `synchronous`: T ticks per sample, "
               'every neuron in its slot ((t + i) mod K = 0) whose potential is above (1 + w) ||D_i||^2 / 2 '
-              'fires, all in the same tick, R refractory ticks (docs/decisions.md, 55-56). A chip spends T '
+              'fires, all in the same tick, R refractory ticks (docs/decisions.md, 58-59). A chip spends T '
               f'ticks per estimate, each updating all N = {data["neurons"]} neurons; greedy spends one argmax '
               'pass over the N per spike and one more (no chip runs it): neuron updates per estimate count '
               'both, synaptic events (N per spike, the Gram row) come on top alike. '

@@ -31,7 +31,7 @@ Graph (NIR is continuous-time; a spike is a unit impulse)::
 * ``trains``: LI with tau = r = 1/lambda: r' = -lambda r + s (Eq. 11), the filtered spike
   trains; ``slow_*`` feed them back, ``decoder`` reads the estimate x_hat = S D r (Eq. 12) in
   m and m/s.
-* ``spike_rule: synchronous`` (docs/decisions.md, 55-57): v_threshold is the widened threshold
+* ``spike_rule: synchronous`` (docs/decisions.md, 58-60): v_threshold is the widened threshold
   (1 + w) T_i and v_reset = v_threshold - ||D_i||^2; the tick (``ticks_per_sample``, ``tick_s``),
   the firing slots and the refractory ticks are graph metadata, and ``spike_rule_meaning`` states
   the reading a simulator must take.
@@ -184,7 +184,7 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
         'seed': int(estimator.seeds[0]), 'neurons': int(neurons),
         'units': 'time s; z m; u m/s^2; x_hat m and m/s; v and weights in state-scaled units (x~ = S^-1 x)',
     }
-    if synchronous:  # the tick NIR has no field for (docs/decisions.md, 57)
+    if synchronous:  # the tick NIR has no field for (docs/decisions.md, 60)
         metadata.update({
             'ticks_per_sample': int(s.ticks_per_sample), 'tick_s': float(dt) / s.ticks_per_sample,
             'threshold_widening': float(s.threshold_widening), 'firing_slots': int(s.firing_slots),
