@@ -6,6 +6,8 @@
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
+#   make spike-rules [RUNS=n]  the local (synchronous) spike rule against greedy and the twin, position and
+#                             LIDAR, dispersed -> results/neuromorphic.{json,md} (its section only)
 #   make bench | bench-loop | bench-campaign | bench-live | bench-latency [SAMPLES=n]   speed figures -> results/
 #   make spike-budget [RUNS=n]  spikes against accuracy per network coding -> results/spike_budget.{json,md}
 #   make sensors [RUNS=n]     the filters on the LIDAR and the camera, offline -> results/sensors.{json,md}
@@ -29,7 +31,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget sensors approach \
+	spike-budget spike-rules sensors approach \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -101,6 +103,11 @@ bench-latency: $(STAMP)
 # every spiking kind under each network coding and unit, dispersed rendezvous, against its twin
 spike-budget: $(STAMP)
 	$(BIN)/python -m snn_tools.experiments.spike_budget $(if $(RUNS),--runs $(RUNS)) --out results/spike_budget.json
+
+# the synchronous (local) spike rule per kind on position and LIDAR (RUNS each, default 100), dispersed start
+spike-rules: $(STAMP)
+	$(BIN)/python -m snn_tools.neuromorphic.tables --local-rule-only --out results \
+		$(if $(RUNS),--local-rule-runs $(RUNS) $(RUNS))
 
 # the LIDAR close approach (dispersed) and angles-only navigation, offline (docs/sensors.md)
 sensors: $(STAMP)

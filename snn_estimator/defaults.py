@@ -28,6 +28,15 @@ RENDEZVOUS_NEURONS = 200
 RENDEZVOUS_LEAK_RATE = 0.001
 RENDEZVOUS_BOUNDARY_LAYER = 0.1
 RENDEZVOUS_DECODER_VARIANCE = 1.0 / 15.0
+#: spike_rule synchronous (Decisions 58-59; results/neuromorphic.md, make spike-rules): T = 100
+#: chip ticks per 0.1 s sample (1 ms), thresholds widened by w = 2 (3 ||D_i||^2 / 2: the one
+#: setting measured within 1.2x the twin's RMSE and 2x greedy's spikes on position and LIDAR for
+#: both kinds; w = 1 spends 2.2-2.3x greedy's spikes on position), no refractory ticks, K = 10
+#: firing slots (neuron i fires only when (t + i) mod 10 = 0).
+SYNCHRONOUS_TICKS = 100
+SYNCHRONOUS_WIDENING = 2.0
+SYNCHRONOUS_REFRACTORY = 0
+SYNCHRONOUS_SLOTS = 10
 #: P0 (not stated; Decision 6): one sensor sigma in position, 1 cm/s in velocity.
 RENDEZVOUS_INITIAL_COVARIANCE = (1e-2, 1e-2, 1e-2, 1e-4, 1e-4, 1e-4)
 #: Network state scaling S (Decision 10): 1 cm and 0.1 mm/s per unit.

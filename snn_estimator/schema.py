@@ -21,7 +21,7 @@ import numpy as np
 from . import defaults as D
 from .validation import as_matrix, as_vector, check_choice, check_covariance
 
-SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
+SPIKE_RULES = ('greedy', 'one_per_step', 'all_above', 'synchronous')
 #: What R_hat is to Eq. 5-6: the spectral density they take, or the variance of each sample.
 MEASUREMENT_NOISE_UNITS = ('spectral_density', 'per_sample')
 #: How the gain evolves: per step from P or the innovation (the paper), or held at its steady
@@ -228,8 +228,22 @@ FIELDS: tuple[Field, ...] = (
     Field('initial_state_dispersion', 'bool', False, 'Start each run from x_hat0 + L xi (L L^T = P0, '
           'xi ~ N(0, I) from the seed, stream 5), not from x_hat0: the filter does not know the '
           'truth (the paper starts at the truth: false)'),
-    Field('spike_rule', 'choice', 'greedy', 'How neurons above threshold fire in one step',
-          choices=SPIKE_RULES),
+    Field('spike_rule', 'choice', 'greedy', 'How neurons above threshold fire in one step: greedy (the '
+          'largest overshoot first until none is above; a global comparison), one_per_step, all_above '
+          '(all at once, once), synchronous (a chip\'s local rule over ticks_per_sample ticks; '
+          'docs/decisions.md, 58)', choices=SPIKE_RULES),
+    # the synchronous rule's parameters (docs/decisions.md, 58-59; defaults from results/neuromorphic.md)
+    Field('ticks_per_sample', 'integer', D.SYNCHRONOUS_TICKS, 'spike_rule synchronous: chip ticks per step; '
+          'each tick every neuron integrates 1/T of the step\'s input and fires on its own potential',
+          symbol='T', low=1, high=100000, runtime=True),
+    Field('threshold_widening', 'real', D.SYNCHRONOUS_WIDENING, 'spike_rule synchronous: thresholds '
+          '(1 + w) ||D_i||^2 / 2 (Calaim et al. 2022: a wider box against ping-pong)', symbol='w',
+          low=0.0, runtime=True),
+    Field('refractory_ticks', 'integer', D.SYNCHRONOUS_REFRACTORY, 'spike_rule synchronous: ticks a neuron '
+          'may not fire after a spike', symbol='R', low=0, runtime=True),
+    Field('firing_slots', 'integer', D.SYNCHRONOUS_SLOTS, 'spike_rule synchronous: neuron i may fire only '
+          'in the ticks t of the step with (t + i) mod K = 0 (1: every tick)', symbol='K', low=1,
+          runtime=True),
     Field('state_scale', 'vector', D.RENDEZVOUS_STATE_SCALE, 'Diagonal of S: the network encodes '
           'x~ = S^-1 x (all 1: the literal network; docs/decisions.md, 10)', unit='m and m/s per unit',
           low=0.0, strict=True, size='n'),

@@ -58,6 +58,8 @@ __doc__ = __doc__.format(kinds=kinds_table(), laws=gains.table())
 def _settings_constants(settings: ResolvedConfig) -> dict:
     """The kernel constants that follow the settings (what :meth:`Estimator.retune` changes)."""
     return {'leak': settings.leak_rate, 'max_spikes': settings.max_spikes_per_step,
+            'ticks': settings.ticks_per_sample, 'widening': settings.threshold_widening,
+            'refractory': settings.refractory_ticks, 'slots': settings.firing_slots,
             'r_hat_diag': np.ascontiguousarray(np.diag(settings.r_hat)), 'delta': settings.boundary_layer}
 
 
@@ -122,6 +124,10 @@ class Estimator:
         if chip.wanted(config) and self.measurement is not None:
             raise ValueError('the chip network (precision loihi, gain_schedule switched) holds the constant C of '
                              'the model: it takes no measurement model; use precision float64')
+        if chip.wanted(config) and s.spike_rule == 'synchronous':
+            raise ValueError('spike_rule synchronous runs on the float64 network only (the chip network is '
+                             'not yet ticked, docs/decisions.md, 58): use precision float64 and gain_schedule '
+                             'steady_state or time_varying, or another spike_rule')
         net = self.network
         self.chip = (chip.ChipNetwork(kind, model, config, s, net.decoder, net.alive, self.state.x_hat, net.spikes,
                                       net.total_spikes, self._chip_gains)
@@ -356,7 +362,7 @@ class Estimator:
         if self.spiking:
             net = self.network
             arrays.update(r=net.r, v=net.v, spikes=net.spikes, total_spikes=net.total_spikes,
-                          reference=net.reference)
+                          reference=net.reference, refractory_left=net.refractory_left)
         return arrays
 
     def snapshot(self) -> EstimatorSnapshot:

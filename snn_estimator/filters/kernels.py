@@ -32,7 +32,7 @@ from numba.experimental import structref
 from snn_estimator import gains
 
 COVARIANCE_LAWS = ('riccati', 'gain', 'none')  # Eq. 6 | the covariance of the gain used | no P
-SPIKE_RULES = ('greedy', 'one_per_step', 'all_above')
+SPIKE_RULES = ('greedy', 'one_per_step', 'all_above', 'synchronous')
 
 # Reassociation lets LLVM vectorise the reductions; no-NaN/Inf assumptions stay off so the
 # finiteness checks keep working.
@@ -56,16 +56,18 @@ STATUS_COVARIANCE = 3    # a run's P is not positive definite or its gain not fi
 #: for a run whose last step left P not positive definite or its gain not finite.
 _CONSTANT_SHAPES = {'c': ('d', 'm', 'n'), 'c_pinv': ('d', 'n', 'm'), 'q_step': ('n', 'n'), 'r_sample': ('m', 'm'),
                     'r_hat_diag': ('m',), 'delta': ('m',), 'scale': ('n',), 'fixed_gain': ('n', 'm'), 'leak': (),
-                    'max_spikes': (), 'layer_step': ('m',)}
+                    'max_spikes': (), 'layer_step': ('m',), 'ticks': (), 'widening': (), 'refractory': (),
+                    'slots': ()}
 CONSTANTS = tuple((name, _CONSTANT_SHAPES[name]) for name in gains.PIECE_CONSTANTS)
 STATE = (('x_hat', ('runs', 'n')), ('p', ('runs', 'n', 'n')), ('gain', ('runs', 'n', 'm')), ('fault', ('runs',)))
 NETWORK = (('decoder', ('runs', 'n', 'N')), ('gram', ('runs', 'N', 'N')), ('thresholds', ('runs', 'N')),
            ('alive', ('runs', 'N')), ('r', ('runs', 'N')), ('v', ('runs', 'N')), ('spikes', ('runs', 'N')),
-           ('total_spikes', ('runs',)), ('reference', ('runs', 'n')))
+           ('total_spikes', ('runs',)), ('reference', ('runs', 'n')), ('refractory_left', ('runs', 'N')))
 INPUTS = (('dynamics', ('d', 'n', 'w')), ('drift', ('d', 'n')), ('z', ('runs', 'm')), ('u', ('runs', 'nu')),
           ('noise', ('runs', 'N')), ('measured', ('runs',)))
-_SCALARS = {'leak': float, 'max_spikes': int}
-_DTYPES = {'alive': np.bool_, 'fault': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64, 'measured': np.bool_}
+_SCALARS = {'leak': float, 'max_spikes': int, 'ticks': int, 'widening': float, 'refractory': int, 'slots': int}
+_DTYPES = {'alive': np.bool_, 'fault': np.bool_, 'spikes': np.int64, 'total_spikes': np.int64, 'measured': np.bool_,
+           'refractory_left': np.int64}
 #: Arguments whose leading axis is 1 (shared by every run) or runs.
 _SHARED_OR_PER_RUN = ('dynamics', 'drift', 'c', 'c_pinv')
 
@@ -434,7 +436,12 @@ def _fire_all_above(b, max_spikes, gram, thresholds, alive, r, v, spikes):
     return count, False
 
 
-_FIRE = {'greedy': _fire_greedy, 'one_per_step': _fire_one_per_step, 'all_above': _fire_all_above}
+#: How each rule fires in a step. The synchronous rule steps in its own template
+#: (:func:`_synchronous_template`, ticks inside the step); its entry here serves the fire-only
+#: kernel (the network settling right after neurons are lost): one tick, every neuron above its
+#: threshold at once, no global comparison either.
+_FIRE = {'greedy': _fire_greedy, 'one_per_step': _fire_one_per_step, 'all_above': _fire_all_above,
+         'synchronous': _fire_all_above}
 
 
 # ---------------------------------------------------------------- integration
@@ -497,6 +504,17 @@ def _deviation_decode(b, k, acc, scale, reference):
 _CODING = {'state': (_state_drive, _state_decode), 'deviation': (_deviation_drive, _deviation_decode)}
 
 
+@_jit
+def _input_current(b, drive, noise, decoder, out):
+    """A step's input to every neuron: D^T drive + the step's membrane noise."""
+    for i in range(out.shape[0]):
+        out[i] = noise[b, i]
+    for k in range(decoder.shape[1]):  # row by row so the inner loop is contiguous
+        weight = drive[k]
+        for i in range(out.shape[0]):
+            out[i] += decoder[b, k, i] * weight
+
+
 def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
     """The network on x~ = S^-1 x (Eq. 10-15, forward Euler), or on the deviation from the
     prediction (network_coding, the ``_drive`` and ``_decode`` pieces):
@@ -504,22 +522,79 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
     (r_i += 1, v -= D^T D_i), x_hat = S D r (Eq. 12; plus x_pred for the deviation)."""
     scale, leak, max_spikes = consts[gains.SCALE], consts[gains.LEAK], consts[gains.MAX_SPIKES]
     x_hat, gain = state[0], state[2]
-    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network
+    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network[:9]
     drive, input_current = scratch[9], scratch[10]
     n, neurons = decoder.shape[1], decoder.shape[2]
     decay = 1.0 - leak * dt
     _drive(b, dt, increment, leak, scale, x_hat, reference, gain, scratch[0], drive)
-    for i in range(neurons):
-        input_current[i] = noise[b, i]
-    for k in range(n):  # D^T drive, row by row so the inner loop is contiguous
-        weight = drive[k]
-        for i in range(neurons):
-            input_current[i] += decoder[b, k, i] * weight
+    _input_current(b, drive, noise, decoder, input_current)
     for i in range(neurons):
         v[b, i] = v[b, i] * decay + input_current[i]
         r[b, i] *= decay
         spikes[b, i] = 0
     count, hit_cap = _fire(b, max_spikes, gram, thresholds, alive, r, v, spikes)
+    total_spikes[b] += count
+    for k in range(n):
+        acc = 0.0
+        for i in range(neurons):
+            acc += decoder[b, k, i] * r[b, i]
+        x_hat[b, k] = _decode(b, k, acc, scale, reference)
+    return _row_finite(x_hat, b), count, hit_cap
+
+
+def _synchronous_template(b, dt, increment, noise, consts, state, network, scratch):
+    """The local, synchronous rule (spike_rule synchronous; docs/decisions.md, 58): the step is
+    T = ``ticks`` chip ticks. The step's input D^T drive + noise (as :func:`_spiking_template`)
+    is spread evenly over them; each tick every neuron leaks by (1 - lambda dt)^(1/T) (r too)
+    and integrates 1/T of it, then every live neuron fires whose potential exceeds its own
+    threshold (1 + w) T_i, unless it fired within the last ``refractory`` ticks or the tick t
+    (0..T-1 in the step) is not its slot ((t + i) mod K = 0, K = ``slots``). Nothing compares
+    neurons. After the tick, each spike adds its Omega_f column (v -= D^T D_i: the lateral
+    effects and its own reset by subtraction of ||D_i||^2) and r_i += 1. At most ``max_spikes``
+    spikes per step: beyond, a tick's later neurons (by index) do not fire and the cap is
+    reported. x_hat = S D r (Eq. 12) at the end of the step. Returns (finite, spikes, capped)."""
+    scale, leak, max_spikes = consts[gains.SCALE], consts[gains.LEAK], consts[gains.MAX_SPIKES]
+    ticks, widening = consts[gains.TICKS], consts[gains.WIDENING]
+    refractory, slots = consts[gains.REFRACTORY], consts[gains.SLOTS]
+    x_hat, gain = state[0], state[2]
+    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference, refractory_left = network
+    drive, input_current = scratch[9], scratch[10]
+    n, neurons = decoder.shape[1], decoder.shape[2]
+    decay = (1.0 - leak * dt) ** (1.0 / ticks)
+    share = 1.0 / ticks
+    widened = 1.0 + widening
+    _drive(b, dt, increment, leak, scale, x_hat, reference, gain, scratch[0], drive)
+    _input_current(b, drive, noise, decoder, input_current)
+    for i in range(neurons):
+        spikes[b, i] = 0
+    fired = np.zeros(neurons, dtype=np.bool_)
+    count = 0
+    hit_cap = False
+    for tick in range(ticks):
+        fired_any = False
+        for i in range(neurons):
+            value = v[b, i] * decay + input_current[i] * share
+            v[b, i] = value
+            r[b, i] *= decay
+            fire = (alive[b, i] and refractory_left[b, i] == 0 and (tick + i) % slots == 0
+                    and value > widened * thresholds[b, i])
+            if fire and count >= max_spikes:
+                fire = False
+                hit_cap = True
+            if fire:
+                count += 1
+                fired_any = True
+                refractory_left[b, i] = refractory
+            elif refractory_left[b, i] > 0:
+                refractory_left[b, i] -= 1
+            fired[i] = fire
+        if fired_any:
+            for i in range(neurons):
+                if fired[i]:
+                    r[b, i] += 1.0
+                    spikes[b, i] += 1
+                    for j in range(neurons):
+                        v[b, j] -= gram[b, i, j]
     total_spikes[b] += count
     for k in range(n):
         acc = 0.0
@@ -604,7 +679,7 @@ def _fire_only_template(max_spikes, network, scale, x_hat):
     """The fast time scale alone: let every run spike until its coding error is below
     threshold (used right after neurons are lost), then decode x_hat = S D r (plus the
     prediction ``reference`` for the deviation coding). ``network``: the :data:`NETWORK` tuple."""
-    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network
+    decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network[:9]
     runs, n, neurons = decoder.shape
     emitted = 0
     for b in range(runs):
@@ -691,7 +766,8 @@ def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'gre
     if (_step_template.__name__, name) in _KERNELS:
         return _KERNELS[(_step_template.__name__, name)]
     drive, decode = _CODING[coding]
-    integrate = (_specialise(_spiking_template, f'network_{spike_rule}{tag}', _fire=_FIRE[spike_rule], _drive=drive,
+    template = _synchronous_template if spike_rule == 'synchronous' else _spiking_template
+    integrate = (_specialise(template, f'network_{spike_rule}{tag}', _fire=_FIRE[spike_rule], _drive=drive,
                              _decode=decode) if spiking else _direct)
     terms = (_kalman_terms if module.USES_KALMAN or covariance == 'riccati' else
              _p_terms if module.USES_P else _no_p_terms)

@@ -227,6 +227,7 @@ class DenseSpikingFilter:
         self.alive = estimator.alive
         self.method = s.discretization
         self.spikes = np.zeros(self.decoder.shape[1], dtype=np.int64)
+        self.refractory_left = estimator.network.refractory_left[0].copy()
         # network_coding deviation: the network codes x_hat - x_pred, the prediction runs beside it
         self.deviation = s.network_coding == 'deviation'
         self.x_pred = estimator.prediction.copy() if self.deviation else np.zeros(n)
@@ -263,13 +264,39 @@ class DenseSpikingFilter:
             self.x_pred = self.x_pred + dt * (a_d @ x_hat + b_d @ u + nonlinear)
             f_weights, nonlinear = np.zeros_like(f_weights), np.zeros_like(nonlinear)
             omega_s = d.T @ (self.leak * np.eye(n)) @ d
+        self.spikes[:] = 0
+        if self.rule == 'synchronous':  # Eq. 15 without its leak, spread over the ticks
+            self._ticks(dt * (f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z_linear
+                              + d.T @ (s_inv * nonlinear)), dt)
+            return self.x_hat
         v_dot = (-self.leak * self.v + f_weights @ u + (omega_s + omega_k) @ self.r + f_k @ z_linear  # Eq. 15
                  + d.T @ (s_inv * nonlinear))
         self.v = self.v + dt * v_dot
         self.r = self.r * (1.0 - self.leak * dt)                               # Eq. 11
-        self.spikes[:] = 0
         self._fire()
         return self.x_hat
+
+    def _ticks(self, current: np.ndarray, dt: float) -> None:
+        """The synchronous rule, written out: T ticks, each leaking v and r by (1 - lambda
+        dt)^(1/T) and adding current / T; then every eligible neuron (live, not refractory, in
+        its slot (t + i) mod K = 0) above (1 + w) T_i fires, all at once, with no comparison
+        across neurons; their Omega_f columns act after the tick."""
+        s = self.source.settings
+        ticks, slots, refractory = s.ticks_per_sample, s.firing_slots, s.refractory_ticks
+        thresholds = (1.0 + s.threshold_widening) * self.thresholds
+        decay = (1.0 - self.leak * dt) ** (1.0 / ticks)
+        index = np.arange(len(self.v))
+        for tick in range(ticks):
+            self.v = self.v * decay + current * (1.0 / ticks)
+            self.r = self.r * decay
+            fired = self.alive & (self.refractory_left == 0) & ((tick + index) % slots == 0) & (self.v > thresholds)
+            room = self.max_spikes - int(self.spikes.sum())
+            if fired.sum() > room:  # the cap: a tick's later neurons do not fire
+                fired[np.flatnonzero(fired)[room:]] = False
+            self.refractory_left = np.where(fired, refractory, np.maximum(self.refractory_left - 1, 0))
+            self.spikes += fired
+            self.r = self.r + fired
+            self.v = self.v + self.omega_f @ fired.astype(float)
 
     def _fire(self) -> None:
         over = np.where(self.alive, self.v - self.thresholds, -np.inf)

@@ -26,12 +26,13 @@ import numpy as np
 #: The constants a law's compiled ``gain`` piece receives as ``consts``, in this order (the
 #: step kernel's, snn_estimator.filters.kernels.CONSTANTS, gives their shapes): H and its
 #: pseudo-inverse, the process noise of a step Q_d, a sample's variance R_d, diag(R_hat), delta,
-#: the network's state scale, a constant gain, the leak, the spike cap and, per measured
-#: component, the step dt where the boundary layer is variable (0: fixed; msif.py).
+#: the network's state scale, a constant gain, the leak, the spike cap, per measured component
+#: the step dt where the boundary layer is variable (0: fixed; msif.py), and the synchronous
+#: rule's ticks per sample, threshold widening, refractory ticks and firing slots.
 PIECE_CONSTANTS = ('c', 'c_pinv', 'q_step', 'r_sample', 'r_hat_diag', 'delta', 'scale', 'fixed_gain', 'leak',
-                   'max_spikes', 'layer_step')
-(C, C_PINV, Q_STEP, R_SAMPLE, R_HAT_DIAG, DELTA, SCALE, FIXED_GAIN, LEAK, MAX_SPIKES,
- LAYER_STEP) = range(len(PIECE_CONSTANTS))
+                   'max_spikes', 'layer_step', 'ticks', 'widening', 'refractory', 'slots')
+(C, C_PINV, Q_STEP, R_SAMPLE, R_HAT_DIAG, DELTA, SCALE, FIXED_GAIN, LEAK, MAX_SPIKES, LAYER_STEP, TICKS, WIDENING,
+ REFRACTORY, SLOTS) = range(len(PIECE_CONSTANTS))
 
 
 class SampledStep(NamedTuple):

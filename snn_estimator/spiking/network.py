@@ -39,18 +39,20 @@ class Network:
         #: x_pred of network_coding deviation (x_hat = x_pred + S D r); zero for the paper's coding
         self.reference = np.zeros((runs, n))
         self.zero_noise = np.zeros((runs, neurons))
+        #: ticks each neuron must still wait before it may fire again (spike_rule synchronous)
+        self.refractory_left = np.zeros((runs, neurons), dtype=np.int64)
 
     @property
     def arrays(self) -> dict:
         """The kernel's network arguments by name (kernels.NETWORK)."""
         return {'decoder': self.decoder, 'gram': self.gram, 'thresholds': self.thresholds, 'alive': self.alive,
                 'r': self.r, 'v': self.v, 'spikes': self.spikes, 'total_spikes': self.total_spikes,
-                'reference': self.reference}
+                'reference': self.reference, 'refractory_left': self.refractory_left}
 
     def kernel_tuple(self) -> tuple:
         """The same arrays as the kernel's NETWORK tuple, in its order (the fire kernel's argument)."""
         return (self.decoder, self.gram, self.thresholds, self.alive, self.r, self.v, self.spikes,
-                self.total_spikes, self.reference)
+                self.total_spikes, self.reference, self.refractory_left)
 
     def clear(self) -> None:
         self.r[:] = 0.0
@@ -58,6 +60,7 @@ class Network:
         self.spikes[:] = 0
         self.total_spikes[:] = 0
         self.reference[:] = 0.0
+        self.refractory_left[:] = 0
 
     def noise(self, sigma: float) -> np.ndarray:
         """Membrane noise of one step for every run, N(0, sigma^2) per neuron."""
@@ -80,6 +83,7 @@ class Network:
             raise ValueError(f'cannot encode {np.asarray(target).tolist()}: the network overflows')
         self.r[run] = rates
         self.v[run] = potentials
+        self.refractory_left[run] = 0
         return decoded
 
     def retire(self, runs: np.ndarray) -> None:

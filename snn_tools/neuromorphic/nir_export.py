@@ -31,6 +31,10 @@ Graph (NIR is continuous-time; a spike is a unit impulse)::
 * ``trains``: LI with tau = r = 1/lambda: r' = -lambda r + s (Eq. 11), the filtered spike
   trains; ``slow_*`` feed them back, ``decoder`` reads the estimate x_hat = S D r (Eq. 12) in
   m and m/s.
+* ``spike_rule: synchronous`` (docs/decisions.md, 58-60): v_threshold is the widened threshold
+  (1 + w) T_i and v_reset = v_threshold - ||D_i||^2; the tick (``ticks_per_sample``, ``tick_s``),
+  the firing slots and the refractory ticks are graph metadata, and ``spike_rule_meaning`` states
+  the reading a simulator must take.
 * What NIR has no field for is node and graph metadata (nir 1.0.8 stores it in the file): the
   sample period and its discretisation, the spike rule, S, the gain K, the filter kind and
   gain law, seed, units, and the initial state (v and r after encoding x_hat0).
@@ -62,9 +66,23 @@ RESET_SEMANTICS = (
     'v_reset = v_threshold - ||D_i||^2 carries the self term of Omega_f (Eq. 18): subtract '
     'v_threshold - v_reset at each spike. Equal to resetting to v_reset only when v crosses '
     'exactly at v_threshold (continuous time)')
-SPIKE_RULE = (
-    'greedy: per sample period, integrate the drive, then while some neuron has v_i > T_i the one '
-    'with the largest v_i - T_i fires alone and its fast connections act before the next is chosen')
+#: What each spike rule means to a reader of the graph (metadata ``spike_rule_meaning``).
+SPIKE_RULES = {
+    'greedy': ('per sample period, integrate the drive, then while some neuron has v_i > T_i the one '
+               'with the largest v_i - T_i fires alone and its fast connections act before the next is chosen'),
+    'one_per_step': 'per sample period, integrate the drive, then the neuron with the largest v_i - T_i > 0 fires',
+    'all_above': ('per sample period, integrate the drive, then every neuron with v_i > T_i fires once, all '
+                  'together; the fast connections act after'),
+    'synchronous': (
+        'explicit Euler at tick_s = sample_period / ticks_per_sample, the inputs held over the sample and fed '
+        'at every tick; each tick v and r decay by (1 - leak_rate sample_period)^(1/ticks_per_sample) and '
+        'v integrates 1/ticks_per_sample of the sample\'s input; then every neuron i fires whose v_i exceeds '
+        'its own v_threshold (already widened: (1 + threshold_widening) ||D_i||^2 / 2), if (t + i) mod '
+        'firing_slots = 0 for the tick t = 0..ticks_per_sample-1 of the sample and it has not fired in the '
+        'last refractory_ticks ticks; all that fire in a tick fire together (a spike is 1 in that tick, no '
+        'neuron is compared with another), and their fast connections and reset act after the tick '
+        '(the previous tick\'s spikes reach the next tick); r_i += 1 per spike'),
+}
 
 
 def constant_gain_estimator(kind: str, config, model: StateSpaceModel) -> Estimator:
@@ -112,7 +130,10 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
     model = estimator.model
     # a leak the chip's 12-bit decay rounds to 0 is written as a time constant of 1e12 s
     tau = np.full(neurons, 1.0 / max(leak, 1e-12))
-    thresholds = w['thresholds']
+    synchronous = s.spike_rule == 'synchronous'  # float64 network only (the chip refuses it)
+    # the synchronous rule fires above the widened threshold; the reset still subtracts ||D_i||^2
+    thresholds = w['thresholds'] * (1.0 + s.threshold_widening) if synchronous else w['thresholds']
+    reset = thresholds - 2.0 * w['thresholds']
     fast = w['Omega_f'] - np.diag(np.diag(w['Omega_f']))
     scaled_decoder = s.state_scale[:, None] * w['decoder']
     nodes = {
@@ -125,7 +146,7 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
         'control_weights': nir.Linear(weight=w['F'], metadata={
             'equation': 'F = D^T S^-1 B_d (Eq. 16)', 'unit': 's/m'}),
         LIF: nir.LIF(tau=tau, r=tau.copy(), v_leak=np.zeros(neurons), v_threshold=thresholds,
-                     v_reset=-thresholds, metadata={
+                     v_reset=reset, metadata={
                          'equation': 'v\' = -lambda v + I (Eq. 10, 15); T_i = ||D_i||^2 / 2',
                          'reset': RESET_SEMANTICS, 'initial_v': initial_v,
                          'unit': 'v in state-scaled units, tau in s'}),
@@ -157,12 +178,21 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
         'sample_period': float(dt), 'discretization': s.discretization,
         'sample_semantics': ('inputs held over each sample period; A_d = (Phi - I)/dt and B_d = Gamma/dt '
                              'are the exact zero-order hold at this period (models.linearized_increment)'),
-        'spike_rule': s.spike_rule, 'spike_rule_meaning': SPIKE_RULE,
+        'spike_rule': s.spike_rule, 'spike_rule_meaning': SPIKE_RULES[s.spike_rule],
         'state_scale': s.state_scale.copy(), 'state_names': ','.join(model.state_names),
         'leak_rate': float(leak), 'decoder_variance': float(s.decoder_variance),
         'seed': int(estimator.seeds[0]), 'neurons': int(neurons),
         'units': 'time s; z m; u m/s^2; x_hat m and m/s; v and weights in state-scaled units (x~ = S^-1 x)',
     }
+    if synchronous:  # the tick NIR has no field for (docs/decisions.md, 60)
+        metadata.update({
+            'ticks_per_sample': int(s.ticks_per_sample), 'tick_s': float(dt) / s.ticks_per_sample,
+            'threshold_widening': float(s.threshold_widening), 'firing_slots': int(s.firing_slots),
+            'firing_slot_rule': '(t + i) mod firing_slots == 0, t = 0..ticks_per_sample-1 within each sample',
+            'refractory_ticks': int(s.refractory_ticks),
+            'spike_semantics': ('a spike is 1 in the tick it fires (not a unit impulse): the weights of edges '
+                                'out of neurons (fast, and trains through LI) are jumps per spike'),
+        })
     if network is not None:
         times = [0.0] + list(chip.schedule_times(estimator.config)) + [float('inf')]
         metadata.update({

@@ -30,6 +30,8 @@ from snn_estimator.spiking.costs import CHIPS, FLOAT32_MAC_PJ, FLOAT32_MAC_SOURC
 from snn_tools.experiments.tables import time_steps
 from snn_tools.neuromorphic.brian2_sim import run_network
 from snn_tools.neuromorphic.chip import run_all
+from snn_tools.neuromorphic.local_rule import markdown as local_rule_markdown
+from snn_tools.neuromorphic.local_rule import measure as measure_local_rule
 from snn_tools.neuromorphic.nir_export import (
     NetworkArrays,
     constant_gain_estimator,
@@ -344,6 +346,8 @@ def markdown(data: dict) -> str:
     if 'chip' in data:  # the chip's arithmetic, schedule, spiking LQR (snn_tools.neuromorphic.chip)
         from snn_tools.neuromorphic.chip import markdown as chip_markdown
         lines += chip_markdown(data['chip'])
+    if 'local_rule' in data:  # the synchronous rule (snn_tools.neuromorphic.local_rule)
+        lines += local_rule_markdown(data['local_rule'])
     return '\n'.join(lines) + '\n'
 
 
@@ -422,9 +426,16 @@ def main(argv=None) -> int:
     parser.add_argument('--no-chip', action='store_true', help='skip the chip section (snn_tools.neuromorphic.chip)')
     parser.add_argument('--chip-only', action='store_true',
                         help='compute the chip section alone and add it to the existing <out>/neuromorphic.json')
+    parser.add_argument('--local-rule-only', action='store_true',
+                        help='compute the synchronous spike rule section alone (make spike-rules) and add it to '
+                             'the existing <out>/neuromorphic.json')
+    parser.add_argument('--local-rule-runs', type=int, nargs=2, default=[100, 100], metavar=('POSITION', 'LIDAR'),
+                        help='runs of the synchronous rule section per scenario (LIDAR 0: position only)')
     args = parser.parse_args(argv)
     if args.chip_only:
         return _chip_only(args)
+    if args.local_rule_only:
+        return _local_rule_only(args)
     if args.runs < 1 or args.substeps < 1:
         parser.error('--runs and --substeps must be >= 1')
     scenario = rendezvous_scenario()
@@ -457,12 +468,32 @@ def main(argv=None) -> int:
         first = data['filters'].get('snn_ekf') or next(iter(data['filters'].values()))
         data['chip'] = run_all(args, first['energy_per_step_pj']['loihi'])
         print(f'chip section: {data["chip"]["wall_time_s"]} s', flush=True)
+    data['local_rule'] = _measure_local_rule(args)
     data['wall_time_s'] = round(time.perf_counter() - started, 1)
     plot_sweep(sweep, args.out / 'neuromorphic_costs.png')
     (args.out / 'neuromorphic.json').write_text(json.dumps(data, indent=2) + '\n')
     (args.out / 'neuromorphic.md').write_text(markdown(data))
     print(f'wrote {args.out / "neuromorphic.json"}, neuromorphic.md, neuromorphic_costs.png '
           f'({data["wall_time_s"]} s)')
+    return 0
+
+
+def _measure_local_rule(args) -> dict:
+    position, lidar = args.local_rule_runs
+    if position < 1 or lidar < 0:
+        raise SystemExit('--local-rule-runs: position runs >= 1, LIDAR runs >= 0')
+    return measure_local_rule({'position': position, **({'lidar': lidar} if lidar else {})},
+                              report=lambda line: print(line, flush=True))
+
+
+def _local_rule_only(args) -> int:
+    """The synchronous rule's section over the existing results (the rest as the last full run wrote it)."""
+    path = args.out / 'neuromorphic.json'
+    data = json.loads(path.read_text())
+    data['local_rule'] = _measure_local_rule(args)
+    path.write_text(json.dumps(data, indent=2) + '\n')
+    (args.out / 'neuromorphic.md').write_text(markdown(data))
+    print(f'wrote the local rule section into {path} and neuromorphic.md ({data["local_rule"]["wall_time_s"]} s)')
     return 0
 
 

@@ -321,10 +321,12 @@ def test_a_large_p0_or_a_long_step_keeps_p_positive_definite():
 
 
 @pytest.mark.parametrize('changes', [{}, {'network_coding': 'deviation'},
-                                     {'network_coding': 'deviation', 'network_drive': 'nonlinear'}],
-                         ids=['paper', 'deviation', 'deviation_f_drive'])
+                                     {'network_coding': 'deviation', 'network_drive': 'nonlinear'},
+                                     {'spike_rule': 'synchronous', 'ticks_per_sample': 20, 'firing_slots': 2}],
+                         ids=['paper', 'deviation', 'deviation_f_drive', 'synchronous'])
 def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol(changes):
-    """The paper's coding, and the deviation coding (test_network_coding.py) on either drive."""
+    """The paper's coding, the deviation coding (test_network_coding.py) on either drive, and the
+    synchronous rule."""
     scenario = van_der_pol_scenario(**changes)
     rng = np.random.default_rng(3)
     fast = make_estimator('snn_emsif', scenario.estimator, scenario.model)
@@ -335,6 +337,7 @@ def test_compiled_network_equals_the_dense_network_on_the_nonlinear_van_der_pol(
         dense.step(z, np.zeros(1), 0.01)
         np.testing.assert_array_equal(fast.spikes, dense.spikes)
         np.testing.assert_allclose(fast.x_hat, dense.x_hat, rtol=1e-9, atol=1e-12)
+    assert fast.total_spikes > 0
 
 
 def test_spike_rules_do_what_they_say():
@@ -349,6 +352,80 @@ def test_spike_rules_do_what_they_say():
                 assert estimator.spikes.max() <= 1
             else:  # greedy leaves no live neuron above threshold
                 assert np.all(estimator.potentials <= estimator.thresholds + 1e-12)
+
+
+# ---------------------------------------------------------------- the synchronous (local) rule
+@pytest.mark.parametrize('kind', ['snn_ekf', 'snn_emsif_weighted'])
+@pytest.mark.parametrize('changes', [{}, {'refractory_ticks': 2, 'firing_slots': 3, 'ticks_per_sample': 20},
+                                     {'network_coding': 'deviation', 'state_scale': (1e-3,) * 3 + (1e-5,) * 3}])
+def test_compiled_synchronous_rule_equals_the_dense_network_spike_for_spike(kind, changes):
+    assert_compiled_equals_dense(kind, spike_rule='synchronous', neuron_count=60, **changes)
+
+
+@pytest.mark.parametrize('kind', ['snn_ekf', 'snn_emsif'])
+def test_synchronous_rule_with_one_tick_and_no_remedy_is_the_all_above_rule(kind):
+    scenario, zs, us = rendezvous_inputs(steps=100)
+    local = make_estimator(kind, scenario.estimator.replace(
+        spike_rule='synchronous', ticks_per_sample=1, threshold_widening=0.0, refractory_ticks=0, firing_slots=1))
+    all_above = make_estimator(kind, scenario.estimator.replace(spike_rule='all_above'))
+    for z, u in zip(zs, us):
+        local.step(z, u, 0.1)
+        all_above.step(z, u, 0.1)
+        np.testing.assert_array_equal(local.spikes, all_above.spikes)
+        np.testing.assert_array_equal(local.x_hat, all_above.x_hat)
+    assert local.total_spikes > 0
+
+
+def test_the_synchronous_rules_tick_settings_retune_between_steps_as_if_built_with_them():
+    scenario, zs, us = rendezvous_inputs(steps=80)
+    tick = {'ticks_per_sample': 30, 'threshold_widening': 0.5, 'refractory_ticks': 2, 'firing_slots': 3}
+    config = scenario.estimator.replace(spike_rule='synchronous', neuron_count=60)
+    retuned = make_estimator('snn_ekf', config)
+    built = make_estimator('snn_ekf', config.replace(**tick))
+    retuned.retune(**tick)
+    for z, u in zip(zs, us):
+        retuned.step(z, u, 0.1)
+        built.step(z, u, 0.1)
+        np.testing.assert_array_equal(retuned.spikes, built.spikes)
+    np.testing.assert_array_equal(retuned.x_hat, built.x_hat)
+    assert built.total_spikes > 0
+
+
+def test_synchronous_rule_compares_no_neurons_two_above_threshold_in_a_tick_both_fire():
+    """A step without input (r = 0, z = 0, u = 0) from potentials that put neurons 0 and 1,
+    which code the same direction, above threshold: the synchronous rule fires both in the
+    first tick (each from its own potential); greedy fires the larger only (its spike takes the
+    other below threshold). Neuron 2, below its threshold, stays silent under both."""
+    scenario = rendezvous_scenario()
+    config = scenario.estimator.replace(neuron_count=3, ticks_per_sample=4, threshold_widening=0.0, firing_slots=1)
+    fired = {}
+    for rule in ('synchronous', 'greedy'):
+        estimator = make_estimator('snn_ekf', config.replace(spike_rule=rule))
+        net = estimator.network
+        net.decoder[0] = 0.0
+        net.decoder[0, 0, :] = (1.0, 1.0, 0.1)
+        net.gram[0] = net.decoder[0].T @ net.decoder[0]
+        net.thresholds[0] = 0.5 * np.sum(net.decoder[0] ** 2, axis=0)   # 0.5, 0.5, 0.005
+        net.r[0] = 0.0
+        net.v[0] = (0.6, 0.7, 0.0)
+        estimator.state.x_hat[0] = 0.0
+        estimator.step(np.zeros(3), np.zeros(3), 0.1)
+        fired[rule] = estimator.spikes.copy()
+    np.testing.assert_array_equal(fired['synchronous'], [1, 1, 0])
+    np.testing.assert_array_equal(fired['greedy'], [0, 1, 0])
+
+
+def test_synchronous_rule_fires_each_neuron_only_in_its_slot_and_after_its_refractory_ticks():
+    scenario, zs, us = rendezvous_inputs(steps=60)
+    ticks, slots = 12, 4
+    config = scenario.estimator.replace(spike_rule='synchronous', ticks_per_sample=ticks, firing_slots=slots,
+                                        refractory_ticks=slots, neuron_count=40)
+    estimator = make_estimator('snn_ekf', config)
+    for z, u in zip(zs, us):
+        estimator.step(z, u, 0.1)
+        # slots: at most ticks / slots spikes per neuron per step; refractory >= slots: every other slot
+        assert estimator.spikes.max() <= ticks // slots // 2 + 1
+    assert estimator.total_spikes > 0
 
 
 @pytest.mark.slow
@@ -512,6 +589,11 @@ def test_a_state_the_network_cannot_represent_is_refused_quietly_and_changes_not
     ({'measurement_noise_units': 'variance'}, 'measurement_noise_units'),
     ({'silenced_neurons': (200,)}, 'silenced_neurons'),
     ({'initial_state': (np.nan, 0, 0, 0, 0, 0)}, 'finite'),
+    ({'ticks_per_sample': 0}, 'ticks_per_sample'),
+    ({'firing_slots': 0}, 'firing_slots'),
+    ({'threshold_widening': -0.5}, 'threshold_widening'),
+    ({'refractory_ticks': -1}, 'refractory_ticks'),
+    ({'spike_rule': 'synchronous', 'precision': 'loihi', 'gain_schedule': 'steady_state'}, 'float64 network only'),
 ])
 def test_bad_configuration_raises_a_value_error_saying_what_to_fix(changes, message):
     with pytest.raises(ValueError, match=message):

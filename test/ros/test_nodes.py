@@ -72,6 +72,22 @@ def test_lockstep_ros_run_equals_the_offline_simulation(kind, parameters):
         np.testing.assert_allclose(truths[stamp], offline.truth[0, k], rtol=0, atol=1e-9)
 
 
+def test_the_estimator_node_runs_the_synchronous_spike_rule_set_by_its_parameters():
+    """spike_rule synchronous and its tick parameters, set as ROS parameters (schema entries),
+    reach the core: the ROS loop equals the offline run of the same configuration."""
+    steps = 60
+    parameters = {'spike_rule': 'synchronous', 'ticks_per_sample': 20, 'firing_slots': 4,
+                  'threshold_widening': 0.5, 'refractory_ticks': 1}
+    estimates, truths = run_lockstep('snn_ekf', steps, **parameters)
+    scenario = rendezvous_scenario(initial_state_dispersion=True, **parameters)
+    offline = simulate(scenario.__class__(**{**scenario.__dict__, 'duration': steps * 0.1}), 'snn_ekf')
+    base = rendezvous_scenario(initial_state_dispersion=True)
+    greedy = simulate(base.__class__(**{**base.__dict__, 'duration': steps * 0.1}), 'snn_ekf')
+    for k in range(steps + 1):
+        np.testing.assert_allclose(estimates[k * 100_000_000], offline.estimate[0, k], rtol=0, atol=1e-9)
+    assert not np.allclose(offline.estimate[0, -1], greedy.estimate[0, -1], rtol=0, atol=1e-9)
+
+
 def test_lockstep_ros_run_on_a_lidar_equals_the_offline_simulation_on_it():
     """The estimator on range, azimuth and elevation (config/sensor_lidar.yaml's values), its
     H(x_hat) every step, equal to the offline loop on the same sensor."""

@@ -76,6 +76,27 @@ def test_nir_file_reads_back_the_same_graph(emsif_file):
     assert float(read.metadata['sample_period']) == SCENARIO.dt
 
 
+def test_a_synchronous_network_is_exported_with_its_tick_widened_thresholds_and_reset(tmp_path):
+    config = SCENARIO.estimator.replace(spike_rule='synchronous', ticks_per_sample=50, threshold_widening=1.5,
+                                        firing_slots=5, refractory_ticks=2)
+    estimator = constant_gain_estimator('snn_ekf', config, SCENARIO.model)
+    path = tmp_path / 'synchronous.nir'
+    nir.write(path, network_graph(estimator, SCENARIO.dt))
+    graph = nir.read(path)
+    norms = np.sum(estimator.decoder ** 2, axis=0)               # ||D_i||^2
+    lif = graph.nodes['neurons']
+    np.testing.assert_allclose(lif.v_threshold, 2.5 * norms / 2, rtol=1e-15)
+    np.testing.assert_allclose(lif.v_threshold - lif.v_reset, norms, rtol=1e-12)
+    meta = graph.metadata
+    assert meta['spike_rule'] == 'synchronous' and 'no neuron is compared' in meta['spike_rule_meaning']
+    assert int(meta['ticks_per_sample']) == 50 and float(meta['tick_s']) == pytest.approx(SCENARIO.dt / 50)
+    assert int(meta['firing_slots']) == 5 and int(meta['refractory_ticks']) == 2
+    assert float(meta['threshold_widening']) == 1.5
+    greedy = network_graph(constant_gain_estimator('snn_ekf', SCENARIO.estimator, SCENARIO.model), SCENARIO.dt)
+    assert 'ticks_per_sample' not in greedy.metadata
+    np.testing.assert_allclose(greedy.nodes['neurons'].v_reset, -norms / 2, rtol=1e-15)
+
+
 def papers_weights(estimator, dt):
     """Eq. 16-20 in the network's scaled units, written from the decoder, the model and the
     steady-state gain of reference.py (not from Estimator.weights or steady_state_gain)."""
@@ -275,3 +296,17 @@ def test_a_time_varying_gain_adds_the_weight_refresh_on_the_host():
     assert varying.host_macs == 292 + 638 + refresh  # gain and covariance of the EKF, then F_k and Omega_k
     assert varying.dense_macs - constant.dense_macs == varying.host_macs
     assert varying.synops == constant.synops
+
+
+@pytest.mark.slow
+def test_the_local_rule_table_rates_each_rule_against_the_twin_and_greedy_of_the_same_runs():
+    from snn_tools.neuromorphic.local_rule import SETTINGS, markdown, measure
+    data = measure({'position': 2}, kinds=('snn_ekf',), settings=SETTINGS[:1], report=lambda line: None)
+    twin, greedy, local = data['rows']
+    assert (twin['rule'], twin['kind'], greedy['rule'], local['rule']) == ('twin', 'ekf', 'greedy', 'synchronous')
+    assert twin['rmse_ratio'] == 1.0 and greedy['spike_ratio'] == 1.0
+    assert local['rmse_ratio'] == pytest.approx(local['rmse_position_m'] / twin['rmse_position_m'])
+    assert local['spike_ratio'] == pytest.approx(local['spikes_per_step'] / greedy['spikes_per_step'])
+    assert local['ticks_per_sample'] == 100 and local['lost'] == 0
+    table = [line for line in markdown(data) if line.startswith('| position')]
+    assert len(table) == 3 and f"{local['rmse_position_m']:.4g}" in table[2]
