@@ -669,6 +669,7 @@ def test_controller_watches_every_sensor_topic_it_is_given_and_no_other():
         assert spin_until(executor, lambda: 'no measurement since t = 1.900 s on camera, lidar' in
                           harness.received[qos.DIAGNOSTICS][-1].status[0].message, timeout=1.0)
         step(31, ('lidar',), settle=0.3)  # the LIDAR back: the loop measures again
+        assert spin_until(executor, lambda: not controller.safe_mode, timeout=3.0)  # under load, it may take longer
         assert step(32, ('lidar',)).accel.linear.x != 0.0 and not controller.safe_mode
 
 
