@@ -515,6 +515,16 @@ def _input_current(b, drive, noise, decoder, out):
             out[i] += decoder[b, k, i] * weight
 
 
+def _read_out_template(b, decoder, r, scale, reference, x_hat):
+    """x_hat = S D r (Eq. 12), through the coding's ``_decode`` (plus x_pred for the deviation):
+    the read-out every spike rule ends with."""
+    for k in range(decoder.shape[1]):
+        acc = 0.0
+        for i in range(decoder.shape[2]):
+            acc += decoder[b, k, i] * r[b, i]
+        x_hat[b, k] = _decode(b, k, acc, scale, reference)
+
+
 def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
     """The network on x~ = S^-1 x (Eq. 10-15, forward Euler), or on the deviation from the
     prediction (network_coding, the ``_drive`` and ``_decode`` pieces):
@@ -524,7 +534,7 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
     x_hat, gain = state[0], state[2]
     decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference = network[:9]
     drive, input_current = scratch[9], scratch[10]
-    n, neurons = decoder.shape[1], decoder.shape[2]
+    neurons = decoder.shape[2]
     decay = 1.0 - leak * dt
     _drive(b, dt, increment, leak, scale, x_hat, reference, gain, scratch[0], drive)
     _input_current(b, drive, noise, decoder, input_current)
@@ -534,11 +544,7 @@ def _spiking_template(b, dt, increment, noise, consts, state, network, scratch):
         spikes[b, i] = 0
     count, hit_cap = _fire(b, max_spikes, gram, thresholds, alive, r, v, spikes)
     total_spikes[b] += count
-    for k in range(n):
-        acc = 0.0
-        for i in range(neurons):
-            acc += decoder[b, k, i] * r[b, i]
-        x_hat[b, k] = _decode(b, k, acc, scale, reference)
+    _read_out(b, decoder, r, scale, reference, x_hat)
     return _row_finite(x_hat, b), count, hit_cap
 
 
@@ -559,7 +565,7 @@ def _synchronous_template(b, dt, increment, noise, consts, state, network, scrat
     x_hat, gain = state[0], state[2]
     decoder, gram, thresholds, alive, r, v, spikes, total_spikes, reference, refractory_left = network
     drive, input_current = scratch[9], scratch[10]
-    n, neurons = decoder.shape[1], decoder.shape[2]
+    neurons = decoder.shape[2]
     decay = (1.0 - leak * dt) ** (1.0 / ticks)
     share = 1.0 / ticks
     widened = 1.0 + widening
@@ -596,18 +602,14 @@ def _synchronous_template(b, dt, increment, noise, consts, state, network, scrat
                     for j in range(neurons):
                         v[b, j] -= gram[b, i, j]
     total_spikes[b] += count
-    for k in range(n):
-        acc = 0.0
-        for i in range(neurons):
-            acc += decoder[b, k, i] * r[b, i]
-        x_hat[b, k] = _decode(b, k, acc, scale, reference)
+    _read_out(b, decoder, r, scale, reference, x_hat)
     return _row_finite(x_hat, b), count, hit_cap
 
 
 # ---------------------------------------------------------------- the step
 #: The pieces the templates below call, given by :func:`_specialise` as their globals (the
 #: templates are never compiled as written).
-_terms = _gain = _increment = _covariance = _integrate = _fire = _drive = _decode = _step = None
+_terms = _gain = _increment = _covariance = _integrate = _fire = _drive = _decode = _read_out = _step = None
 
 
 def _step_template(consts, state, network, measured, dt, dynamics, drift, z, u, noise):
@@ -688,11 +690,7 @@ def _fire_only_template(max_spikes, network, scale, x_hat):
         count, _ = _fire(b, max_spikes, gram, thresholds, alive, r, v, spikes)
         total_spikes[b] += count
         emitted += count
-        for k in range(n):
-            acc = 0.0
-            for i in range(neurons):
-                acc += decoder[b, k, i] * r[b, i]
-            x_hat[b, k] = _decode(b, k, acc, scale, reference)
+        _read_out(b, decoder, r, scale, reference, x_hat)
     return emitted
 
 
@@ -768,7 +766,7 @@ def step_kernel(law: str, covariance: str, spiking: bool, spike_rule: str = 'gre
     drive, decode = _CODING[coding]
     template = _synchronous_template if spike_rule == 'synchronous' else _spiking_template
     integrate = (_specialise(template, f'network_{spike_rule}{tag}', _fire=_FIRE[spike_rule], _drive=drive,
-                             _decode=decode) if spiking else _direct)
+                             _read_out=_read_out(coding)) if spiking else _direct)
     terms = (_kalman_terms if module.USES_KALMAN or covariance == 'riccati' else
              _p_terms if module.USES_P else _no_p_terms)
     return _specialise(
@@ -801,7 +799,12 @@ def fire_kernel(spike_rule: str, coding: str = 'state'):
     spikes of ``spike_rule`` alone (see _fire_only_template)."""
     tag = '' if coding == 'state' else f'_{coding}'
     return _specialise(_fire_only_template, f'fire_only_{spike_rule}{tag}', _fire=_FIRE[spike_rule],
-                       _decode=_CODING[coding][1])
+                       _read_out=_read_out(coding))
+
+
+def _read_out(coding: str):
+    """The compiled read-out of ``coding`` (x_hat from the rates, Eq. 12)."""
+    return _specialise(_read_out_template, f'read_out_{coding}', _decode=_CODING[coding][1])
 
 
 @numba.njit(cache=True)
