@@ -237,13 +237,13 @@ def test_a_client_that_does_not_read_loses_messages_and_never_blocks_the_view(su
         time.sleep(0.3)  # the server has the subscription
         scene = LiveScene(raster_steps=400)
         rng = np.random.default_rng(0)
-        frames, started = 300, time.perf_counter()
+        frames, started = 1000, time.perf_counter()  # more bytes than loopback socket buffers hold
         for k in range(frames):
             scene.add_truth(k, rng.standard_normal(6))
             scene.add_estimate(k, rng.standard_normal(6), np.eye(6))
             scene.add_spikes(total=1, per_neuron=rng.integers(0, 2, 200))
             view.publish(scene.frame())
-        publishing = time.perf_counter() - started  # all 300 logged while the client read nothing
+        publishing = time.perf_counter() - started  # all logged while the client read nothing
         release.set()
         client.join(20.0)
     finally:
