@@ -112,6 +112,9 @@ class Estimator:
         s, n, m = self.settings, model.n_state, self.n_meas
         #: x_hat, P, the last gain and the guard's fault flag of every run.
         self.state = FilterState(self.runs, n, m)
+        # what x_hat returns: a view of the state the kernel writes in place, made once (a view
+        # per step costs ~0.2 us of a ~4 us step)
+        self._estimate = self._single(self.state.x_hat)
         #: The spiking network's arrays (empty for a non-spiking filter).
         self.network = Network(self.seeds, n, s.neuron_count if self.spiking else 0, s.decoder_variance,
                                s.silenced_neurons)
@@ -194,7 +197,7 @@ class Estimator:
     @property
     def x_hat(self) -> np.ndarray:
         """Current estimate, shape (n,) or (runs, n)."""
-        return self._single(self.state.x_hat)
+        return self._estimate
 
     @property
     def P(self) -> np.ndarray | None:
@@ -535,13 +538,14 @@ class Estimator:
         if z is None:
             z, measured = self._no_measurement, self._none_measured
         else:
-            z = np.ascontiguousarray(z, dtype=float).reshape(runs, -1)  # the kernel's types (entry_point)
+            z = np.ascontiguousarray(z, dtype=np.float64).reshape(runs, -1)  # the kernel's types (entry_point)
             measured = self.program.all_runs
             if valid is not None:
                 measured = np.ascontiguousarray(np.broadcast_to(np.asarray(valid, dtype=np.bool_), (runs,)))
                 if not measured.all():
                     z = np.where(measured[:, None], z, 0.0)
-        u = np.ascontiguousarray(u, dtype=float).reshape(runs, -1)
+        # np.float64, not float: numpy resolves the Python type on every call (~0.15 us a call)
+        u = np.ascontiguousarray(u, dtype=np.float64).reshape(runs, -1)
         if z.shape[1] != m or u.shape[1] != self.model.n_input:
             raise ValueError(f'z must have {m} and u {self.model.n_input} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')

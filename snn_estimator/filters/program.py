@@ -27,6 +27,7 @@ class StepDynamics:
         #: nonlinear f is integrated (a direct filter, or network_drive: nonlinear)
         self.model, self.method, self.runs, self.linearized = model, method, runs, linearized
         self._linear_cache: dict[float, np.ndarray] = {}
+        self._last_linear: tuple[float, np.ndarray] | None = None  # the block of the last dt
         self.no_drift = np.zeros((1, model.n_state))
 
     @property
@@ -37,6 +38,9 @@ class StepDynamics:
     def __call__(self, x_hat: np.ndarray, u: np.ndarray, dt: float):
         model, method = self.model, self.method
         if model.is_linear:
+            last = self._last_linear
+            if last is not None and last[0] == dt:  # the usual case: the same dt as the last step
+                return last[1], self.no_drift
             cached = self._linear_cache.get(dt)
             if cached is None:
                 a_d, b_d = model.linearized_increment(None, dt, method)
@@ -44,6 +48,7 @@ class StepDynamics:
                 if len(self._linear_cache) >= DT_CACHE_SIZE:
                     self._linear_cache.clear()
                 self._linear_cache[dt] = cached
+            self._last_linear = (dt, cached)
             return cached, self.no_drift
         runs = self.runs
         a_d, b_d = model.linearized_increment(x_hat, dt, method)  # A(x_hat) held over the step (Eq. 17)
