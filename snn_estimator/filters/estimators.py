@@ -112,9 +112,7 @@ class Estimator:
         s, n, m = self.settings, model.n_state, self.n_meas
         #: x_hat, P, the last gain and the guard's fault flag of every run.
         self.state = FilterState(self.runs, n, m)
-        # what x_hat returns: a view of the state the kernel writes in place, made once (a view
-        # per step costs ~0.2 us of a ~4 us step)
-        self._estimate = self._single(self.state.x_hat)
+        self._estimate = self._single(self.state.x_hat)  # x_hat: a view made once (~0.2 us a step)
         #: The spiking network's arrays (empty for a non-spiking filter).
         self.network = Network(self.seeds, n, s.neuron_count if self.spiking else 0, s.decoder_variance,
                                s.silenced_neurons)
