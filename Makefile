@@ -31,7 +31,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget spike-rules sensors approach \
+	spike-budget spike-rules sensors approach approach-basilisk \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -117,6 +117,12 @@ sensors: $(STAMP)
 # one BLAS thread: the nonlinear filters' small matrix exponentials are ~40x slower threaded on a loaded machine
 approach: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach $(if $(RUNS),--runs $(RUNS)) --out results
+
+# the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model (~? min) ->
+# results/approach_basilisk.{json,md} and its section of results/REPORT.md
+approach-basilisk: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
+		--runs $(if $(RUNS),$(RUNS),100) --no-extra --out results
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json

@@ -24,6 +24,7 @@ from snn_estimator.plant.approach import (
     HoldPoint,
     Leg,
 )
+from snn_estimator.plant.basilisk_truth import BasiliskPlant, BasiliskSettings, OrbitSettings
 from snn_estimator.plant.control import lqr_gain
 from snn_estimator.plant.sensors import PositionSensor
 from snn_estimator.plant.truth import Plant
@@ -42,6 +43,8 @@ LQR_STATE_WEIGHT, LQR_INPUT_WEIGHT = 1.0, 1e7
 #: Contact: closing speed (m/s) and lateral offset (m) the docking mechanism accepts (IDSS-class
 #: 0.03-0.05 m/s closing, 0.1 m lateral: notes of issues 38-39, item 6).
 CONTACT_SPEED, CONTACT_LATERAL = (0.03, 0.05), 0.1
+#: The ``plant`` of :func:`approach_scenario` that is Basilisk's two-body integration with J2.
+BASILISK_PLANT = 'basilisk'
 #: Free drift for the passive-safety figure: two orbits (issue 39), sampled every 10 s.
 DRIFT_ORBITS, DRIFT_STEP = 2.0, 10.0
 
@@ -68,6 +71,9 @@ class ApproachScenario:
     #: A fault: from ``disturbance[0]`` s on, the truth feels ``disturbance[1]`` m/s^2 (3,) that
     #: neither the filters nor the guidance know of (a stuck thruster); None: no fault.
     disturbance: tuple | None = None
+    #: Basilisk truth (two-body with J2 by default) instead of the ``truth`` model, which then
+    #: serves only the sensor's geometry and the passive-safety drift; None: the model truth.
+    basilisk: BasiliskSettings | None = None
 
     def guidance(self) -> ApproachGuidance:
         return ApproachGuidance(self.holds, self.legs, self.corridor, self.model.mean_motion,
@@ -80,14 +86,21 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
                       **estimator_changes) -> ApproachScenario:
     """5 km behind the target on V-bar to contact, measured by Table 6's position sensor (R =
     1e-2 m^2 per 1 s sample at every range: no sensor hand-over yet), on a model truth
-    (``plant``: cw or nonlinear_circular, two-body without J2); the filters predict with
+    (``plant``: cw or nonlinear_circular, two-body without J2), or on Basilisk's two-body
+    integration with J2 (``plant`` basilisk: a 400 km orbit at 51.6 deg, thrust unlimited as on
+    the model truth; the nonlinear_circular model is then the passive-safety drift's); the filters predict with
     ``dynamics_model``, the LQR is designed on its linearisation at the port (CW). The filters
     start dispersed about the truth as in the far-range scenario (defaults.FAR_RANGE_ESTIMATOR),
     at the first of ``holds`` (one of ``legs`` between two holds); ``disturbance``: see
     :class:`ApproachScenario`."""
-    for name, value in (('dynamics_model', dynamics_model), ('plant', plant)):
-        if value not in DYNAMICS_MODELS:
-            raise ValueError(f"{name} must be one of {', '.join(DYNAMICS_MODELS)}; got {value!r}")
+    for name, value, allowed in (('dynamics_model', dynamics_model, DYNAMICS_MODELS),
+                                 ('plant', plant, DYNAMICS_MODELS + (BASILISK_PLANT,))):
+        if value not in allowed:
+            raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+    basilisk = None
+    if plant == BASILISK_PLANT:
+        plant = 'nonlinear_circular'
+        basilisk = BasiliskSettings(orbit=OrbitSettings(semi_major_axis=orbit_radius), thrust_limit=None)
     x0 = np.array([-holds[0].distance, 0.0, 0.0, 0.0, 0.0, 0.0])
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, 'initial_state': tuple(x0),
                                           'dynamics_model': dynamics_model, **estimator_changes})
@@ -95,7 +108,17 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
         model=relative_motion(dynamics_model, orbit_radius), truth=relative_motion(plant, orbit_radius), x0=x0,
         dt=dt, max_duration=max_duration, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
         measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config, holds=tuple(holds),
-        legs=tuple(legs), disturbance=disturbance)
+        legs=tuple(legs), disturbance=disturbance, basilisk=basilisk)
+
+
+def _truth(scenario: ApproachScenario, seeds: list[int]):
+    """The truth plant of a batch of runs: the model's, or Basilisk's (scenario.basilisk)."""
+    if scenario.basilisk is None:
+        return Plant(scenario.truth, scenario.x0, scenario.process_noise, seeds)
+    settings = scenario.basilisk
+    return BasiliskPlant(scenario.x0, scenario.process_noise, seeds, dt=scenario.dt, orbit=settings.orbit,
+                         chaser_mass=settings.chaser_mass, thrust_limit=settings.thrust_limit,
+                         cache_dir=settings.cache_dir)
 
 
 def free_drift_ranges(model: StateSpaceModel, x, duration: float, dt: float = DRIFT_STEP) -> np.ndarray:
@@ -188,7 +211,8 @@ class _Safety:
 def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int = 0,
                  max_duration: float | None = None) -> list[dict]:
     """Fly ``runs`` approaches (seeds seed..seed+runs-1, random streams as simulate()'s) with
-    filter ``kind``; each run's safety figures (:class:`_Safety`), its spikes and filter steps.
+    filter ``kind``; each run's safety figures (:class:`_Safety`), its spikes, filter steps and
+    mean NEES over its flight (6 states: 95 % of single steps below 12.6 when consistent).
     A run ends at contact, abort or no-go; the loop ends when every run has ended or after
     ``max_duration`` s (default the scenario's)."""
     seeds = [seed + b for b in range(runs)]
@@ -196,7 +220,7 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
     if not estimator.has_covariance:
         raise ValueError(f'the approach decides its holds and its corridor on the covariance, and {kind} has none: '
                          'use a filter kind with a covariance (ekf, emsif, snn_ekf, snn_emsif, ...)')
-    plant = Plant(scenario.truth, scenario.x0, scenario.process_noise, seeds)
+    plant = _truth(scenario, seeds)
     sensor = PositionSensor(scenario.truth, scenario.measurement_noise, seeds)
     gain = lqr_gain(scenario.model, scenario.lqr_weights[0] * np.eye(6), scenario.lqr_weights[1] * np.eye(3))
     guidance = [scenario.guidance() for _ in seeds]
@@ -204,6 +228,7 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
     dt = scenario.dt
     steps = int(round((max_duration or scenario.max_duration) / dt))
     spikes = np.zeros(runs, dtype=np.int64)
+    nees_sum, nees_steps = np.zeros(runs), np.zeros(runs, dtype=np.int64)
     k = 0
     while k < steps and any(g.active for g in guidance):
         x_hat, covariance, t = estimator.batch_x_hat.copy(), estimator.batch_P, k * dt
@@ -219,10 +244,16 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
         if estimator.spiking:
             spikes += estimator.batch_spikes.sum(axis=1)
         k += 1
-        for b in np.flatnonzero(flying):
+        flying_runs = np.flatnonzero(flying)
+        error = plant.x[flying_runs] - estimator.batch_x_hat[flying_runs]
+        nees_sum[flying_runs] += np.einsum('bi,bi->b', error,
+                                           np.linalg.solve(estimator.batch_P[flying_runs], error[..., None])[..., 0])
+        nees_steps[flying_runs] += 1
+        for b in flying_runs:
             safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b])
     return [{'seed': s, 'kind': kind, 'dynamics_model': scenario.estimator.dynamics_model,
-             'spikes': int(spikes[b]) if estimator.spiking else None, 'steps': k, **safety[b].figures()}
+             'spikes': int(spikes[b]) if estimator.spiking else None, 'steps': k,
+             'nees': float(nees_sum[b] / max(nees_steps[b], 1)), **safety[b].figures()}
             for b, s in enumerate(seeds)]
 
 
@@ -260,6 +291,7 @@ def summarize(flights: list[dict], holds=HOLDS) -> dict:
         'lateral_at_contact': _stats(c['lateral'] for c in contacts),
         'contact_time': _stats(c['time'] for c in contacts),
         'spikes': _stats(f['spikes'] for f in flights),
+        'nees': _stats(f.get('nees') for f in flights),
         'holds': {name: {'go': sum(d['decision'] == 'go' for d in ds),
                          'estimate_error': _stats(d['estimate_error'] for d in ds),
                          'hold_error': _stats(d['hold_error'] for d in ds),

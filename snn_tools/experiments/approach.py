@@ -4,7 +4,9 @@ nonlinear_circular) on the same nonlinear truth, a few dispersed runs each; outc
 figures, delta-v, contact conditions and the errors at each hold (docs/decisions.md, 55-57).
 
 Usage: python -m snn_tools.experiments.approach [--runs 5] [--kinds ekf snn_ekf]
-       [--models cw nonlinear_circular] [--plant nonlinear_circular] [--out results]
+       [--models cw nonlinear_circular] [--plant nonlinear_circular|cw|basilisk] [--out results]
+--plant basilisk (Basilisk's two-body integration with J2) writes approach_basilisk.{json,md} and
+the approach section of results/REPORT.md (between its markers).
 Single-threaded BLAS (OPENBLAS_NUM_THREADS=1) makes the nonlinear filters' per-step 6x6
 exponential ~40x faster on a loaded machine (make approach sets it).
 """
@@ -16,7 +18,12 @@ import json
 import time
 from pathlib import Path
 
-from snn_estimator.sim.approach import HOLDS, LEGS, approach_scenario, fly_approach, summarize
+from snn_estimator.sim.approach import BASILISK_PLANT, HOLDS, LEGS, approach_scenario, fly_approach, summarize
+from snn_tools.paths import replace_between_markers
+
+#: results/REPORT.md's approach section (the Basilisk-truth table, issue 39), between these lines.
+BEGIN, END = '<!-- approach on Basilisk truth: begin (make approach-basilisk) -->', '<!-- approach: end -->'
+REPORT_TITLE = 'The approach from 5 km to contact on Basilisk truth with J2 (issue 39; not in the paper)'
 
 #: A stuck thruster: from the 250 m hold, 2 mm/s^2 along y from 400 s on (after the 250 m go),
 #: unknown to the filters and the guidance; the corridor and its CAM at work.
@@ -56,8 +63,8 @@ def table(results: dict) -> str:
              f"{results['seed'] + results['runs_per_cell'] - 1}), truth {results['plant']}, sensor "
              f"{results['sensor']}.", '',
              '| filter / model | contact | success | abort | no-go | corridor exits | KOS before go | '
-             'delta-v m/s (mean) | closing m/s (min-max) | lateral m (max) | spikes (mean) |',
-             '|---|---|---|---|---|---|---|---|---|---|---|']
+             'delta-v m/s (mean) | closing m/s (min-max) | lateral m (max) | NEES (mean) | spikes (mean) |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|']
     for name, cell in results['cells'].items():
         s = cell['summary']
         closing = s['closing_speed']
@@ -66,13 +73,21 @@ def table(results: dict) -> str:
                      f"{s['outcomes']['no_go']} | {s['corridor_violation_runs']} | {s['keep_out_entry_before_go']} | "
                      f"{_f(s['delta_v'], digits=2)} | "
                      f"{closing} | "
-                     f"{_f(s['lateral_at_contact'], 'max')} | {_f(s['spikes'], digits=0)} |")
+                     f"{_f(s['lateral_at_contact'], 'max')} | {_f(s.get('nees'), digits=2)} | "
+                     f"{_f(s['spikes'], digits=0)} |")
     lines += ['', 'Estimate error (truth - estimate, position, m) at each hold\'s go, mean (max):', '',
               '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |',
               '|---|' + '---|' * len(HOLDS)]
     for name, cell in results['cells'].items():
         holds = cell['summary']['holds']
         errors = [holds[h.name]['estimate_error'] for h in HOLDS]
+        lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
+    lines += ['', 'Hold-point error (truth - hold point, position, m) at each hold\'s go, mean (max):', '',
+              '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |',
+              '|---|' + '---|' * len(HOLDS)]
+    for name, cell in results['cells'].items():
+        holds = cell['summary']['holds']
+        errors = [holds[h.name]['hold_error'] for h in HOLDS]
         lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
     lines += ['', 'Corridor and CAM: truth outside the cone (m, max), abort after the truth left the cone (s), '
               'the CAM\'s two-orbit free drift (closest range, m; keep-out re-entries):', '',
@@ -86,20 +101,45 @@ def table(results: dict) -> str:
     return '\n'.join(lines) + '\n'
 
 
+def report_section(results: dict) -> str:
+    """The approach section of results/REPORT.md: the tables, then the reading of the holds
+    (the model's gain at 5 km and 250 m: CW-model over nonlinear-model estimate error)."""
+    cells = results['cells']
+    ratios = []
+    for kind in ('ekf', 'snn_ekf'):
+        cw, nonlinear = cells.get(f'{kind}/cw'), cells.get(f'{kind}/nonlinear_circular')
+        if cw is None or nonlinear is None:
+            continue
+        for hold in ('5 km', '250 m'):
+            a, b = (c['summary']['holds'][hold]['estimate_error'] for c in (cw, nonlinear))
+            if a and b:
+                ratios.append(f"{kind} at {hold}: {a['mean']:.3f} m (cw) / {b['mean']:.3f} m (nonlinear_circular) "
+                              f"= {a['mean'] / b['mean']:.2f}x")
+    reading = ('CW-model over nonlinear-model estimate error at the holds the issue names: '
+               + '; '.join(ratios) + '.') if ratios else ''
+    return (f'## {REPORT_TITLE}\n\n`make approach-basilisk` (results/approach_basilisk.json).\n\n'
+            f'{table(results)}\n{reading}\n')
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--runs', type=int, default=5)
     parser.add_argument('--seed', type=int, default=0)
     parser.add_argument('--kinds', nargs='+', default=['ekf', 'snn_ekf'])
     parser.add_argument('--models', nargs='+', default=['cw', 'nonlinear_circular'])
-    parser.add_argument('--plant', default='nonlinear_circular')
+    parser.add_argument('--plant', default='nonlinear_circular',
+                        help='truth: cw, nonlinear_circular (two-body, no J2) or basilisk (two-body with J2)')
     parser.add_argument('--out', type=Path, default=Path('results'))
     parser.add_argument('--no-extra', action='store_true', help='leave out EXTRA_CELLS')
     args = parser.parse_args(argv)
     results = campaign(args.runs, args.kinds, args.models, args.plant, args.seed, () if args.no_extra else EXTRA_CELLS)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / 'approach.json').write_text(json.dumps(results, indent=1) + '\n')
-    (args.out / 'approach.md').write_text(table(results))
+    stem = 'approach' if args.plant == 'nonlinear_circular' else f'approach_{args.plant}'
+    (args.out / f'{stem}.json').write_text(json.dumps(results, indent=1) + '\n')
+    (args.out / f'{stem}.md').write_text(table(results))
+    if args.plant == BASILISK_PLANT and replace_between_markers(args.out / 'REPORT.md', BEGIN, END,
+                                                                 report_section(results)):
+        print(f"updated the approach section of {args.out / 'REPORT.md'}")
     print(table(results))
 
 

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from snn_estimator.filters.estimators import TWIN_OF
+from snn_tools.experiments import approach as approach_report
 from snn_tools.experiments.paper_metrics import noise_floor
 from snn_tools.figures import label_of
 
@@ -493,6 +494,10 @@ def write_report(folder: Path) -> Path:
     if sensors.exists():  # make sensors rewrites this part alone, between the markers
         from snn_tools.experiments.sensors import BEGIN, END, report_section
         lines += [BEGIN, report_section(json.loads(sensors.read_text())) + END, '']
+    approach = folder / 'approach_basilisk.json'
+    if approach.exists():  # make approach-basilisk rewrites this part alone, between the markers
+        lines += [approach_report.BEGIN, approach_report.report_section(json.loads(approach.read_text()))
+                  + approach_report.END, '']
     if (folder / 'neuromorphic.md').exists():
         lines += ['## Neuromorphic export and cost', '',
                   'NIR export, the network re-run by Brian2 from the exported file and the cost per '
