@@ -19,6 +19,7 @@ from snn_estimator import defaults as D
 from snn_estimator.catalog import TWIN_OF
 from snn_estimator.sim.scenarios import rendezvous_scenario, sensor_rendezvous_scenario
 from snn_estimator.sim.simulate import simulate
+from snn_estimator.spiking.costs import CHIPS, CostModel
 
 #: The kinds that converge from the dispersed start (catalog.CONVERGES_FROM_DISPERSION) and spike.
 KINDS = ('snn_ekf', 'snn_emsif_weighted')
@@ -105,6 +106,21 @@ def neuron_updates(row: dict, neurons: int) -> str:
     return ''
 
 
+def loihi_energy_nj(row: dict, neurons: int, states: int = 6, measurements: int = 3, inputs: int = 3) -> str:
+    """Energy per estimate on Loihi (costs.CHIPS, Davies et al. 2018), nJ: the neuron updates of
+    :func:`neuron_updates` at the inactive-update price, each spike's active-update difference and
+    its synaptic events (costs.CostModel.synops_per_spike: N - 1 fast, N slow, n readout), and the
+    graded inputs F_k z + F u set once per sample (N (m + nu)); host work (the gain) excluded."""
+    updates = neuron_updates(row, neurons)
+    if not updates:
+        return ''
+    model = CostModel(neurons, states, measurements, inputs)
+    spikes = row['spikes_per_step']
+    synops = spikes * model.synops_per_spike + model.input_synops
+    loihi = CHIPS['loihi']
+    return f"{(synops * loihi.synop_pj + float(updates) * loihi.neuron_update_pj + spikes * loihi.spike_pj) / 1e3:.0f}"
+
+
 def markdown(data: dict) -> list[str]:
     """The section of results/neuromorphic.md."""
     runs = ', '.join(f'{name} {count}' for name, count in data['runs'].items())
@@ -119,19 +135,24 @@ def markdown(data: dict) -> list[str]:
               'fires, all in the same tick, R refractory ticks (docs/decisions.md, 58-59). A chip spends T '
               f'ticks per estimate, each updating all N = {data["neurons"]} neurons; greedy spends one argmax '
               'pass over the N per spike and one more (no chip runs it): neuron updates per estimate count '
-              'both, synaptic events (N per spike, the Gram row) come on top alike. '
+              'both, synaptic events (N per spike, the Gram row) come on top alike. Energy per estimate on '
+              'Loihi (Davies et al. 2018: 52 pJ per neuron update, 23.6 pJ per synaptic event, 30.7 pJ more '
+              'per spike): those updates, each spike\'s 2N - 1 + n synaptic events and the N (m + nu) graded '
+              'inputs of the sample; the host\'s gain is not counted. A chip pays for its ticks: at T = 100 '
+              'the updates of idle neurons dominate. '
               f'Lost: runs whose position RMSE exceeds {data["lost_m"]:g} m; diverged: '
               'runs left out by simulate (non-finite, or the spike cap).'), '',
              '| scenario | kind | rule | setting | RMSE pos. (m) | / twin | spikes/step | / greedy | ticks/sample '
-             '| neuron updates/estimate | lost | diverged |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+             '| neuron updates/estimate | Loihi nJ/estimate | lost | diverged |',
+             '|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for row in data['rows']:
         spikes = f"{row['spikes_per_step']:.1f}" if 'spikes_per_step' in row else ''
         ratio = f"{row['spike_ratio']:.2f}" if 'spike_ratio' in row else ''
         ticks = row.get('ticks_per_sample', '') if row['rule'] == 'synchronous' else ''
         lines.append(f"| {row['scenario']} | {row['kind']} | {row['rule']} | {setting_label(row)} | "
                      f"{row['rmse_position_m']:.4g} | {row['rmse_ratio']:.3f} | {spikes} | {ratio} | {ticks} | "
-                     f"{neuron_updates(row, data['neurons'])} | {row['lost']} | {row['diverged']} |")
+                     f"{neuron_updates(row, data['neurons'])} | {loihi_energy_nj(row, data['neurons'])} | "
+                     f"{row['lost']} | {row['diverged']} |")
     met = [row for row in data['rows'] if row['rule'] == 'synchronous' and row['rmse_ratio'] <= GOAL_RMSE_RATIO
            and row['spike_ratio'] <= GOAL_SPIKE_RATIO and not row['lost'] and not row['diverged']]
     lines += ['', (f'Goal of issue 40 (RMSE within {GOAL_RMSE_RATIO}x the twin and spikes within '

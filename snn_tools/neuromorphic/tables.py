@@ -431,7 +431,12 @@ def main(argv=None) -> int:
                              'the existing <out>/neuromorphic.json')
     parser.add_argument('--local-rule-runs', type=int, nargs=2, default=[100, 100], metavar=('POSITION', 'LIDAR'),
                         help='runs of the synchronous rule section per scenario (LIDAR 0: position only)')
+    parser.add_argument('--markdown-only', action='store_true',
+                        help='rewrite <out>/neuromorphic.md from <out>/neuromorphic.json, measuring nothing')
     args = parser.parse_args(argv)
+    if args.markdown_only:
+        (args.out / 'neuromorphic.md').write_text(markdown(json.loads((args.out / 'neuromorphic.json').read_text())))
+        return 0
     if args.chip_only:
         return _chip_only(args)
     if args.local_rule_only:

@@ -19,6 +19,7 @@ nir = pytest.importorskip('nir')
 pytestmark = [pytest.mark.filterwarnings('ignore::DeprecationWarning:brian2'),
               pytest.mark.filterwarnings('ignore::DeprecationWarning:pyparsing')]
 
+from snn_tools.neuromorphic.local_rule import loihi_energy_nj  # noqa: E402
 from snn_tools.neuromorphic.nir_export import (  # noqa: E402
     SPIKING_KINDS,
     constant_gain_estimator,
@@ -310,3 +311,15 @@ def test_the_local_rule_table_rates_each_rule_against_the_twin_and_greedy_of_the
     assert local['ticks_per_sample'] == 100 and local['lost'] == 0
     table = [line for line in markdown(data) if line.startswith('| position')]
     assert len(table) == 3 and f"{local['rmse_position_m']:.4g}" in table[2]
+
+
+def test_the_local_rule_table_prices_a_chip_by_its_ticks():
+    """Loihi energy per estimate (Davies et al. 2018): neuron updates x 52 pJ, synaptic events
+    x 23.6 pJ, 30.7 pJ more per spike; worked by hand for N = 200, n = 6, m = nu = 3."""
+    greedy = {'rule': 'greedy', 'spikes_per_step': 10.0}
+    # updates: (10 + 1) x 200 = 2200; events: 10 x (2 x 200 - 1 + 6) + 200 x 6 = 5250
+    assert loihi_energy_nj(greedy, 200) == f'{(2200 * 52.0 + 5250 * 23.6 + 10 * 30.7) / 1e3:.0f}' == '239'
+    synchronous = {'rule': 'synchronous', 'spikes_per_step': 10.0, 'ticks_per_sample': 100}
+    # the same spikes, 100 ticks of all 200 neurons: the idle updates dominate
+    assert loihi_energy_nj(synchronous, 200) == f'{(20000 * 52.0 + 5250 * 23.6 + 10 * 30.7) / 1e3:.0f}' == '1164'
+    assert loihi_energy_nj({'rule': 'twin'}, 200) == ''
