@@ -118,7 +118,7 @@ sensors: $(STAMP)
 approach: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach $(if $(RUNS),--runs $(RUNS)) --out results
 
-# the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model (~? min) ->
+# the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model (~26 min) ->
 # results/approach_basilisk.{json,md} and its section of results/REPORT.md
 approach-basilisk: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
