@@ -1,0 +1,92 @@
+"""The approach over ROS (issue 39, part 4): the four nodes with the approach scenario's
+parameters (scenario_nodes.parameter_tables.scenarios) fly the offline loop
+(snn_estimator.sim.approach.fly_approach) step for step, guidance events included; the
+multi-process demo flies 5 km to contact within the Done-when limits (slow)."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip('rclpy')
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from ros_helpers import Probe, make, ros_context, spin_until  # noqa: E402
+
+from scenario_nodes import qos  # noqa: E402
+from scenario_nodes.controller_node import ControllerNode  # noqa: E402
+from scenario_nodes.conversions import GUIDANCE_STATUS, diagnostic_values, odometry_to_state, stamp_to_ns  # noqa: E402
+from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
+from scenario_nodes.parameter_tables import APPROACH_MODEL, scenarios  # noqa: E402
+from scenario_nodes.plant_node import PlantNode  # noqa: E402
+from scenario_nodes.sensor_node import SensorNode  # noqa: E402
+from snn_estimator.catalog import DEFAULT_FILTER  # noqa: E402
+from snn_estimator.sim.approach import approach_scenario, fly_approach  # noqa: E402
+
+NS = 1_000_000_000
+
+
+def fly_over_ros(steps: int, kind: str = DEFAULT_FILTER, changes=None):
+    """The approach's four nodes in one process for ``steps`` 1 s steps (``changes``: node ->
+    parameter values): estimates and truths by stamp, the guidance events (stamp, event,
+    phase) and the plant's final values."""
+    values = scenarios()['approach']
+    for node, node_changes in (changes or {}).items():
+        values[node] = {**values[node], **node_changes}
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, publish=False)
+        events = []
+        probe.node.create_subscription(DiagnosticArray, qos.GUIDANCE, events.append, qos.LISTENER_QOS)
+        make(ControllerNode, context, executor, nodes, 'lqr_controller', **values['lqr_controller'])
+        make(EstimatorNode, context, executor, nodes, 'estimator', filter_type=kind, **values['estimator'])
+        make(SensorNode, context, executor, nodes, 'position_sensor', **values['position_sensor'])
+        plant = make(PlantNode, context, executor, nodes, 'cw_plant',
+                     **{'duration': float(steps), **values['cw_plant'], 'control_timeout': 30.0})
+        finished = spin_until(executor, lambda: plant.values()['done'] and max(
+            (stamp_to_ns(m.header.stamp) for m in probe.received[qos.ESTIMATE]), default=-1)
+            >= plant.values()['steps'] * NS, timeout=300.0)
+        assert finished, 'the in-process approach did not complete'
+        spin_until(executor, lambda: False, timeout=0.3)  # the last events
+        estimates = {stamp_to_ns(m.header.stamp): odometry_to_state(m) for m in probe.received[qos.ESTIMATE]}
+        truths = {stamp_to_ns(m.header.stamp): odometry_to_state(m)[0] for m in probe.received[qos.TRUTH]}
+        said = [(stamp_to_ns(m.header.stamp) / NS, diagnostic_values(s)['event'], diagnostic_values(s)['phase'])
+                for m in events for s in m.status if s.name == GUIDANCE_STATUS]
+        return estimates, truths, said, plant.values()
+
+
+def test_the_ros_lockstep_approach_equals_the_offline_loop_through_the_first_go_and_into_the_transfer():
+    """700 s: the 5 km hold, its go (from the estimate and its covariance, sent over Odometry),
+    and the start of the transfer to 2 km: the same estimates, truths and events as offline."""
+    steps = 700
+    estimates, truths, said, plant = fly_over_ros(steps, changes={'cw_plant': {'duration': float(steps)}})
+    assert plant['steps'] == steps and plant['control_timeouts'] == 0
+    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL), DEFAULT_FILTER,
+                           max_duration=float(steps), record=True)[0]
+    trajectory = offline['trajectory']
+    assert len(trajectory['time']) == steps + 1
+    for k in range(steps + 1):
+        x_hat, covariance = estimates[k * NS]
+        np.testing.assert_allclose(truths[k * NS], trajectory['truth'][k], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(x_hat, trajectory['estimate'][k], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(covariance[:3, :3], trajectory['covariance'][k][:3, :3], rtol=1e-12, atol=1e-15)
+    # the go at 5 km was decided, then the transfer flown, as offline
+    assert [(t, name) for t, name, _ in said] == [tuple(e) for e in offline['events']]
+    assert said and said[0][1] == 'go 5 km' and said[0][2] == 'transfer'
+    assert truths[steps * NS][0] > -5000.0 + 10.0  # moving toward the 2 km hold
+
+
+def test_the_plant_ends_the_run_at_the_port_whatever_its_duration():
+    """stop_at_port: the run ends with the step that brings the truth to the port's plane (a
+    start 0.5 m behind it at 4 cm/s, steered to 1 m beyond it: a few of the 40 steps asked for)."""
+    start = [-0.5, 0.0, 0.0, 0.04, 0.0, 0.0]
+    _, truths, _, plant = fly_over_ros(40, changes={
+        'cw_plant': {'initial_state': start, 'duration': 40.0}, 'estimator': {'initial_state': start},
+        'lqr_controller': {'guidance': 'none', 'setpoint': [1.0, 0.0, 0.0, 0.0, 0.0, 0.0]}})
+    assert plant['ended_by'] == 'stop' and plant['steps'] < 40
+    last = max(truths)
+    assert last == plant['steps'] * NS and truths[last][0] >= 0.0 > truths[last - NS][0]
+
+
+def test_a_guidance_event_ends_the_run_only_when_the_approach_ended_without_contact():
+    from scenario_nodes.conversions import guidance_end, guidance_event
+    assert guidance_end(guidance_event(7 * NS, 'c', 'abort', 'abort', {'corridor_radius': 1.0})) == 7 * NS
+    assert guidance_end(guidance_event(8 * NS, 'c', 'no_go 5 km', 'no_go', {})) == 8 * NS
+    assert guidance_end(guidance_event(9 * NS, 'c', 'go 5 km', 'transfer', {'error': 0.1})) is None
