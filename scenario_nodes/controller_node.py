@@ -33,7 +33,7 @@ from snn_estimator.validation import as_matrix, as_vector
 from . import qos
 from .codec import NS, MessageError, decode_stamp, encode_accel, read_input, seconds_to_ns
 from .conversions import guidance_event
-from .core_objects import approach_guidance, cw_model
+from .core_objects import approach_guidance, cw_model, filter_model
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameter_tables import CONTROLLER
 from .ros_parameters import declare
@@ -52,10 +52,11 @@ def sensor_topics(topics) -> list[str]:
 
 
 def design_gain(values: dict) -> np.ndarray:
-    """K from the ``gain`` parameter, or designed by python-control from Qc and Rc."""
+    """K from the ``gain`` parameter, or designed by python-control from Qc and Rc on the
+    ``dynamics_model`` (its A(0))."""
     if values.get('gain'):
         return as_matrix(values['gain'], (3, 6), 'gain (K)')
-    model = cw_model(values, form=values['cw_model'])
+    model = filter_model(values)
     return lqr_gain(model, values['lqr_state_weight'], values['lqr_input_weight'])
 
 

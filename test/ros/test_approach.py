@@ -53,9 +53,11 @@ def fly_over_ros(steps: int, kind: str = DEFAULT_FILTER, changes=None):
 
 
 def test_the_ros_lockstep_approach_equals_the_offline_loop_through_the_first_go_and_into_the_transfer():
-    """700 s: the 5 km hold, its go (from the estimate and its covariance, sent over Odometry),
-    and the start of the transfer to 2 km: the same estimates, truths and events as offline."""
-    steps = 700
+    """1200 s: the 5 km hold, its go (from the estimate and its covariance, sent over Odometry),
+    and the transfer toward 2 km, where the estimator node's NIS recovery would re-initialise
+    the SNN-EKF at 1085 s (the approach turns it off, as offline): the same estimates, truths
+    and events as offline."""
+    steps = 1200
     estimates, truths, said, plant = fly_over_ros(steps, changes={'cw_plant': {'duration': float(steps)}})
     assert plant['steps'] == steps and plant['control_timeouts'] == 0
     offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL), DEFAULT_FILTER,
@@ -90,3 +92,26 @@ def test_a_guidance_event_ends_the_run_only_when_the_approach_ended_without_cont
     assert guidance_end(guidance_event(7 * NS, 'c', 'abort', 'abort', {'corridor_radius': 1.0})) == 7 * NS
     assert guidance_end(guidance_event(8 * NS, 'c', 'no_go 5 km', 'no_go', {})) == 8 * NS
     assert guidance_end(guidance_event(9 * NS, 'c', 'go 5 km', 'transfer', {'error': 0.1})) is None
+
+
+@pytest.mark.slow
+def test_make_demo_scenario_approach_flies_5_km_to_contact_within_the_limits_as_the_offline_loop(tmp_path):
+    """The Done-when of issue 39's demo: snn_demo --scenario approach (five processes, lockstep,
+    the default estimator) reaches contact within 0.1 m laterally below 5 cm/s, enters the
+    keep-out sphere only after its go and never leaves the corridor; and it is the offline run
+    of the same seed, step for step (13472 steps, ~50 s of loop here)."""
+    from snn_tools.bags.data import read_bag
+    from snn_tools.experiments.approach import ros_results
+    from snn_tools.run.demo import run_pipeline
+    result = run_pipeline(tmp_path / 'run', scenario='approach', timeout=900.0)
+    approach = ros_results(read_bag(result['bag']))
+    contact = approach['contact']
+    assert approach['outcome'] == 'contact' and approach['success']
+    assert contact['closing_speed'] < 0.05 and contact['lateral'] < 0.1
+    assert approach['keep_out_entry'] is not None and not approach['keep_out_entry']['before_go']
+    assert approach['corridor_exit_steps'] == 0
+    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL), DEFAULT_FILTER)[0]
+    assert approach['steps'] == offline['steps']
+    assert contact == pytest.approx(offline['contact'], rel=0, abs=1e-9)
+    assert [(e['time'], e['event']) for e in approach['events']] == [tuple(e) for e in offline['events']][:-1]
+    assert offline['events'][-1][1] == 'contact'  # which the plant, seeing the truth, ends the run on
