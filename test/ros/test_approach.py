@@ -13,13 +13,23 @@ from ros_helpers import Probe, make, ros_context, spin_until  # noqa: E402
 
 from scenario_nodes import qos  # noqa: E402
 from scenario_nodes.controller_node import ControllerNode  # noqa: E402
-from scenario_nodes.conversions import GUIDANCE_STATUS, diagnostic_values, odometry_to_state, stamp_to_ns  # noqa: E402
+from scenario_nodes.conversions import (  # noqa: E402
+    GUIDANCE_STATUS,
+    diagnostic_values,
+    guidance_end,
+    guidance_event,
+    odometry_to_state,
+    stamp_to_ns,
+)
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
 from scenario_nodes.parameter_tables import APPROACH_MODEL, scenarios  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 from snn_estimator.catalog import DEFAULT_FILTER  # noqa: E402
 from snn_estimator.sim.approach import approach_scenario, fly_approach  # noqa: E402
+from snn_tools.bags.approach import ros_results  # noqa: E402
+from snn_tools.bags.data import read_bag  # noqa: E402
+from snn_tools.run.demo import run_pipeline  # noqa: E402
 
 NS = 1_000_000_000
 
@@ -88,7 +98,6 @@ def test_the_plant_ends_the_run_at_the_port_whatever_its_duration():
 
 
 def test_a_guidance_event_ends_the_run_only_when_the_approach_ended_without_contact():
-    from scenario_nodes.conversions import guidance_end, guidance_event
     assert guidance_end(guidance_event(7 * NS, 'c', 'abort', 'abort', {'corridor_radius': 1.0})) == 7 * NS
     assert guidance_end(guidance_event(8 * NS, 'c', 'no_go 5 km', 'no_go', {})) == 8 * NS
     assert guidance_end(guidance_event(9 * NS, 'c', 'go 5 km', 'transfer', {'error': 0.1})) is None
@@ -100,9 +109,6 @@ def test_make_demo_scenario_approach_flies_5_km_to_contact_within_the_limits_as_
     the default estimator) reaches contact within 0.1 m laterally below 5 cm/s, enters the
     keep-out sphere only after its go and never leaves the corridor; and it is the offline run
     of the same seed, step for step (13472 steps, ~50 s of loop here)."""
-    from snn_tools.bags.data import read_bag
-    from snn_tools.experiments.approach import ros_results
-    from snn_tools.run.demo import run_pipeline
     result = run_pipeline(tmp_path / 'run', scenario='approach', timeout=900.0)
     approach = ros_results(read_bag(result['bag']))
     contact = approach['contact']
