@@ -184,9 +184,9 @@ class PlantNode(ProcessHooks, Node):
         self._publish_diagnostics()
         values = self.values()
         if self._runner.ended_by == 'stop':
-            contact = port_contact(self._runner.plant.x[0])
             self.get_logger().info(f"contact at t = {values['sim_time']:.1f} s: closing speed "
-                                   f"{contact['closing_speed']:.4f} m/s, lateral offset {contact['lateral']:.4f} m")
+                                   f"{values['contact_closing_speed']:.4f} m/s, lateral offset "
+                                   f"{values['contact_lateral']:.4f} m")
         self.get_logger().info(
             f"done: {values['steps']} steps, {values['sim_time']:.1f} s simulated in "
             f"{values['wall_time']:.2f} s (x{values['real_time_factor']:.0f}), "
@@ -207,7 +207,10 @@ class PlantNode(ProcessHooks, Node):
         self._publish_diagnostics()
 
     def values(self) -> dict:
-        return {**self._runner.values(), **self._rejected.as_values('controls')}
+        """The runner's counts, rejections, and at the port (stop_at_port) the contact conditions."""
+        contact = ({f'contact_{k}': v for k, v in port_contact(self._runner.plant.x[0]).items()}
+                   if self._runner.ended_by == 'stop' else {})
+        return {**self._runner.values(), **self._rejected.as_values('controls'), **contact}
 
     def _publish_diagnostics(self) -> None:
         problems = self._runner.problems()

@@ -95,6 +95,8 @@ def test_the_plant_ends_the_run_at_the_port_whatever_its_duration():
     assert plant['ended_by'] == 'stop' and plant['steps'] < 40
     last = max(truths)
     assert last == plant['steps'] * NS and truths[last][0] >= 0.0 > truths[last - NS][0]
+    assert plant['contact_closing_speed'] == truths[last][3]  # in the plant's final diagnostics
+    assert plant['contact_lateral'] == np.hypot(truths[last][1], truths[last][2])
 
 
 def test_a_guidance_event_ends_the_run_only_when_the_approach_ended_without_contact():
