@@ -123,3 +123,18 @@ def test_make_demo_scenario_approach_flies_5_km_to_contact_within_the_limits_as_
     assert contact == pytest.approx(offline['contact'], rel=0, abs=1e-9)
     assert [(e['time'], e['event']) for e in approach['events']] == [tuple(e) for e in offline['events']][:-1]
     assert offline['events'][-1][1] == 'contact'  # which the plant, seeing the truth, ends the run on
+
+
+@pytest.mark.slow
+def test_a_no_go_at_the_first_hold_ends_the_run_after_its_step():
+    """end_on_guidance over ROS: a filter started with 100 m of sigma on a sensor of 1 km never
+    brings its 3-sigma under the 5 km hold's 10 m (54 m after 3000 samples), so the hold is a
+    no-go at its 3000 s timeout; the plant ends the run after that step instead of flying on
+    to its duration (~40-60 s here)."""
+    noise = {'measurement_noise': [1e6]}
+    _, truths, said, plant = fly_over_ros(4000, changes={
+        'cw_plant': {'duration': 4000.0}, 'position_sensor': noise,
+        'estimator': {**noise, 'initial_covariance': [1e4, 1e4, 1e4, 1e-4, 1e-4, 1e-4]}})
+    assert [(t, name, phase) for t, name, phase in said] == [(3000.0, 'no_go 5 km', 'no_go'),
+                                                             (3000.0, 'no_go', 'no_go')]
+    assert plant['ended_by'] == 'requested' and plant['steps'] == 3001 and max(truths) == 3001 * NS
