@@ -1,6 +1,8 @@
 # snn_rendezvous: every target creates .venv on first use (Python 3.11 with venv and pip).
 #   make demo [ESTIMATOR=snn_ekf] [MODE=lockstep|realtime [RTF=10]] [PLANT=cw|basilisk] [LIVE=1]   closed-loop demo
 #                             over ROS 2 (LIVE=1: live view, Foxglove at ws://localhost:8765)
+#   make demo SCENARIO=approach   5 km to contact over ROS 2 -> results/approach_ros.json; make approach-figure
+#                             draws it -> results/figures/approach_ros.png
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the quick loop: no ROS process, the first case of every-kind tests (~1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
@@ -18,6 +20,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.snn_rendezvous-installed
 ESTIMATOR ?=
+SCENARIO ?=
 MODE ?= lockstep
 PLANT ?= cw
 RTF ?=
@@ -31,7 +34,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget spike-rules sensors approach approach-basilisk \
+	spike-budget spike-rules sensors approach approach-basilisk approach-figure \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -68,9 +71,13 @@ test: lint warm
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 -m "not slow and not exhaustive" test
 
+# SCENARIO=approach: 5 km to contact (one BLAS thread: the nonlinear filter's 6x6 exponentials), its
+# results file results/approach_ros.json (make approach-figure draws it)
 demo: $(STAMP)
-	$(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) $(if $(ESTIMATOR),--estimator $(ESTIMATOR)) $(if $(SENSOR),--sensor $(SENSOR)) \
-		$(if $(RTF),--real-time-factor $(RTF)) $(if $(LIVE),--live-view)
+	$(if $(SCENARIO),OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1) $(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) \
+		$(if $(ESTIMATOR),--estimator $(ESTIMATOR)) $(if $(SENSOR),--sensor $(SENSOR)) \
+		$(if $(RTF),--real-time-factor $(RTF)) $(if $(LIVE),--live-view) \
+		$(if $(SCENARIO),--scenario $(SCENARIO) $(if $(filter approach,$(SCENARIO)),--results results/approach_ros.json))
 
 experiments: $(STAMP)
 	$(BIN)/snn_experiments $(if $(RUNS),--runs $(RUNS)) --out results \
@@ -123,6 +130,10 @@ approach: $(STAMP)
 approach-basilisk: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
 		--runs $(if $(RUNS),$(RUNS),100) --no-extra --out results
+
+# the README's approach figure from the results file make demo SCENARIO=approach writes
+approach-figure: $(STAMP)
+	$(BIN)/python -m snn_tools.figures --approach results/approach_ros.json --out results/figures/approach_ros.png
 
 bench-campaign: $(STAMP)
 	$(BIN)/snn_campaign_bench --repeat 2 --out results/campaign_bench.json

@@ -1,5 +1,11 @@
 """lqr_controller: u = -K x_hat (Eq. 42) from each state estimate, stamped with the estimate's time.
 
+With ``guidance`` approach the setpoint is the approach guidance's (snn_estimator.plant.approach:
+holds, go/no-go from the estimate and its covariance, corridor, CAM), u = u_ff - K (x_hat -
+x_ref) by the same core call as the offline loop (approach_control); each guidance event goes
+out on `guidance` (diagnostic_msgs/DiagnosticArray, status approach_guidance) stamped with the
+estimate's time, before the control of that step.
+
 Safe mode: zero thrust at every simulated step, said once and reported, while the estimator is
 down (no usable estimate for ``estimate_timeout`` simulated seconds), the sensors are down (no
 message on any of ``measurement_topics`` for as long: the estimates are predictions) or the
@@ -11,20 +17,23 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
+from snn_estimator.plant.approach import approach_control
 from snn_estimator.plant.control import lqr_control, lqr_gain
 from snn_estimator.runners.gates import NewestFirst
 from snn_estimator.runners.peers import OK, PeerWatch
 from snn_estimator.validation import as_matrix, as_vector
 
 from . import qos
-from .codec import MessageError, decode_stamp, encode_accel, read_input, seconds_to_ns
-from .core_objects import cw_model
+from .codec import NS, MessageError, decode_stamp, encode_accel, read_input, seconds_to_ns
+from .conversions import guidance_event
+from .core_objects import approach_guidance, cw_model, filter_model
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameter_tables import CONTROLLER
 from .ros_parameters import declare
@@ -43,10 +52,11 @@ def sensor_topics(topics) -> list[str]:
 
 
 def design_gain(values: dict) -> np.ndarray:
-    """K from the ``gain`` parameter, or designed by python-control from Qc and Rc."""
+    """K from the ``gain`` parameter, or designed by python-control from Qc and Rc on the
+    ``dynamics_model`` (its A(0))."""
     if values.get('gain'):
         return as_matrix(values['gain'], (3, 6), 'gain (K)')
-    model = cw_model(values, form=values['cw_model'])
+    model = filter_model(values)
     return lqr_gain(model, values['lqr_state_weight'], values['lqr_input_weight'])
 
 
@@ -60,6 +70,8 @@ class ControllerNode(ProcessHooks, Node):
         self._gain = design_gain(p)
         self._law = self._control_law()
         self._setpoint = as_vector(p['setpoint'], 6, 'setpoint')
+        self._guidance = self._make_guidance()
+        self._events_sent = 0  # the guidance's events published so far
         self._published = 0
         self._safe_steps = 0
         self._safe = False
@@ -77,6 +89,8 @@ class ControllerNode(ProcessHooks, Node):
         self._answers = Answers()
         self._events = qos.QosEvents(self)
         self._pub = qos.HistoryPublisher(self, self._events, AccelStamped, qos.CONTROL)
+        self._guidance_pub = (qos.publisher(self, self._events, DiagnosticArray, qos.GUIDANCE)
+                              if self._guidance is not None else None)
         self._diagnostics = DiagnosticsPublisher(self, 'lqr_controller', p['diagnostics_period'], self._events,
                                                  peers=self._peers)
         # estimates only once the controls reach min_control_subscribers (docs/decisions.md, 41)
@@ -159,7 +173,32 @@ class ControllerNode(ProcessHooks, Node):
         if self._safe:
             self._publish_control(np.zeros(3), stamp_ns)  # predicted without a sensor: no thrust
             return
-        self._publish_control(self._law(x_hat - self._setpoint), stamp_ns)
+        if self._guidance is None:
+            self._publish_control(self._law(x_hat - self._setpoint), stamp_ns)
+            return
+        u = approach_control(self._guidance, self._gain, stamp_ns / NS, self._p['time_step'], x_hat,
+                             estimate.covariance)
+        self._publish_guidance_events(stamp_ns)
+        self._publish_control(u, stamp_ns)
+
+    def _make_guidance(self):
+        """The core approach guidance (guidance approach), or None (steer to setpoint)."""
+        if self._p['guidance'] == 'none':
+            return None
+        if self._p['controller_type'] != 'lqr':
+            raise ValueError(f"guidance approach flies the LQR (controller_type lqr), not "
+                             f"{self._p['controller_type']}: set controller_type lqr")
+        return approach_guidance(self._p)
+
+    def _publish_guidance_events(self, stamp_ns: int) -> None:
+        """The guidance's new events, one message each (stamped at the estimate's time)."""
+        for event in self._guidance.events[self._events_sent:]:
+            self._guidance_pub.publish(guidance_event(stamp_ns, self.get_fully_qualified_name(), event.name,
+                                                      self._guidance.phase, event.detail))
+            level = 'error' if event.name == 'abort' else 'info'
+            getattr(self.get_logger(), level)(f'guidance at t = {event.time:.1f} s: {event.name} '
+                                              f'(phase {self._guidance.phase})')
+        self._events_sent = len(self._guidance.events)
 
     def _control_law(self):
         """u(x_hat - setpoint): lqr_control, or a SpikingLQR network (controller_type snn_lqr)."""
@@ -234,6 +273,7 @@ class ControllerNode(ProcessHooks, Node):
         self._time_jumps += 1
         self._gate.reset()
         self._law = self._control_law()  # a spiking network starts over too
+        self._guidance, self._events_sent = self._make_guidance(), 0  # so does the approach
         self._last_estimate_ns = None
         self._answers.clear()
         if self._safe:
@@ -266,6 +306,7 @@ class ControllerNode(ProcessHooks, Node):
         values = {'controls_published': self._published, 'controls_resent': self._answers.resent,
                   'safe_mode': self._safe,
                   'safe_mode_steps': self._safe_steps, 'time_jumps': self._time_jumps,
+                  **({'guidance_phase': self._guidance.phase} if self._guidance is not None else {}),
                   **self._rejected.as_values('estimates')}
         problems = [f'{self._rejected.total} estimates rejected'] if self._rejected.total else []
         if self._safe:

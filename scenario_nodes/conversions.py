@@ -11,12 +11,14 @@ from typing import Mapping, Sequence
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import AccelStamped, PointStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Range
 from std_msgs.msg import UInt32MultiArray
+
+from snn_estimator.plant.approach import ENDS_WITHOUT_CONTACT
 
 from .codec import (  # noqa: F401 (re-exported)
     NS,
@@ -133,3 +135,30 @@ def _format_value(value) -> str:
 def diagnostic_values(status: DiagnosticStatus) -> dict:
     """KeyValue pairs of a status as a dict of strings."""
     return {kv.key: kv.value for kv in status.values}
+
+
+# ---------------------------------------------------------------- the approach guidance's events
+#: The status name of a guidance event on `guidance` (one DiagnosticArray per event).
+GUIDANCE_STATUS = 'approach_guidance'
+
+
+def guidance_event(stamp_ns: int, hardware_id: str, name: str, phase: str,
+                   detail: Mapping[str, object]) -> DiagnosticArray:
+    """One guidance event at ``stamp_ns``: message ``name`` ('go 5 km', 'arrive 250 m', 'abort'),
+    values phase (after the event), event and ``detail`` (the go criteria, the abort's bound);
+    level ERROR for an abort, WARN for a no-go, else OK."""
+    level = (DiagnosticStatus.ERROR if phase == 'abort' else DiagnosticStatus.WARN if phase == 'no_go'
+             else DiagnosticStatus.OK)
+    array = DiagnosticArray()
+    array.header.stamp = ns_to_stamp(stamp_ns)
+    array.status = [diagnostic_status(GUIDANCE_STATUS, hardware_id, level, name,
+                                      {'phase': phase, 'event': name, **detail})]
+    return array
+
+
+def guidance_end(msg: DiagnosticArray) -> int | None:
+    """The stamp (ns) of a guidance event that ended the approach without contact, else None."""
+    for status in msg.status:
+        if status.name == GUIDANCE_STATUS and diagnostic_values(status).get('phase') in ENDS_WITHOUT_CONTACT:
+            return stamp_to_ns(msg.header.stamp)
+    return None

@@ -60,3 +60,10 @@ def measurement_model(values: dict, noise, **limits):
     geometry = {spec.name: values[spec.name] for spec in SENSOR_GEOMETRY if spec.name != 'sensor_frame_id'}
     return make_model(values['model'], noise, measured_axes=tuple(int(a) for a in values['measured_axes']),
                       **geometry, **limits)
+
+
+def approach_guidance(values: dict):
+    """The approach guidance (snn_estimator.sim.approach's holds, legs, corridor and speeds) for
+    the target orbit the parameters describe."""
+    from snn_estimator.sim.approach import approach_guidance as guidance
+    return guidance(cw_model(values).mean_motion)

@@ -10,6 +10,7 @@ config/ and docs/parameters.md are generated from them (``python -m snn_tools.ru
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -18,14 +19,17 @@ import numpy as np
 from snn_estimator import defaults as D
 from snn_estimator import schema
 from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS, MEASUREMENT_TIMINGS, START_MODES
-from snn_estimator.config import sensor_boundary_layer
+from snn_estimator.config import EstimatorConfig, sensor_boundary_layer
 from snn_estimator.measurements import MODELS as MEASUREMENT_MODELS
 from snn_estimator.measurements import OBSERVERS
+from snn_estimator.models import DYNAMICS_MODELS
 from snn_estimator.plant.sensors import FUSED_SEED_OFFSET, design_noise, docking_sensors
 
 from . import registry
-from .topics import MEASUREMENT, PIPELINE_TOPICS
+from .topics import GUIDANCE, MEASUREMENT, PIPELINE_TOPICS
 
+#: The controller's guidance choices (parameter ``guidance``).
+GUIDANCE_MODES = ('none', 'approach')
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
 DOUBLE_ARRAY, INTEGER_ARRAY, STRING_ARRAY = 'double_array', 'integer_array', 'string_array'
 
@@ -67,7 +71,7 @@ MODEL = (
          low=1e-6),
 )
 
-PLANT = MODEL + (
+_PLANT = MODEL + (
     Spec('initial_state', _floats(D.RENDEZVOUS_X0), 'x0 = [x, y, z, vx, vy, vz], m and m/s (Table 6)'),
     Spec('process_noise', [D.RENDEZVOUS_PROCESS_NOISE],
          'Q, process-noise spectral density of the truth, (m/s^2)^2/Hz (Table 6: 1e-12 I6)'),
@@ -99,9 +103,20 @@ PLANT = MODEL + (
          'launch: the launch then ends)'),
     Spec('paused', False, 'Hold simulated time (no steps, no /clock) until set false again',
          read_only=False),
+    Spec('stop_at_port', False, "End the run once the truth reaches the docking port's plane (x >= 0 "
+         'along V-bar: contact in the approach; docs/decisions.md, 67), logging the closing speed and '
+         'the lateral offset there'),
+    Spec('end_on_guidance', False, "End the run after the step in which the controller's approach "
+         "guidance ended without contact (an abort or a no-go on `guidance`; docs/decisions.md, 67)"),
 )
 
-BASILISK_PLANT = PLANT + (
+PLANT = _PLANT + (
+    Spec('dynamics_model', 'cw', 'The truth: cw (Clohessy-Wiltshire, exact transition) or '
+         'nonlinear_circular (the nonlinear relative motion about a circular orbit, RK4; '
+         'snn_estimator.models)', choices=DYNAMICS_MODELS),
+)
+
+BASILISK_PLANT = _PLANT + (
     Spec('eccentricity', 0.0, "Target orbit's eccentricity (orbit_radius is its semi-major axis; the "
          'target starts at the true anomaly below)', low=0.0, high=0.9),
     Spec('inclination', 51.6, "Target orbit's inclination, deg (ISS-like)", low=0.0, high=180.0),
@@ -188,8 +203,18 @@ CONTROLLER = MODEL + (
     Spec('gain', None, 'K (3x6, 18 values row-major) to use instead of designing it from Qc, Rc',
          read_only=False, kind=DOUBLE_ARRAY),
     Spec('cw_model', 'standard', 'CW matrix used for the LQR design', choices=('standard', 'as_published')),
+    Spec('dynamics_model', 'cw', 'Model whose linearisation at the port, A(0), the LQR is designed on: cw '
+         '(the cw_model form) or nonlinear_circular (A(0) equal to CW\'s within 4e-15; the offline approach '
+         "designs on the filter's model, and a lockstep run equals it only with the same gain to the bit)",
+         choices=DYNAMICS_MODELS),
     Spec('setpoint', [0.0] * 6, 'State the LQR steers to, u = -K (x_hat - setpoint), m and m/s (zeros: '
-         'docking; e.g. a V-bar hold point [-100, 0, 0, 0, 0, 0])', read_only=False),
+         'docking; e.g. a V-bar hold point [-100, 0, 0, 0, 0, 0]); guidance approach: unused',
+         read_only=False),
+    Spec('guidance', 'none', 'none: steer to setpoint; approach: the approach guidance of '
+         'snn_estimator.plant.approach (holds at 5 km, 2 km, 250 m, 20 m on V-bar, each left on a go '
+         "from the estimate and its covariance, a 10 deg corridor to the port, a CAM when the estimate's "
+         '3-sigma leaves it) gives the setpoint and its feed-forward, u = u_ff - K (x_hat - x_ref); its '
+         'events on `guidance` (docs/decisions.md, 67)', choices=GUIDANCE_MODES),
     Spec('estimate_timeout', 0.5, 'Simulated s without a usable estimate before safe mode (zero '
          'thrust)', read_only=False, low=1e-9),
     Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock, or stamped '
@@ -436,3 +461,39 @@ def _docking_suite(network: dict) -> dict[str, dict]:
     topics = [t for t in PIPELINE_TOPICS if t != 'measurement'] + ['lidar', 'camera']
     return {**nodes, 'estimator': estimator, 'cw_plant': {'measurement_topics': ['lidar', 'camera']},
             'lqr_controller': {'measurement_topics': ['lidar', 'camera']}, 'recorder': {'topics': topics}}
+
+
+#: The filters' and the truth's model of the approach over ROS (issue 39, part 4).
+APPROACH_MODEL = 'nonlinear_circular'
+
+
+def scenarios() -> dict[str, dict[str, dict]]:
+    """Scenarios other than Table 6's rendezvous: name -> node -> parameter values (``make demo
+    SCENARIO=<name>``, snn_demo --scenario). approach: the offline approach of
+    snn_estimator.sim.approach (approach_scenario: 5 km behind on V-bar, 1 s steps, the
+    position sensor at 1 Hz, the filters dispersed about x0 as in the far-range scenario) on
+    the nonlinear truth and filter model, the controller's approach guidance on the LQR weights
+    of the offline loop, the run ended at the port or by the guidance (docs/decisions.md, 67).
+    Every value is the core's; the time limits that count in steps are one-step-scaled."""
+    from snn_estimator.sim.approach import approach_scenario  # loads the filters (numba): not at node start
+    s = approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL)
+    default = EstimatorConfig()
+    estimator = {f.name: dataclasses.replace(f, default=getattr(s.estimator, f.name)).parameter_default
+                 for f in schema.FIELDS if repr(getattr(s.estimator, f.name)) != repr(getattr(default, f.name))}
+    dt = float(s.dt)
+    # a control stays in force, and an estimate counts as recent, for two steps of 1 s (the
+    # defaults are 5 steps of Table 6's 0.1 s): the lockstep loop is paced by the plant
+    every = {'time_step': dt, 'control_validity': 2.0 * dt, 'diagnostics_period': 60.0}
+    state_weight, input_weight = s.lqr_weights
+    return {'approach': {
+        'cw_plant': {**every, 'dynamics_model': APPROACH_MODEL, 'initial_state': _floats(s.x0),
+                     'duration': float(s.max_duration), 'stop_at_port': True, 'end_on_guidance': True},
+        'position_sensor': {**every},
+        # no NIS re-initialisation (the offline loop has none): on this loop it fired at 1085 s and
+        # 1551 s, the SNN-EKF's NIS 27-28 over 10 steps in the 5 km -> 2 km transfer (decision 68)
+        'estimator': {**every, **estimator, 'max_input_age': 2.0 * dt, 'nis_window': 0},
+        'lqr_controller': {**every, 'guidance': 'approach', 'dynamics_model': APPROACH_MODEL,
+                           'lqr_state_weight': [float(state_weight)],
+                           'lqr_input_weight': [float(input_weight)], 'estimate_timeout': 3.0 * dt,
+                           'max_input_age': 2.0 * dt},
+        'recorder': {'topics': [*PIPELINE_TOPICS, GUIDANCE]}}}

@@ -1,15 +1,19 @@
-"""cw_plant: the Clohessy-Wiltshire truth. Owns simulated time and publishes /clock.
+"""cw_plant: the relative-motion truth (``dynamics_model``: Clohessy-Wiltshire, or the nonlinear
+motion about a circular orbit). Owns simulated time and publishes /clock.
 
 Start: with ``wait_for_loop`` the scenario (x0, the clock) starts only once the loop is there:
 'truth' matched by ``min_truth_subscribers`` subscriptions and 'measurement', 'estimate' and
 'control' each with a publisher and a subscription, then ``start_delay`` wall seconds. It says
 what it waits for. When and with which control it steps (lockstep, realtime, resend, timeouts)
 is decided by :class:`snn_estimator.runners.plant_runner.PlantRunner`; this node converts, runs the
-timers and publishes.
+timers and publishes. The run ends after ``duration``, at the docking port (``stop_at_port``:
+contact, as the truth sees it) or after the step in which the approach guidance ended without
+contact (``end_on_guidance``).
 """
 
 from __future__ import annotations
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import AccelStamped
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
@@ -17,6 +21,8 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock as ClockMessage
 
+from snn_estimator.models import relative_motion
+from snn_estimator.plant.approach import at_port, port_contact
 from snn_estimator.plant.truth import Plant
 from snn_estimator.runners.peers import PeerWatch
 from snn_estimator.runners.plant_runner import PlantRunner, PlantSettings, StartGate
@@ -31,7 +37,7 @@ from .codec import (
     encode_clock,
     encode_odometry,
 )
-from .core_objects import cw_model
+from .conversions import guidance_end
 from .diagnostics import DiagnosticsPublisher, Rejections
 from .parameter_tables import PLANT
 from .ros_parameters import declare
@@ -85,7 +91,8 @@ class PlantNode(ProcessHooks, Node):
         self._p = p
         self._log = ThrottledLog(self.get_logger())
         self._runner = PlantRunner(self.make_plant(p), plant_settings(p), self._publish_sample,
-                                   self._finish, self._log, applied=self._publish_applied)
+                                   self._finish, self._log, applied=self._publish_applied,
+                                   stop=at_port if p['stop_at_port'] else None)
         self._rejected = Rejections()
         self._events = qos.QosEvents(self)
         self._truth_pub = qos.publisher(self, self._events, Odometry, qos.TRUTH)
@@ -97,6 +104,8 @@ class PlantNode(ProcessHooks, Node):
                                                  peers=self._peers)
         self.create_timer(0.1, self._on_peer_check, clock=Clock(clock_type=ClockType.STEADY_TIME))
         qos.subscription(self, self._events, AccelStamped, qos.CONTROL, self._on_control)
+        if p['end_on_guidance']:  # reliable: an end is said once
+            self.create_subscription(DiagnosticArray, qos.GUIDANCE, self._on_guidance, qos.LISTENER_QOS)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         if self._runner.lockstep:
@@ -104,15 +113,17 @@ class PlantNode(ProcessHooks, Node):
         else:
             self.create_timer(p['time_step'] / p['real_time_factor'], self._runner.tick, clock=steady)
         total = self._runner.total_steps
+        truth = getattr(self._runner.plant.model, 'dynamics_model', 'Basilisk')
         self.get_logger().info(
-            f"{p['mode']} CW truth, dt {p['time_step']} s, n = {self._runner.plant.model.mean_motion:.4e} "
+            f"{p['mode']} {truth} truth, dt {p['time_step']} s, n = {self._runner.plant.model.mean_motion:.4e} "
             f"rad/s, {'until stopped' if total is None else f'{total} steps'}")
         self._gate = StartGate(p['start_delay'], STARTUP_NOTICE_PERIOD, self._log)
         self._readiness = self.create_timer(0.02, self._check_ready, clock=steady)
 
     def make_plant(self, p: dict):
-        """The core truth the parameters describe: the CW model with process noise."""
-        return Plant(cw_model(p), p['initial_state'], p['process_noise'], seeds=[p['seed']])
+        """The core truth the parameters describe: the ``dynamics_model`` with process noise."""
+        model = relative_motion(p['dynamics_model'], orbit_radius=p['orbit_radius'], mu=p['gravitational_parameter'])
+        return Plant(model, p['initial_state'], p['process_noise'], seeds=[p['seed']])
 
     def _check_ready(self) -> None:
         """Start the scenario (publish x0) once the loop is there (wait_for_loop) and
@@ -143,6 +154,13 @@ class PlantNode(ProcessHooks, Node):
         if rejected is not None:
             self._reject(*rejected)
 
+    def _on_guidance(self, msg: DiagnosticArray) -> None:
+        """The guidance ended (abort, no-go): the run ends after the step from its stamp."""
+        stamp_ns = guidance_end(msg)
+        if stamp_ns is not None:
+            self.get_logger().info(f'the guidance ended at t = {stamp_ns * 1e-9:.3f} s: ending the run')
+            self._runner.end_after(stamp_ns)
+
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         for parameter in parameters:
             if parameter.name == 'paused':
@@ -165,6 +183,10 @@ class PlantNode(ProcessHooks, Node):
     def _finish(self) -> None:
         self._publish_diagnostics()
         values = self.values()
+        if self._runner.ended_by == 'stop':
+            self.get_logger().info(f"contact at t = {values['sim_time']:.1f} s: closing speed "
+                                   f"{values['contact_closing_speed']:.4f} m/s, lateral offset "
+                                   f"{values['contact_lateral']:.4f} m")
         self.get_logger().info(
             f"done: {values['steps']} steps, {values['sim_time']:.1f} s simulated in "
             f"{values['wall_time']:.2f} s (x{values['real_time_factor']:.0f}), "
@@ -185,7 +207,10 @@ class PlantNode(ProcessHooks, Node):
         self._publish_diagnostics()
 
     def values(self) -> dict:
-        return {**self._runner.values(), **self._rejected.as_values('controls')}
+        """The runner's counts, rejections, and at the port (stop_at_port) the contact conditions."""
+        contact = ({f'contact_{k}': v for k, v in port_contact(self._runner.plant.x[0]).items()}
+                   if self._runner.ended_by == 'stop' else {})
+        return {**self._runner.values(), **self._rejected.as_values('controls'), **contact}
 
     def _publish_diagnostics(self) -> None:
         problems = self._runner.problems()

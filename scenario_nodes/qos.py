@@ -39,6 +39,7 @@ from .topics import (  # noqa: F401
     CONTROL,
     DIAGNOSTICS,
     ESTIMATE,
+    GUIDANCE,
     MEASUREMENT,
     PIPELINE_TOPICS,
     SET_STATE,

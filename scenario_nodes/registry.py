@@ -18,6 +18,7 @@ from scenario_nodes.topics import (
     CONTROL,
     DIAGNOSTICS,
     ESTIMATE,
+    GUIDANCE,
     MARKERS,
     MEASUREMENT,
     PIPELINE_TOPICS,
@@ -47,7 +48,8 @@ class NodeEntry(NamedTuple):
     own_process: bool = False  # single-process mode still runs it as a process of its own
 
 
-_PLANT_TOPICS = dict(publishes=(TRUTH, APPLIED_CONTROL, CLOCK, DIAGNOSTICS), subscribes=(CONTROL,),
+# `guidance` only with end_on_guidance (the approach)
+_PLANT_TOPICS = dict(publishes=(TRUTH, APPLIED_CONTROL, CLOCK, DIAGNOSTICS), subscribes=(CONTROL, GUIDANCE),
                      waits_for=(TRUTH,))
 #: In the order the YAML files and docs/parameters.md list them.
 NODES = (
@@ -56,9 +58,10 @@ NODES = (
               plant='basilisk', **_PLANT_TOPICS),
     NodeEntry('position_sensor', 'scenario_nodes.sensor_node', 'SensorNode', 'SENSOR', 3,
               publishes=(MEASUREMENT, DIAGNOSTICS), subscribes=(TRUTH,), waits_for=(MEASUREMENT,)),
-    # the controller watches the measurements' stamps (safe mode when no sensor speaks)
+    # the controller watches the measurements' stamps (safe mode when no sensor speaks); `guidance`
+    # only with guidance approach
     NodeEntry('lqr_controller', 'scenario_nodes.controller_node', 'ControllerNode', 'CONTROLLER', 1,
-              publishes=(CONTROL, DIAGNOSTICS), subscribes=(ESTIMATE, MEASUREMENT), waits_for=(CONTROL,)),
+              publishes=(CONTROL, DIAGNOSTICS, GUIDANCE), subscribes=(ESTIMATE, MEASUREMENT), waits_for=(CONTROL,)),
     # its liveliness monitor and history reader on `estimate` watch other estimators: not counted
     NodeEntry('estimator', 'scenario_nodes.estimator_node', 'EstimatorNode', 'ESTIMATOR', 2,
               publishes=(ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS),

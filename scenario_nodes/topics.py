@@ -16,6 +16,9 @@ SPIKES = 'spikes'
 DIAGNOSTICS = 'diagnostics'
 SET_STATE = 'set_state'  # estimator input: replace the estimate (nav_msgs/Odometry)
 CLOCK = '/clock'
+#: lqr_controller output with guidance approach: one diagnostic_msgs/DiagnosticArray per guidance
+#: event (arrive, go, no-go, abort), stamped at its time; the plant may end the run on it
+GUIDANCE = 'guidance'
 
 PIPELINE_TOPICS = (TRUTH, MEASUREMENT, CONTROL, ESTIMATE, SPIKE_COUNT, SPIKES, DIAGNOSTICS)
 MARKERS = 'markers'  # live_view output: visualization_msgs/MarkerArray of the scene (RViz)

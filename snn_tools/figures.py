@@ -6,6 +6,8 @@ draw the same plots. Matplotlib runs headless (Agg).
 
 from __future__ import annotations
 
+import argparse
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -266,3 +268,92 @@ def raster(result, path: Path, title: str) -> Path:
 def neuron_sweep(data: dict, path: Path) -> Path:
     """Fig. 6 from an experiment's JSON (``sweep``, and ``coding_error`` when present)."""
     return neuron_sweep_figure(data['sweep'], path, data.get('coding_error'))
+
+
+def approach_figure(results: dict, path: Path) -> Path:
+    """An approach flown over ROS (snn_tools.experiments.approach.ros_results) in the V-bar/R-bar
+    plane: the whole approach with the holds, the approach ellipsoid and the keep-out sphere;
+    the last 250 m and the last 20 m with the corridor cone and the estimate's 3-sigma tube
+    (R-bar); and the estimation error against its 3-sigma in time, the guidance's events marked."""
+    tr = results['trajectory']
+    time, truth = np.array(tr['time']), np.array(tr['truth'])
+    estimate, sigma = np.array(tr['estimate']), np.array(tr['three_sigma'])
+    corridor, keep_out = results['corridor'], results['keep_out_radius']
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8))
+    circle = np.linspace(0.0, 2.0 * np.pi, 400)
+
+    def plane(ax, x_low, z_half, tube):
+        ax.plot(keep_out * np.cos(circle), keep_out * np.sin(circle), color='tab:red', linewidth=0.9,
+                label=f'keep-out sphere ({keep_out:g} m)')
+        xs = np.linspace(-corridor['length'], 0.0, 50)
+        radius = corridor['apex_radius'] + np.tan(np.radians(corridor['half_angle_deg'])) * -xs
+        for sign in (1.0, -1.0):
+            ax.plot(xs, sign * radius, color='tab:green', linewidth=0.9,
+                    label=f"corridor ({corridor['half_angle_deg']:g} deg)" if sign > 0 else None)
+        for i, hold in enumerate(results['holds']):
+            if -hold['distance'] >= x_low:
+                ax.plot(-hold['distance'], 0.0, marker='v', color='black', markersize=7)
+                ax.annotate(hold['name'], (-hold['distance'], 0.0), textcoords='offset points',
+                            xytext=(0, 8 if i % 2 == 0 else -16), ha='center', fontsize=8)
+        if tube:
+            ax.fill_between(estimate[:, 0], estimate[:, 2] - sigma[:, 2], estimate[:, 2] + sigma[:, 2],
+                            color='tab:orange', alpha=0.35, linewidth=0, label='estimate +-3 sigma (R-bar)')
+            ax.plot(estimate[:, 0], estimate[:, 2], color='tab:orange', linewidth=0.9, linestyle='--',
+                    label='estimate')
+        ax.plot(truth[:, 0], truth[:, 2], color='black', linewidth=1.1, label='truth')
+        ax.plot(0.0, 0.0, marker='o', color='tab:blue', markersize=5, label='docking port')
+        ax.set_xlim(x_low, -0.04 * x_low)
+        ax.set_ylim(z_half, -z_half)  # R-bar (z, toward Earth) drawn downward
+        ax.set_xlabel('x, V-bar [m]')
+        ax.set_ylabel('z, R-bar [m]')
+        ax.grid(alpha=0.3)
+
+    whole = axes[0, 0]
+    a, _, c = results['approach_ellipsoid']
+    whole.plot(a * np.cos(circle), c * np.sin(circle), color='tab:purple', linewidth=0.9, linestyle='--',
+               label='approach ellipsoid')
+    plane(whole, -5400.0, 1200.0, tube=False)
+    whole.set_title('5 km to contact: holds, approach ellipsoid, keep-out sphere')
+    whole.legend(loc='lower left', fontsize=7)
+    plane(axes[0, 1], -270.0, 50.0, tube=True)
+    axes[0, 1].set_title('the last 250 m: the corridor inside the keep-out sphere')
+    plane(axes[1, 0], -22.0, 0.5, tube=True)
+    axes[1, 0].set_title('the last 20 m, R-bar magnified: the 3-sigma tube, the corridor\'s apex')
+    axes[1, 0].legend(loc='lower left', fontsize=7)
+    errors = axes[1, 1]
+    for i, (name, colour) in enumerate(zip(('x', 'y', 'z'), ('tab:blue', 'tab:green', 'tab:orange'))):
+        errors.semilogy(time, np.abs(truth[:, i] - estimate[:, i]), color=colour, linewidth=0.8,
+                        label=f'|error| {name}')
+        errors.semilogy(time, sigma[:, i], color=colour, linewidth=0.8, linestyle=':')
+    for event in results['events']:
+        errors.axvline(event['time'], color='grey', linewidth=0.5)
+        errors.annotate(event['event'], (event['time'], 1.0), rotation=90, fontsize=6, va='top', ha='right',
+                        xycoords=('data', 'axes fraction'))
+    errors.set_xlabel('time [s]')
+    errors.set_ylabel('position error [m]')
+    errors.set_title('estimation error (solid) and its 3 sigma (dotted)')
+    errors.legend(loc='lower left', fontsize=7)
+    errors.grid(alpha=0.3)
+    contact = results.get('contact')
+    ending = (f"contact at {contact['time']:.0f} s, {contact['closing_speed']:.3f} m/s closing, "
+              f"{contact['lateral']:.3f} m lateral" if contact else results['outcome'])
+    fig.suptitle(f"Approach over ROS 2, lockstep, {label_of(results.get('estimator', ''))}: {ending}")
+    return _save(fig, path)
+
+
+def approach(results_file: Path, path: Path) -> Path:
+    """:func:`approach_figure` from a results file (make approach-figure)."""
+    return approach_figure(json.loads(Path(results_file).read_text()), path)
+
+
+def main(argv=None) -> None:
+    """python -m snn_tools.figures --approach results/approach_ros.json --out results/figures/approach_ros.png"""
+    parser = argparse.ArgumentParser(description='Draw a figure from a results file.')
+    parser.add_argument('--approach', type=Path, required=True, help='an approach results file (snn_demo --results)')
+    parser.add_argument('--out', type=Path, required=True)
+    args = parser.parse_args(argv)
+    print(approach(args.approach, args.out))
+
+
+if __name__ == '__main__':
+    main()

@@ -21,6 +21,8 @@ KEEP_OUT_RADIUS = 200.0
 APPROACH_ELLIPSOID = (2000.0, 1000.0, 1000.0)
 
 GO, NO_GO = 'go', 'no_go'
+#: The phases of a flying approach, and those that end it without contact.
+ACTIVE_PHASES, ENDS_WITHOUT_CONTACT = ('hold', 'transfer', 'final'), ('abort', NO_GO)
 
 
 @dataclass(frozen=True)
@@ -158,7 +160,7 @@ class ApproachGuidance:
 
     @property
     def active(self) -> bool:
-        return self.phase in ('hold', 'transfer', 'final')
+        return self.phase in ACTIVE_PHASES
 
     def go_time(self, index: int) -> float | None:
         """When hold ``index`` was given its go (None: not, or not yet)."""
@@ -225,3 +227,25 @@ class ApproachGuidance:
         """The sequence ends in contact (told by whoever sees the truth cross the port)."""
         if self.active:
             self._finish(t, 'contact')
+
+
+def approach_control(guidance: ApproachGuidance, gain, t: float, dt: float, x_hat, covariance) -> np.ndarray:
+    """The acceleration (3,) m/s^2 over the step from ``t``: the LQR tracking the guidance's
+    setpoint, u = u_ff - K (x_hat - x_ref), the CAM in the step of an abort, zero once the
+    approach has ended. The offline loop and the controller node both call this."""
+    if not guidance.active:
+        return np.zeros(3)
+    x_ref, u_ff, cam = guidance.update(t, dt, x_hat, covariance)
+    return cam if guidance.phase == 'abort' else u_ff - np.asarray(gain) @ (np.asarray(x_hat) - x_ref)
+
+
+def port_contact(x) -> dict[str, float]:
+    """The contact conditions of the state ``x`` at the port: closing speed along V-bar (m/s)
+    and lateral offset from the docking axis (m)."""
+    return {'closing_speed': float(x[3]), 'lateral': Corridor.lateral(x[:3])}
+
+
+def at_port(x) -> bool:
+    """True once the chaser's state ``x`` has reached the docking port's plane (x >= 0 along
+    V-bar): contact, as the truth sees it."""
+    return float(x[0]) >= 0.0

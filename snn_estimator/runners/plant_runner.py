@@ -20,7 +20,9 @@ Stamps are integer nanoseconds; ``publish(stamp_ns, resend)`` is called for ever
 plant then holds x at ``stamp_ns``); ``applied(stamp_ns, u)`` for every step, with the control
 it stepped with from ``stamp_ns`` (before the truth of the step's end: the estimator predicts
 with it, so estimate and truth agree on what was applied even when a control came after the
-realtime plant's tick); ``finished()`` after the last step.
+realtime plant's tick); ``finished()`` after the last step: after ``duration``, after the
+step that brings the truth where ``stop(x)`` says so (the approach: at the port), or after
+the step from the stamp given to :meth:`PlantRunner.end_after` (an end announced by a peer).
 """
 
 from __future__ import annotations
@@ -108,8 +110,13 @@ class PlantRunner:
     def __init__(self, plant, settings: PlantSettings, publish: Callable[[int, bool], None],
                  finished: Callable[[], None] = lambda: None, log: Callable[[str, str], None] | None = None,
                  wall_clock: Callable[[], float] = time.monotonic,
-                 applied: Callable[[int, np.ndarray], None] = lambda stamp_ns, u: None):
+                 applied: Callable[[int, np.ndarray], None] = lambda stamp_ns, u: None,
+                 stop: Callable[[np.ndarray], bool] | None = None):
         self.plant, self.settings = plant, settings
+        self._stop = stop
+        #: Why the run ended: 'duration', 'stop' (the truth met ``stop``), 'requested' (end_after); None: running.
+        self.ended_by: str | None = None
+        self._end_ns: int | None = None
         self._publish, self._on_finished, self._applied = publish, finished, applied
         self._log = log or (lambda level, message: None)
         self._wall = wall_clock
@@ -185,6 +192,14 @@ class PlantRunner:
         be in force)."""
         for t in sorted(t for t in self._controls if t <= self.t_ns)[:-1]:
             del self._controls[t]
+
+    def end_after(self, stamp_ns: int) -> None:
+        """End the run after the step from ``stamp_ns`` (at once if the plant has taken it)."""
+        if self.finished:
+            return
+        self._end_ns = stamp_ns if self._end_ns is None else min(self._end_ns, stamp_ns)
+        if self.started and self.t_ns > self._end_ns:
+            self._finish('requested')
 
     def set_paused(self, paused: bool) -> None:
         """Hold simulated time (lockstep: a control that came while paused is applied on resume)."""
@@ -264,8 +279,11 @@ class PlantRunner:
             self.t_ns += self._dt_ns
             self._prune()
             self._send()
-            if self.total_steps is not None and self.step >= self.total_steps:
-                self._finish()
+            ended = ('duration' if self.total_steps is not None and self.step >= self.total_steps else
+                     'stop' if self._stop is not None and self._stop(self.plant.x[0]) else
+                     'requested' if self._end_ns is not None and self.t_ns > self._end_ns else None)
+            if ended is not None:
+                self._finish(ended)
                 return
             early = [t for t in self._controls if abs(t - self.t_ns) * 2 < self._dt_ns]
             if not (early and self.lockstep and not self.paused):
@@ -279,7 +297,8 @@ class PlantRunner:
         if not resend:
             self._waiting_since = self._sent_at
 
-    def _finish(self) -> None:
+    def _finish(self, why: str) -> None:
+        self.ended_by = why
         self.finished_wall = self._wall()
         self.finished_unix = time.time()  # when stepping ended, for tools outside the process
         self._waiting_since = None
@@ -299,6 +318,7 @@ class PlantRunner:
             'late_controls': c['late_controls'], 'expired_control_steps': c['expired_control_steps'],
             'saturated_steps': int(self.plant.saturated_steps[0]),
             'range': float(np.linalg.norm(self.plant.x[0, :3])), 'done': self.finished,
+            'ended_by': self.ended_by or '',
             'finished_unix_time': self.finished_unix,
         }
 

@@ -23,6 +23,9 @@ from snn_estimator.plant.approach import (
     Corridor,
     HoldPoint,
     Leg,
+    approach_control,
+    at_port,
+    port_contact,
 )
 from snn_estimator.plant.basilisk_truth import BasiliskPlant, BasiliskSettings, OrbitSettings
 from snn_estimator.plant.control import lqr_gain
@@ -38,6 +41,8 @@ HOLDS = (HoldPoint('5 km', 5000.0, 25.0, 10.0, 0.05, 300.0, 3000.0),
          HoldPoint('20 m', 20.0, 0.2, 0.1, 0.005, 120.0, 3000.0))
 #: Transfers between them: the setpoint's top speed, m/s, time constant, s, and floor speed, m/s.
 LEGS = (Leg(1.0, 300.0, 0.02), Leg(0.5, 300.0, 0.02), Leg(0.1, 300.0, 0.01))
+#: The final approach's speed along V-bar and the CAM's delta-v, m/s (docs/decisions.md, 55-57).
+FINAL_SPEED, CAM_DELTA_V = 0.04, 0.4
 #: LQR weights of the tracking loop (response ~ 200 s, Rc^(1/4) ~ 56 s time constant).
 LQR_STATE_WEIGHT, LQR_INPUT_WEIGHT = 1.0, 1e7
 #: Contact: closing speed (m/s) and lateral offset (m) the docking mechanism accepts (IDSS-class
@@ -65,8 +70,8 @@ class ApproachScenario:
     holds: tuple = HOLDS
     legs: tuple = LEGS
     corridor: Corridor = field(default_factory=Corridor)
-    final_speed: float = 0.04
-    cam_delta_v: float = 0.4
+    final_speed: float = FINAL_SPEED
+    cam_delta_v: float = CAM_DELTA_V
     lqr_weights: tuple = (LQR_STATE_WEIGHT, LQR_INPUT_WEIGHT)
     #: A fault: from ``disturbance[0]`` s on, the truth feels ``disturbance[1]`` m/s^2 (3,) that
     #: neither the filters nor the guidance know of (a stuck thruster); None: no fault.
@@ -76,8 +81,16 @@ class ApproachScenario:
     basilisk: BasiliskSettings | None = None
 
     def guidance(self) -> ApproachGuidance:
-        return ApproachGuidance(self.holds, self.legs, self.corridor, self.model.mean_motion,
-                                final_speed=self.final_speed, cam_delta_v=self.cam_delta_v)
+        return approach_guidance(self.model.mean_motion, self.holds, self.legs, self.corridor,
+                                 self.final_speed, self.cam_delta_v)
+
+
+def approach_guidance(mean_motion: float, holds=HOLDS, legs=LEGS, corridor: Corridor | None = None,
+                      final_speed: float = FINAL_SPEED, cam_delta_v: float = CAM_DELTA_V) -> ApproachGuidance:
+    """The approach's guidance for a target orbit of ``mean_motion`` rad/s: by default this
+    module's holds, legs, corridor and speeds (what the controller node's guidance approach flies)."""
+    return ApproachGuidance(holds, legs, corridor or Corridor(), mean_motion, final_speed=final_speed,
+                            cam_delta_v=cam_delta_v)
 
 
 def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circular',
@@ -191,9 +204,9 @@ class _Safety:
         self.seen_decisions = len(g.decisions)
         if g.phase == 'abort' and self.cam is None:
             self.cam = {'time': t, 'delta_v': (np.asarray(u) * dt).tolist(), **passive_safety(s.truth, x)}
-        if g.active and x[0] >= 0.0:
+        if g.active and at_port(x):
             g.contact(t)
-            self.contact = {'time': t, 'closing_speed': float(x[3]), 'lateral': corridor.lateral(p)}
+            self.contact = {'time': t, **port_contact(x)}
 
     def figures(self) -> dict:
         g, contact = self.guidance, self.contact
@@ -209,12 +222,14 @@ class _Safety:
 
 
 def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int = 0,
-                 max_duration: float | None = None) -> list[dict]:
+                 max_duration: float | None = None, record: bool = False) -> list[dict]:
     """Fly ``runs`` approaches (seeds seed..seed+runs-1, random streams as simulate()'s) with
     filter ``kind``; each run's safety figures (:class:`_Safety`), its spikes, filter steps and
     mean NEES over its flight (6 states: 95 % of single steps below 12.6 when consistent).
     A run ends at contact, abort or no-go; the loop ends when every run has ended or after
-    ``max_duration`` s (default the scenario's)."""
+    ``max_duration`` s (default the scenario's). ``record``: each run also has 'trajectory',
+    {'time' (k,), 'truth', 'estimate' (k, 6), 'covariance' (k, 6, 6)} at every step of the loop
+    (the estimate at t before the measurement of t, as the ROS estimator publishes it)."""
     seeds = [seed + b for b in range(runs)]
     estimator = make_estimator(kind, scenario.estimator.replace(seed=seed), scenario.model, runs=runs, seeds=seeds)
     if not estimator.has_covariance:
@@ -230,14 +245,20 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
     spikes = np.zeros(runs, dtype=np.int64)
     nees_sum, nees_steps = np.zeros(runs), np.zeros(runs, dtype=np.int64)
     k = 0
+    trajectory = {'time': [], 'truth': [], 'estimate': [], 'covariance': []}
+
+    def keep(t):
+        if record:
+            for key, value in (('time', t), ('truth', plant.x.copy()), ('estimate', estimator.batch_x_hat.copy()),
+                               ('covariance', estimator.batch_P.copy())):
+                trajectory[key].append(value)
     while k < steps and any(g.active for g in guidance):
         x_hat, covariance, t = estimator.batch_x_hat.copy(), estimator.batch_P, k * dt
+        keep(t)
         u = np.zeros((runs, 3))
         flying = [g.active for g in guidance]
         for b, g in enumerate(guidance):
-            if g.active:
-                x_ref, u_ff, cam = g.update(t, dt, x_hat[b], covariance[b])
-                u[b] = cam if g.phase == 'abort' else u_ff - gain @ (x_hat[b] - x_ref)
+            u[b] = approach_control(g, gain, t, dt, x_hat[b], covariance[b])
         estimator.step(sensor.measure(plant.x), u, dt)
         fault = scenario.disturbance
         plant.step(u if fault is None or t < fault[0] else u + np.asarray(fault[1], dtype=float), dt)
@@ -251,10 +272,17 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
         nees_steps[flying_runs] += 1
         for b in flying_runs:
             safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b])
-    return [{'seed': s, 'kind': kind, 'dynamics_model': scenario.estimator.dynamics_model,
-             'spikes': int(spikes[b]) if estimator.spiking else None, 'steps': k,
-             'nees': float(nees_sum[b] / max(nees_steps[b], 1)), **safety[b].figures()}
-            for b, s in enumerate(seeds)]
+    keep(k * dt)
+    flights = [{'seed': s, 'kind': kind, 'dynamics_model': scenario.estimator.dynamics_model,
+                'spikes': int(spikes[b]) if estimator.spiking else None, 'steps': k,
+                'nees': float(nees_sum[b] / max(nees_steps[b], 1)), **safety[b].figures()}
+               for b, s in enumerate(seeds)]
+    if record:
+        for b, flight in enumerate(flights):
+            flight['trajectory'] = {'time': np.array(trajectory['time']),
+                                    **{key: np.array([v[b] for v in trajectory[key]])
+                                       for key in ('truth', 'estimate', 'covariance')}}
+    return flights
 
 
 #: How a run ends: contact, abort (CAM), no-go at a hold, or still flying at max_duration.

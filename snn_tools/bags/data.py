@@ -17,7 +17,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
 from scenario_nodes import codec
-from scenario_nodes.topics import PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
+from scenario_nodes.topics import GUIDANCE, PIPELINE_TOPICS  # decoded; other topics (ros2 bag record -a) only counted
 from snn_estimator.models import ClohessyWiltshire
 from snn_estimator.plant.sensors import SamplePeriod
 from snn_estimator.sim.results import contact_conditions
@@ -60,6 +60,8 @@ class RunData:
     # sensor topic (relative, e.g. measurement, camera) -> (stamps ns, measured): one per stamp, in
     # stamp order; measured False for "nothing measured"
     reports: dict = field(default_factory=dict)
+    # the approach guidance's events (`guidance`, if recorded): (stamp s, event, {key: value}), in bag order
+    guidance: list = field(default_factory=list)
 
     def last_diagnostics(self, name: str) -> dict:
         entries = self.diagnostics.get(name)
@@ -84,7 +86,7 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
         prefix = namespace.rstrip('/') + '/'
         run.namespace = namespace.rstrip('/')
         pipeline = [c for c in reader.connections
-                    if c.topic.startswith(prefix) and c.topic[len(prefix):] in PIPELINE_TOPICS]
+                    if c.topic.startswith(prefix) and c.topic[len(prefix):] in (*PIPELINE_TOPICS, GUIDANCE)]
         # a sensor's topic: its message type, directly in the namespace (not '<topic>/history')
         sensors = {c.id for c in reader.connections if c.msgtype in SENSOR_TYPES
                    and c.topic.startswith(prefix) and '/' not in c.topic[len(prefix):]}
@@ -94,7 +96,11 @@ def read_bag(path: str | Path, namespace: str | None = None) -> RunData:
             name = connection.topic[len(prefix):]
             if connection.id in sensors:
                 series[('report', name)].append(codec.sensor_report(connection.msgtype, raw))
-            if name in PIPELINE_TOPICS:
+            if name == GUIDANCE:
+                msg = typestore.deserialize_cdr(raw, connection.msgtype)
+                run.guidance += [(_stamp(msg.header) / NS, status.message, {kv.key: kv.value for kv in status.values})
+                                 for status in msg.status]
+            elif name in PIPELINE_TOPICS:
                 receive[connection.topic].append(timestamp)
                 _decode(run, series, typestore, connection, name, raw)
     run.receive_times = {topic: np.asarray(times, dtype=np.int64) for topic, times in receive.items()}

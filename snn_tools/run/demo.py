@@ -22,7 +22,7 @@ from pathlib import Path
 import yaml
 
 from scenario_nodes import registry
-from scenario_nodes.parameter_tables import sensor_suites
+from scenario_nodes.parameter_tables import scenarios, sensor_suites
 from snn_estimator.catalog import DEFAULT_FILTER
 from snn_estimator.filters.estimators import FILTER_KINDS
 from snn_tools.paths import DDS_PROFILE, DDS_PROFILE_VARIABLE, config_file
@@ -232,14 +232,18 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
                  extra: dict | None = None, timeout: float | None = None,
                  storage: str = 'mcap', namespace: str = '', on_start=None, pin_cpus: bool = True,
                  scheduling: str | None = None, plant: str = 'cw', live_view: bool = False,
-                 single_process: bool = False, sensor: str = 'position', listeners: dict | None = None) -> dict:
+                 single_process: bool = False, sensor: str = 'position', listeners: dict | None = None,
+                 scenario: str = 'rendezvous') -> dict:
     """Run the loop to completion; return {'exit_codes', 'wall_s', 'bag', 'scheduling' (the
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
     ``sensor``: position (Table 6) or a suite of scenario_nodes.parameter_tables.sensor_suites.
     ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE). ``listeners``: subscribers
-    besides the pipeline's, topic -> count (a probe), counted in each node's hold."""
+    besides the pipeline's, topic -> count (a probe), counted in each node's hold. ``scenario``:
+    rendezvous (Table 6, the parameter file's) or one of scenario_nodes.parameter_tables.scenarios
+    (approach: the CW plant node on the nonlinear truth, the position sensor, until contact or an
+    abort; its duration, the scenario's limit, unless ``duration`` is given)."""
     scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
@@ -259,12 +263,22 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
             raise ValueError(f"sensor must be position or one of {', '.join(suites)}; got {sensor!r}")
         for name, values in suites[sensor].items():
             overrides.setdefault(plant_name if name == 'cw_plant' else name, {}).update(values)
+    if scenario != 'rendezvous':
+        known = scenarios()
+        if scenario not in known:
+            raise ValueError(f"scenario must be rendezvous or one of {', '.join(known)}; got {scenario!r}")
+        if plant != 'cw' or sensor != 'position':
+            raise ValueError(f'the {scenario} scenario runs on the cw plant node (its dynamics_model set) and '
+                             f'the position sensor; got plant {plant!r}, sensor {sensor!r}')
+        for name, values in known[scenario].items():
+            overrides.setdefault(name, {}).update({k: v for k, v in values.items()
+                                                   if not (name == plant_name and k in plant_values)})
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
                         pin_cpus=pin_cpus, scheduling=scheduling, plant=plant, live_view=live_view,
                         single_process=single_process, sensor=sensor, listeners=listeners)
-    sim_duration = float(duration if duration is not None else 360.0)
+    sim_duration = float(duration if duration is not None else overrides[plant_name].get('duration', 360.0))
     if timeout is None:
         timeout = 120.0 + (sim_duration / (real_time_factor or 1.0) if mode == 'realtime' else sim_duration)
     started = time.monotonic()
@@ -369,6 +383,11 @@ def main(argv=None) -> int:
                         help='truth: cw (the model the filters use) or basilisk (J2, thrust limits)')
     parser.add_argument('--sensor', default='position', choices=('position', *sensor_suites()),
                         help="position (Table 6's partial position) or a sensor suite (docs/sensors.md)")
+    parser.add_argument('--scenario', default='rendezvous', choices=('rendezvous', *scenarios()),
+                        help='rendezvous (Table 6, 360 s) or approach (5 km behind on V-bar to contact through the '
+                             'holds, nonlinear truth and filter model, 1 s steps, until contact or abort)')
+    parser.add_argument('--results', type=Path, help='approach: also write its results file here '
+                        '(make demo SCENARIO=approach: results/approach_ros.json)')
     parser.add_argument('--params-file', type=Path, help='parameter file (default: config/rendezvous.yaml)')
     parser.add_argument('--duration', type=float, help='simulated seconds (default: from the file, 360)')
     parser.add_argument('--real-time-factor', type=float, help='realtime mode speed-up (default 1)')
@@ -399,27 +418,30 @@ def main(argv=None) -> int:
             parser.error('--cpu-wake-latency-us must be >= 0')
         os.environ['SNN_CPU_WAKE_LATENCY_US'] = str(args.cpu_wake_latency_us)  # the nodes inherit it
     sensor = '' if args.sensor == 'position' else f'_{args.sensor}'
-    name = args.name or f"{args.estimator}{sensor}_{args.mode}_{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    scenario = '' if args.scenario == 'rendezvous' else f'{args.scenario}_'
+    name = args.name or (f"{scenario}{args.estimator}{sensor}_{args.mode}_"
+                         f"{datetime.now().strftime('%Y%m%d-%H%M%S')}")
     run_dir = (args.runs_dir / name).resolve()
     if run_dir.exists():
         parser.error(f'{run_dir} exists; choose another --name')
     params_file = config_file(str(args.params_file)) if args.params_file else None
-    print(f'snn_demo: {args.estimator} on {args.sensor} in {args.mode} mode -> {run_dir}')
+    print(f'snn_demo: {args.scenario}, {args.estimator} on {args.sensor} in {args.mode} mode -> {run_dir}')
     signal.signal(signal.SIGTERM, _raise_interrupt)  # so the nodes are stopped on SIGTERM too
     try:
         result = run_pipeline(run_dir, args.estimator, args.mode, params_file, args.duration,
                               args.real_time_factor, args.domain_id, storage=args.storage,
                               pin_cpus=args.cpu_affinity == 'auto', scheduling=args.scheduling,
                               plant=args.plant, live_view=args.live_view,
-                              single_process=args.single_process, sensor=args.sensor)
-    except RuntimeError as error:
+                              single_process=args.single_process, sensor=args.sensor, scenario=args.scenario)
+    except (RuntimeError, ValueError) as error:
         print(f'snn_demo: {error}', file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print('snn_demo: interrupted; nodes stopped', file=sys.stderr)
         return 130
     from snn_tools.bags.data import read_bag, summarize
-    summary = summarize(read_bag(result['bag']))
+    run = read_bag(result['bag'])
+    summary = summarize(run)
     summary['exit_codes'] = result['exit_codes']
     # how the processes ran: the real-time factor depends on it
     summary['scheduling'], summary['cpu_affinity'] = result['scheduling'], args.cpu_affinity
@@ -429,6 +451,16 @@ def main(argv=None) -> int:
         from snn_tools.bags.report import write_report
         write_report([run_dir], run_dir)
     print_summary(summary, run_dir)
+    if args.scenario == 'approach':
+        from snn_tools.bags.approach import ros_lines, ros_results
+        approach = ros_results(run, wall_time=result['wall_s'])
+        approach.update(estimator=args.estimator, mode=args.mode, run=os.path.relpath(run_dir))
+        for path in [run_dir / 'approach.json'] + ([args.results] if args.results else []):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(approach, indent=1) + '\n')
+        print('\n'.join(ros_lines(approach)))
+        print(f"  results            {run_dir / 'approach.json'}" + (f', {args.results}' if args.results else ''))
+        return 0 if approach['success'] else 3
     return 0
 
 

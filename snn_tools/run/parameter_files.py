@@ -23,6 +23,7 @@ from scenario_nodes.parameter_tables import (
     SENSOR,
     SENSOR_INPUT,
     Spec,
+    scenarios,
     sensor_input_specs,
     sensor_suites,
     show,
@@ -106,11 +107,22 @@ CONFIG_FILES = {
 
 def sensor_overlay(name: str) -> str:
     """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml."""
-    out = [f'# snn_rendezvous: the {name} sensor suite instead of the position sensor (docs/sensors.md).',
-           '# Generated from scenario_nodes/parameter_tables.py (sensor_suites). Load it after the scenario file:',
-           '#   --ros-args --params-file config/rendezvous.yaml --params-file config/sensor_' + name + '.yaml',
+    return _overlay(f'the {name} sensor suite instead of the position sensor (docs/sensors.md)', 'sensor_suites',
+                    f'sensor_{name}.yaml', sensor_suites()[name])
+
+
+def scenario_overlay(name: str) -> str:
+    """config/scenario_<name>.yaml: the scenario's values, to load after config/rendezvous.yaml."""
+    return _overlay(f'the {name} scenario (snn_demo --scenario {name}; docs/decisions.md, 67-69)', 'scenarios',
+                    f'scenario_{name}.yaml', scenarios()[name])
+
+
+def _overlay(title: str, source: str, file_name: str, nodes: dict) -> str:
+    out = [f'# snn_rendezvous: {title}.',
+           f'# Generated from scenario_nodes/parameter_tables.py ({source}). Load it after the scenario file:',
+           f'#   --ros-args --params-file config/rendezvous.yaml --params-file config/{file_name}',
            '']
-    for node, values in sensor_suites()[name].items():
+    for node, values in nodes.items():
         out.extend([f'/**/{node}:', '  ros__parameters:'])
         specs = {spec.name: spec for spec in tables.NODES.get(node, SENSOR)}  # a renamed sensor: SENSOR's
         for key, value in values.items():
@@ -180,6 +192,7 @@ def generated_files() -> dict[Path, str]:
     """Every file generated from the tables, with its content."""
     files = {SOURCE_ROOT / 'config' / name: yaml_document(*spec) for name, spec in CONFIG_FILES.items()}
     files.update({SOURCE_ROOT / 'config' / f'sensor_{name}.yaml': sensor_overlay(name) for name in sensor_suites()})
+    files.update({SOURCE_ROOT / 'config' / f'scenario_{name}.yaml': scenario_overlay(name) for name in scenarios()})
     files[SOURCE_ROOT / 'docs' / 'parameters.md'] = PARAMETERS_DOC + markdown()
     for name in registry.executables():  # ros2 run entry points of a pip install (setup.py)
         files[SOURCE_ROOT / 'wrappers' / name] = WRAPPER.format(name=name)

@@ -255,3 +255,37 @@ def test_a_realtime_plant_reports_the_control_it_stepped_with_and_the_estimator_
     assert any(not np.array_equal(reports[k][1], controls(k)) for k in late)
     corrected = spies[True].runner.values().get('provisional_corrected', 0)
     assert corrected == (sum(not np.array_equal(reports[k][1], controls(k)) for k in late) if provisional else 0)
+
+
+@pytest.mark.parametrize('event_first', [True, False], ids=['end_before_the_control', 'end_after_the_control'])
+def test_an_end_announced_at_a_stamp_ends_the_run_after_the_step_from_it_whichever_comes_first(event_first):
+    """The guidance's abort at t_k (end_after) and the control of t_k come on two topics in either
+    order: the run ends at t_k+1 both ways, the step from t_k taken with that control."""
+    runner, sent, _, _, finished = make_runner(duration=10.0)
+    runner.begin()
+    runner.control(0, np.zeros(3))
+    if event_first:
+        runner.end_after(DT)
+        assert not finished
+    runner.control(DT, np.array([1e-3, 0.0, 0.0]))
+    if not event_first:
+        assert not finished
+        runner.end_after(DT)
+    assert finished == [True] and runner.ended_by == 'requested'
+    assert [s[0] for s in sent] == [0, DT, 2 * DT]
+    assert runner.control(2 * DT, np.zeros(3)) is None and len(sent) == 3  # no step after the end
+
+
+def test_a_stop_condition_on_the_truth_ends_the_run_with_the_step_that_meets_it():
+    scenario = rendezvous_scenario()
+    plant = Plant(scenario.model, scenario.x0, np.zeros((6, 6)))
+    sent, finished = [], []
+    runner = PlantRunner(plant, PlantSettings(time_step=0.1, duration=100.0),
+                         publish=lambda stamp, resend: sent.append(plant.x[0].copy()),
+                         finished=lambda: finished.append(True), stop=lambda x: x[0] < 69.9)
+    runner.begin()
+    k = 0
+    while not finished:
+        runner.control(k * DT, np.zeros(3))
+        k += 1
+    assert runner.ended_by == 'stop' and sent[-1][0] < 69.9 <= sent[-2][0] and runner.step == len(sent) - 1
