@@ -197,6 +197,25 @@ def step_dynamics(params, b_matrix, x_hat, u, dt, exact, linearized, packed, dri
 
 
 @_jit
+def transition(params, x, u, dt, substeps, stages, trial):
+    """x <- x after ``dt`` with u held, by ``substeps`` classical RK4 steps (models.rk4, the
+    formula the model truth's Plant steps with), in place; ``x``, ``u`` one run's; ``stages``
+    (4, n) and ``trial`` (n) scratch."""
+    mean_motion, radius = params[0], params[1]
+    n = x.shape[0]
+    h = dt / substeps
+    for _ in range(substeps):
+        _f(mean_motion, radius, x, u, stages[0])
+        for stage in range(1, 4):
+            step = h if stage == 3 else 0.5 * h
+            for i in range(n):
+                trial[i] = x[i] + step * stages[stage - 1, i]
+            _f(mean_motion, radius, trial, u, stages[stage])
+        for i in range(n):
+            x[i] = x[i] + (h / 6.0) * (stages[0, i] + 2.0 * stages[1, i] + 2.0 * stages[2, i] + stages[3, i])
+
+
+@_jit
 def drift_f(params, x, u, out):
     """f(x, u) of every row of ``x`` (rows, n) with ``u`` (rows, nu), into ``out``."""
     for r in range(x.shape[0]):

@@ -94,6 +94,17 @@ class StepDynamics:
             self._entry(*args)
         return self._packed, self.no_drift if self.linearized else self._drift
 
+    def loop_model(self) -> tuple:
+        """What a compiled caller (snn_estimator.sim.compiled_loop) passes to
+        model_kernels.step_dynamics before each kernel step: (compiled, params, B, exact,
+        linearized, [A_d | B_d], drift), the last two the arrays a call returns, written in
+        place. Not compiled (a linear model's dynamics are constant): placeholders of the same
+        types, so one compiled caller serves both."""
+        if self._params is None:
+            n, n_u = self.model.n_state, self.model.n_input
+            return False, np.zeros(2), np.zeros((n, n_u)), False, False, np.zeros((1, n, n + n_u)), np.zeros((1, n))
+        return (True, self._params, self._b, self.method == 'exact', self.linearized, self._packed, self._drift)
+
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the compiled twin's step, if the model has one."""
         if self._params is not None:

@@ -121,3 +121,13 @@ def test_step_dynamics_refuses_a_state_of_the_wrong_shape():
     estimator = make_estimator('ekf', config, NonlinearCircular(), runs=2)
     with pytest.raises(ValueError, match=r'x_hat and u must be \(2, 6\) and \(2, 3\)'):
         estimator.program.dynamics(np.zeros((3, 6)), np.zeros((3, 3)), 1.0)
+
+
+@pytest.mark.parametrize('dt', [0.1, 1.0, 10.0])
+def test_the_compiled_transition_is_the_models_rk4_substeps(dt):
+    """The model truth's step (Plant: models.rk4 with 4 substeps), run by run in place."""
+    x, u = random_states(seed=2)
+    stepped, stages, trial = x.copy(), np.empty((4, 6)), np.empty(6)
+    for r in range(len(x)):
+        model_kernels.transition(PARAMS, stepped[r], u[r], dt, 4, stages, trial)
+    assert_close_per_row(stepped, MODEL.transition(x, u, dt, 'exact', substeps=4), 1e-14)
