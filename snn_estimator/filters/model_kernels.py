@@ -20,6 +20,9 @@ e^M - I squared back as E (E + 2 I)); only M's top n rows are ever non-zero, so 
 n x n by n x (n + nu). The numpy path subtracts I from scipy's exponential and the drift from
 x_next, so the two agree to the rounding of those subtractions (~1e-16 |x| / dt), not to the bit.
 
+:func:`transition` is the model truth's step (``blocks.Plant``: RK4 substeps), which
+snn_estimator.sim.compiled_loop runs in its loop (docs/decisions.md, 63).
+
 Models live in the foundation, which loads no compiler (test/house/test_layers.py); this is
 their compiled twin, checked against them on random states (test/core/test_model_kernels.py).
 """
