@@ -41,6 +41,8 @@ class StepDynamics:
             n, n_u = model.n_state, model.n_input
             self._b = np.ascontiguousarray(model.input_matrix, dtype=float)
             self._packed, self._drift = np.zeros((runs, n, n + n_u)), np.zeros((runs, n))
+            self._exact, self._u_shape = method == 'exact', (runs, n_u)
+            self._result = (self._packed, self.no_drift if linearized else self._drift)
             self._entry = None  # step_dynamics' entry point for its argument types (kernels.entry_point)
 
     @property
@@ -82,17 +84,17 @@ class StepDynamics:
         of the shapes checked, a float and two bools)."""
         x_hat = np.ascontiguousarray(x_hat, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
-        if x_hat.shape != self._drift.shape or u.shape != (self.runs, self._b.shape[1]):
-            raise ValueError(f'x_hat and u must be ({self.runs}, {self._drift.shape[1]}) and '
-                             f'({self.runs}, {self._b.shape[1]}), got {x_hat.shape} and {u.shape}')
-        args = (self._params, self._b, x_hat, u, float(dt), self.method == 'exact', self.linearized,
-                self._packed, self._drift)
-        if self._entry is None:
-            model_kernels.step_dynamics(*args)
-            self._entry = kernels.entry_point(model_kernels.step_dynamics, args)
-        else:
-            self._entry(*args)
-        return self._packed, self.no_drift if self.linearized else self._drift
+        if x_hat.shape != self._drift.shape or u.shape != self._u_shape:
+            raise ValueError(f'x_hat and u must be {self._drift.shape} and {self._u_shape}, got {x_hat.shape} '
+                             f'and {u.shape}')
+        if self._entry is not None:  # the hot path: no tuple built, no dispatch
+            self._entry(self._params, self._b, x_hat, u, float(dt), self._exact, self.linearized, self._packed,
+                        self._drift)
+            return self._result
+        args = (self._params, self._b, x_hat, u, float(dt), self._exact, self.linearized, self._packed, self._drift)
+        model_kernels.step_dynamics(*args)
+        self._entry = kernels.entry_point(model_kernels.step_dynamics, args)
+        return self._result
 
     def loop_model(self) -> tuple:
         """What a compiled caller (snn_estimator.sim.compiled_loop) passes to
@@ -103,7 +105,7 @@ class StepDynamics:
         if self._params is None:
             n, n_u = self.model.n_state, self.model.n_input
             return False, np.zeros(2), np.zeros((n, n_u)), False, False, np.zeros((1, n, n + n_u)), np.zeros((1, n))
-        return (True, self._params, self._b, self.method == 'exact', self.linearized, self._packed, self._drift)
+        return (True, self._params, self._b, self._exact, self.linearized, self._packed, self._drift)
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the compiled twin's step, if the model has one."""
