@@ -16,7 +16,7 @@ from snn_estimator.catalog import DEFAULT_FILTER, FILTER_KINDS
 from snn_estimator.config import EstimatorConfig
 from snn_estimator.filters import kernels
 from snn_estimator.filters.estimators import Estimator
-from snn_estimator.models import ClohessyWiltshire
+from snn_estimator.models import ClohessyWiltshire, NonlinearCircular
 from snn_estimator.schema import NETWORK_CODINGS
 from snn_estimator.sim.scenarios import rendezvous_scenario, van_der_pol_scenario
 from snn_estimator.sim.simulate import simulate
@@ -26,7 +26,7 @@ def filter_kernels(kinds=None) -> None:
     """Compile (or load) the step kernels of every filter kind (or of ``kinds``: processes can
     share the work), gain schedule and spike rule (and of network_coding deviation with the
     greedy rule) on small filters of the CW model (linear) and Van der Pol (nonlinear: the direct
-    filters' drift)."""
+    filters' drift), and the nonlinear relative motion's compiled dynamics (filters.model_kernels)."""
     unknown = set(kinds or ()) - set(FILTER_KINDS)
     if unknown:
         raise ValueError(f'unknown filter kinds {sorted(unknown)}; choose from {", ".join(FILTER_KINDS)}')
@@ -44,6 +44,8 @@ def filter_kernels(kinds=None) -> None:
                     Estimator(kind, linear, config).warm_up()
                 config = nonlinear.estimator.replace(neuron_count=4, spike_rule=rule, network_coding=coding)
                 Estimator(kind, nonlinear.model, config).warm_up()
+    # one compiled function for every kind (its flags are arguments); the step kernels are Van der Pol's
+    Estimator('ekf', NonlinearCircular(), EstimatorConfig(dynamics_model='nonlinear_circular')).warm_up()
 
 
 def closed_loops(kinds=None, basilisk: bool = True) -> None:

@@ -13,14 +13,21 @@ import numpy as np
 from snn_estimator.config import ResolvedConfig, gain_noise_density
 from snn_estimator.models import DT_CACHE_SIZE, StateSpaceModel
 
-from . import kernels
+from . import kernels, model_kernels
 
 
 class StepDynamics:
     """The kernel's per-step model input: packed [A_d | B_d] (n x (n + nu); one shared block,
     cached per dt, for a linear model), with which a step is x + dt (A_d x + B_d u) and the
     covariance's transition Phi = I + dt A_d, plus the nonlinear drift a direct filter on a
-    nonlinear model integrates itself (its A_d is then only the covariance's)."""
+    nonlinear model integrates itself (its A_d is then only the covariance's).
+
+    A nonlinear model with a compiled twin (:mod:`model_kernels`: NonlinearCircular) gets both
+    from one compiled call per step, written into arrays held here (valid until the next call);
+    any other (Van der Pol) from the model's numpy ``linearized_increment`` and ``transition``.
+    One call outside the step kernel rather than a piece inside it: the kernel reads the
+    dynamics as it reads H, knowing no model, and the call itself costs ~0.2 us (through its
+    entry point) of the ~2.5 us this takes per step, mostly the exponential (docs/decisions.md, 62)."""
 
     def __init__(self, model: StateSpaceModel, method: str, runs: int, linearized: bool):
         #: ``linearized``: the network integrates A(x_hat) x_hat (Eq. 14, 17); otherwise the
@@ -29,6 +36,20 @@ class StepDynamics:
         self._linear_cache: dict[float, np.ndarray] = {}
         self._last_linear: tuple[float, np.ndarray] | None = None  # the block of the last dt
         self.no_drift = np.zeros((1, model.n_state))
+        #: The model's parameters for model_kernels.step_dynamics (None: numpy)
+        self._params = None if model.is_linear else model_kernels.compiled_params(model)
+        if self._params is not None:
+            n, n_u = model.n_state, model.n_input
+            self._b = np.ascontiguousarray(model.input_matrix, dtype=float)
+            self._packed, self._drift = np.zeros((runs, n, n + n_u)), np.zeros((runs, n))
+            self._exact, self._u_shape = method == 'exact', (runs, n_u)
+            self._result = (self._packed, self.no_drift if linearized else self._drift)
+            self._entry = None  # step_dynamics' entry point for its argument types (kernels.entry_point)
+
+    @property
+    def compiled(self) -> bool:
+        """True when a nonlinear model's dynamics come from its compiled twin (model_kernels)."""
+        return self._params is not None
 
     @property
     def cached_steps(self) -> int:
@@ -50,6 +71,8 @@ class StepDynamics:
                 self._linear_cache[dt] = cached
             self._last_linear = (dt, cached)
             return cached, self.no_drift
+        if self._params is not None:
+            return self._compiled(x_hat, u, dt)
         runs = self.runs
         a_d, b_d = model.linearized_increment(x_hat, dt, method)  # A(x_hat) held over the step (Eq. 17)
         b_d = np.broadcast_to(b_d, (runs,) + b_d.shape[-2:])
@@ -59,6 +82,41 @@ class StepDynamics:
         # the non-spiking twin (and a network with network_drive: nonlinear) integrates f itself
         drift = (model.transition(x_hat, u, dt, method) - x_hat) / dt
         return packed, np.ascontiguousarray(drift)
+
+    def _compiled(self, x_hat: np.ndarray, u: np.ndarray, dt: float):
+        """[A_d | B_d] and the drift from model_kernels.step_dynamics, through its entry point
+        after the first call (the arguments' types are fixed here: C-contiguous float64 arrays
+        of the shapes checked, a float and two bools)."""
+        x_hat = np.ascontiguousarray(x_hat, dtype=float)
+        u = np.ascontiguousarray(u, dtype=float)
+        if x_hat.shape != self._drift.shape or u.shape != self._u_shape:
+            raise ValueError(f'x_hat and u must be {self._drift.shape} and {self._u_shape}, got {x_hat.shape} '
+                             f'and {u.shape}')
+        if self._entry is not None:  # the hot path: no tuple built, no dispatch
+            self._entry(self._params, self._b, x_hat, u, float(dt), self._exact, self.linearized, self._packed,
+                        self._drift)
+            return self._result
+        args = (self._params, self._b, x_hat, u, float(dt), self._exact, self.linearized, self._packed, self._drift)
+        model_kernels.step_dynamics(*args)
+        self._entry = kernels.entry_point(model_kernels.step_dynamics, args)
+        return self._result
+
+    def loop_model(self) -> tuple:
+        """What a compiled caller (snn_estimator.sim.compiled_loop) passes to
+        model_kernels.step_dynamics before each kernel step: (compiled, params, B, exact,
+        linearized, [A_d | B_d], drift), the last two the arrays a call returns, written in
+        place. Not compiled (a linear model's dynamics are constant): placeholders of the same
+        types, so one compiled caller serves both."""
+        if self._params is None:
+            n, n_u = self.model.n_state, self.model.n_input
+            return False, np.zeros(2), np.zeros((n, n_u)), False, False, np.zeros((1, n, n + n_u)), np.zeros((1, n))
+        return (True, self._params, self._b, self._exact, self.linearized, self._packed, self._drift)
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the compiled twin's step, if the model has one."""
+        if self._params is not None:
+            kernels.compile_for(model_kernels.step_dynamics, self._params, self._b, self._drift,
+                                np.zeros((self.runs, self._b.shape[1])), 0.1, True, True, self._packed, self._drift)
 
 
 class SampledNoise:
@@ -158,3 +216,4 @@ class StepProgram:
         n = self.dynamics.model.n_state
         kernels.compile_for(self._packed_kernel, self.packed.ref, self.all_runs, 0.1, np.zeros((1, n, n + n_input)),
                             self.dynamics.no_drift, np.zeros((runs, m)), np.zeros((runs, n_input)), noise)
+        self.dynamics.warm_up()

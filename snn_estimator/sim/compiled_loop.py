@@ -12,12 +12,15 @@ generators in the same order (:class:`GaussianStream` rows, the membrane noise),
 a time, so the numbers are those of the Python loop, which stays the reference
 (``simulate(..., engine='reference')``); a test holds them equal to 1e-9 for every filter kind.
 
-What it covers: a linear model and measurement (the position sensor of Table 6) with the CW truth
-inside the compiled loop, or the Basilisk truth stepped by Basilisk between two compiled calls; the
-LQR, a known open-loop schedule or no control; the float64 network (any spike rule, coding, gain
+What it covers: a linear measurement (the position sensor of Table 6); the filters' model CW or
+the nonlinear relative motion (its A(x_hat), zero-order hold and drift recomputed in the loop
+before each step by snn_estimator.filters.model_kernels, as Estimator.step does); the CW or the
+nonlinear relative-motion truth inside the compiled loop (the latter by its RK4 substeps, as
+blocks.Plant), or the Basilisk truth stepped by Basilisk between two compiled calls; the LQR, a
+known open-loop schedule or no control; the float64 network (any spike rule, coding, gain
 schedule, membrane noise); ``events`` (the loop returns to Python before an event's step). A
-measurement model, the chip network, the spiking LQR or a nonlinear model run the reference loop
-(:func:`unsupported` says why).
+measurement model, the chip network, the spiking LQR or a nonlinear model without a compiled twin
+(Van der Pol) run the reference loop (:func:`unsupported` says why).
 
 The packed arguments of :func:`_loop_template` (tuples, as the step kernel's):
 ``step_args`` the step kernel's ten arguments (its z, u and noise are written here each step);
@@ -25,7 +28,8 @@ The packed arguments of :func:`_loop_template` (tuples, as the step kernel's):
 (the sensor's C, L_R, noise rows (runs, count, m), the filter's C, R_hat), each C as its nonzero
 entries (:func:`sparse`); ``control`` (mode, K, setpoint, schedule); ``outputs`` (truth, estimate,
 diag P, NEES, NIS, control, spikes per step, raster); ``where`` (first step, count, index of the
-first sample, index of the first step, first sample with NEES and NIS).
+first sample, index of the first step, first sample with NEES and NIS); ``models`` (the filter's
+``StepDynamics.loop_model()``, and the truth's (nonlinear, model_kernels params, RK4 substeps)).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ import numba
 import numpy as np
 
 from snn_estimator import gains
-from snn_estimator.filters import kernels
+from snn_estimator.filters import kernels, model_kernels
 from snn_estimator.filters.program import StepProgram
 
 #: Steps per compiled call (and noise rows drawn at a time): the blocks of GaussianStream.
@@ -62,8 +66,11 @@ def unsupported(scenario, estimator, controller: str) -> str | None:
     """Why the compiled loop cannot run this set-up (None: it can)."""
     if scenario.sensor is not None:
         return 'a measurement model (the filter re-linearises in Python)'
-    if not scenario.model.is_linear or not (scenario.truth_model or scenario.model).is_linear:
-        return 'a nonlinear model'
+    truth = scenario.truth_model or scenario.model
+    if not (scenario.model.is_linear or estimator.program.dynamics.compiled):
+        return 'a nonlinear model without a compiled twin (snn_estimator.filters.model_kernels)'
+    if scenario.basilisk is None and not (truth.is_linear or model_kernels.compiled_params(truth) is not None):
+        return 'a nonlinear truth model without a compiled twin (snn_estimator.filters.model_kernels)'
     if estimator.chip is not None:
         return 'the chip network'
     if controller != 'lqr':
@@ -202,6 +209,23 @@ def _propagate(b, j, truth, u, scratch):
 
 
 @_jit
+def _propagate_nonlinear(b, j, dt, truth, truth_model, u, stages, trial):
+    """x_{k+1} = the model's RK4 substeps from x_k with u_k held + L_Q w of run b (blocks.Plant
+    on a nonlinear model: model_kernels.transition), w row j."""
+    _, _, _, root, noise, x, applied = truth
+    _, params, substeps = truth_model
+    model_kernels.transition(params, x[b], u[b], dt, substeps, stages, trial)
+    n = x.shape[1]
+    for i in range(n):
+        acc = 0.0
+        for q in range(n):
+            acc += root[i, q] * noise[b, j, q]
+        x[b, i] += acc
+    for i in range(u.shape[1]):
+        applied[b, i] = u[b, i]
+
+
+@_jit
 def _record(sample, step, with_metrics, x, applied, state, network, outputs, factor, work, error):
     """The samples after a step: truth, estimate, diag P and (``with_metrics``) NEES e^T P^-1 e,
     e = x - x_hat, at index ``sample``; the control applied over the step, spikes per run and run
@@ -266,7 +290,7 @@ def _any_diverged(state, network, x, max_spikes, covariance, spiking):
     return False
 
 
-def _loop_template(step_args, membrane, truth, sensing, control, outputs, where):
+def _loop_template(step_args, membrane, truth, sensing, control, outputs, where, models):
     """Steps ``first .. first + count - 1`` (``where``) of the loop for every run; per step k,
     simulate's order: u_k from x_hat_k (zero for a diverged run: ``step_args``' measured, the
     runs still running); z_k = C x_k + L_R w; the NIS of z_k against x_hat_k and P_k; the filter's
@@ -274,14 +298,19 @@ def _loop_template(step_args, membrane, truth, sensing, control, outputs, where)
     the samples of k + 1. Returns (status, steps done, runs capped), stopping early at a step
     whose status is not OK: bad input (nothing done), a running run's control not finite (before
     the step, nothing done), a run diverged (after the step), or the state non-finite without a
-    run to blame (after the step): where simulate's Python loop raises or marks the run."""
+    run to blame (after the step): where simulate's Python loop raises or marks the run.
+    ``models``: (the filter's StepDynamics.loop_model(), (truth nonlinear, its params, RK4
+    substeps)): a nonlinear filter model's dynamics are recomputed at x_hat_k, u_k before each
+    step (as Estimator.step does), a nonlinear truth stepped by model_kernels.transition."""
     consts, state, network, running, dt, dynamics, drift, z, u, noise = step_args
+    filter_model, truth_model = models
     first, count, sample_at, step_at, metrics_from = where
     x_hat, p, x = state[0], state[1], truth[5]
     runs, n = x_hat.shape
     m = z.shape[1]
     nu, s_matrix, factor_m, work_m = np.empty(m), np.empty((m, m)), np.empty((m, m)), np.empty(m)
     factor_n, work_n, error = np.empty((n, n)), np.empty(n), np.empty(n)
+    stages = np.empty((4, n))
     with_covariance, spiking = outputs[2].shape[2] > 0, network[0].shape[2] > 0
     capped_total = 0
     for j in range(count):
@@ -297,12 +326,18 @@ def _loop_template(step_args, membrane, truth, sensing, control, outputs, where)
                 outputs[4][b, step_at + j] = (_nis(b, z, x_hat, p, sensing, nu, s_matrix, factor_m, work_m)
                                               if with_metrics else np.nan)
         step_noise = membrane[j] if membrane.shape[0] > 0 else noise
+        if filter_model[0]:  # [A_d | B_d] (and the drift) written into dynamics (and drift)
+            model_kernels.step_dynamics(filter_model[1], filter_model[2], x_hat, u, dt, filter_model[3],
+                                        filter_model[4], filter_model[5], filter_model[6])
         status, capped = _step(consts, state, network, running, dt, dynamics, drift, z, u, step_noise)
         capped_total += capped
         if status == kernels.STATUS_BAD_INPUT or not truth[0]:  # Basilisk: Python steps the truth
             return status, j + (status != kernels.STATUS_BAD_INPUT), capped_total
         for b in range(runs):
-            _propagate(b, j, truth, u, work_n)
+            if truth_model[0]:
+                _propagate_nonlinear(b, j, dt, truth, truth_model, u, stages, work_n)
+            else:
+                _propagate(b, j, truth, u, work_n)
         _record(sample_at + j, step_at + j, with_metrics, x, truth[6], state, network, outputs, factor_n,
                 work_n, error)
         if _any_diverged(state, network, x, consts[gains.MAX_SPIKES], with_covariance, spiking):
@@ -320,7 +355,8 @@ def record_sample(sample, step, with_metrics, x, applied, state, network, output
             np.empty(n))
 
 
-_DIGEST = hashlib.sha256(Path(__file__).read_bytes() + StepProgram.DIGEST.encode()).hexdigest()[:12]
+_DIGEST = hashlib.sha256(Path(__file__).read_bytes() + Path(model_kernels.__file__).read_bytes()
+                         + StepProgram.DIGEST.encode()).hexdigest()[:12]
 _LOOPS: dict = {}
 
 
@@ -391,12 +427,20 @@ class CompiledLoop:
         self.truth_inside = hasattr(plant, 'step_noise_covariance')  # blocks.Plant; Basilisk steps itself
         self._x = np.ascontiguousarray(plant.x, dtype=float).copy()
         self._applied = np.zeros((runs, n_u))
+        truth_params = None
         if self.truth_inside:
-            phi, gamma = (np.ascontiguousarray(a) for a in plant.model.discrete_matrices(dt))
+            if plant.model.is_linear:
+                phi, gamma = (np.ascontiguousarray(a) for a in plant.model.discrete_matrices(dt))
+            else:  # RK4 of the model's compiled twin (unsupported() checked there is one)
+                phi, gamma = np.zeros((n, n)), np.zeros((n, n_u))
+                truth_params = model_kernels.compiled_params(plant.model)
             self._plant_root = np.ascontiguousarray(_plant_root(plant, dt))
         else:
             phi, gamma, self._plant_root = np.zeros((n, n)), np.zeros((n, n_u)), np.zeros((n, n))
         self._phi, self._gamma = phi, gamma
+        self._models = (program.dynamics.loop_model(),
+                        (truth_params is not None, np.zeros(2) if truth_params is None else truth_params,
+                         int(getattr(plant, 'substeps', 1))))
         mode = (CONTROL_LQR if control.gain is not None else
                 CONTROL_SCHEDULE if control.schedule is not None else CONTROL_NONE)
         self._control = (mode, np.ascontiguousarray(np.zeros((n_u, n)) if control.gain is None else control.gain,
@@ -470,7 +514,8 @@ class CompiledLoop:
                  self._x, self._applied)
         sensing = self._sensing[:2] + (np.ascontiguousarray(sensor_noise),) + self._sensing[3:]
         status, taken, capped = self._loop(step_args, np.ascontiguousarray(membrane), truth, sensing, self._control,
-                                           sink.outputs, (first, count, sample_at, step_at, sink.metrics_from))
+                                           sink.outputs, (first, count, sample_at, step_at, sink.metrics_from),
+                                           self._models)
         estimator.steps += taken
         estimator.capped_steps += capped
         if status == kernels.STATUS_BAD_INPUT:

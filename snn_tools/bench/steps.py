@@ -10,6 +10,10 @@ In the same run it times filterpy's ``KalmanFilter`` (``predict(u)`` then ``upda
 numpy, the usual reference a Python user would reach for) on the same CW model, dimensions
 (6 states, 3 inputs, 3 measurements), noise and inputs: key ``filterpy_kf_us``, printed with
 its ratio to SNN-EMSIF at N = 300 (``filterpy_kf_over_snn_emsif_300``).
+
+And the EKF and SNN-EKF (N = 200) on the far-range approach with the filters' model CW and the
+nonlinear relative motion, whose weights follow A(x_hat) each step (key ``nonlinear_model``,
+:mod:`snn_tools.bench.dynamics`; issue 39's goal: SNN-EKF nonlinear / CW <= 1.5).
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ from snn_estimator.sim.scenarios import rendezvous_scenario
 from snn_estimator.sim.simulate import simulate
 from snn_tools.experiments.tables import time_steps
 from snn_tools.progress import track
+
+from . import dynamics
 
 NEURON_COUNTS = (50, 100, 200, 300)
 
@@ -206,6 +212,8 @@ def main(argv=None) -> int:
             results['filterpy_kf_over_snn_emsif_300'] = round(filterpy_us / snn, 2)
             line += f' = {filterpy_us / snn:.2f}x SNN-EMSIF N = 300 ({snn:.1f} us)'
         print(line)
+    print()
+    results['nonlinear_model'] = dynamics.rows()
     print(f'\n{args.mc_runs}-run rendezvous Monte Carlo (360 s each, dispersed start), us of CPU per run-step: '
           'the closed loop compiled (with trajectories; with the sums only, as campaigns run) and in Python '
           "(simulate engine=compiled | reference) against the filter's own batched step "

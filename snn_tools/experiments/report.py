@@ -508,7 +508,7 @@ def write_report(folder: Path) -> Path:
         lines += ['## Benchmark (make bench): rendezvous, us per step', '',
                   '| filter | N | compiled | dense reference | ratio |', '|---|---|---|---|---|']
         for kind, per_n in data.items():
-            if not isinstance(per_n, dict):  # scalar figures (filterpy_kf_us, issue 25)
+            if not isinstance(per_n, dict) or kind == 'nonlinear_model':  # scalars (filterpy_kf_us), issue 39's
                 continue
             for n, rec in per_n.items():
                 dense = rec.get('dense_reference_us_per_step')
@@ -516,6 +516,14 @@ def write_report(folder: Path) -> Path:
                 lines.append(f'| {label_of(kind)} | {n} | {rec["us_per_step"]:.1f} | '
                              f'{_fmt(dense) if dense else "-"} | {ratio} |')
         lines.append('')
+        nonlinear = data.get('nonlinear_model')
+        if nonlinear:  # snn_tools.bench.dynamics
+            lines += [f'Far range (5 km, 1 s steps), the filters\' model CW against the nonlinear relative motion, '
+                      f'us per step (N = {nonlinear["neurons"]}; issue 39\'s goal: SNN-EKF within 1.5x):', '',
+                      '| filter | CW | nonlinear | ratio |', '|---|---|---|---|']
+            lines += [f'| {label_of(kind)} | {row["cw_us"]:.1f} | {row["nonlinear_us"]:.1f} | {row["ratio"]:.2f}x |'
+                      for kind, row in nonlinear['kinds'].items()]
+            lines.append('')
     report = folder / 'REPORT.md'
     report.write_text('\n'.join(lines) + '\n')
     return report
