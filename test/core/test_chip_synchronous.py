@@ -110,3 +110,19 @@ def test_fixed_point_synchronous_network_tracks_within_the_goal_of_float_at_8_bi
     fixed = simulate(short, kind, runs=4, config=config.replace(precision='loihi', weight_bits=8), trajectories=False)
     assert not fixed.diverged.any()
     assert _position_rmse(fixed) <= GOAL_RATIO * _position_rmse(float_run)
+
+
+def test_a_restored_snapshot_replays_the_same_spikes_and_estimates():
+    estimator = _loihi_estimator()
+    z = DISPERSED.model.measurement_matrix @ DISPERSED.x0
+    for _ in range(5):
+        estimator.step(z, np.zeros(3), DISPERSED.dt)
+    saved = estimator.snapshot()
+    first = [(estimator.step(z, np.full(3, 1e-4), DISPERSED.dt).copy(), estimator.network.spikes.copy())
+             for _ in range(5)]
+    estimator.restore(saved)
+    again = [(estimator.step(z, np.full(3, 1e-4), DISPERSED.dt).copy(), estimator.network.spikes.copy())
+             for _ in range(5)]
+    for (x, spikes), (y, replayed) in zip(first, again):
+        np.testing.assert_array_equal(x, y)
+        np.testing.assert_array_equal(spikes, replayed)
