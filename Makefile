@@ -12,6 +12,8 @@
 #                             LIDAR, dispersed -> results/neuromorphic.{json,md} (its section only)
 #   make bench | bench-loop | bench-campaign | bench-live | bench-latency [SAMPLES=n]   speed figures -> results/
 #   make spike-budget [RUNS=n]  spikes against accuracy per network coding -> results/spike_budget.{json,md}
+#   make chip-synchronous [RUNS=n]  the synchronous rule on the fixed-point (Loihi-format) Eq. 15 network against
+#                             float at 8-bit weights -> results/neuromorphic.{json,md} (its section only)
 #   make sensors [RUNS=n]     the filters on the LIDAR and the camera, offline -> results/sensors.{json,md}
 #   make report RUN=runs/<name>   figures and report.md from a recorded run (written beside it)
 #   make faults [CELLS=controller:kill,...]   kill/stop each node mid-run -> results/faults.json, docs/robustness.md
@@ -34,7 +36,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget spike-rules sensors approach approach-basilisk approach-figure \
+	spike-budget spike-rules chip-synchronous sensors approach approach-basilisk approach-figure \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -115,6 +117,11 @@ spike-budget: $(STAMP)
 spike-rules: $(STAMP)
 	$(BIN)/python -m snn_tools.neuromorphic.tables --local-rule-only --out results \
 		$(if $(RUNS),--local-rule-runs $(RUNS) $(RUNS))
+
+# the synchronous rule on the fixed-point chip network (Eq. 15 in Loihi's formats) against float, RUNS per row (20)
+chip-synchronous: $(STAMP)
+	$(BIN)/python -m snn_tools.neuromorphic.tables --chip-synchronous-only --out results \
+		$(if $(RUNS),--chip-synchronous-runs $(RUNS))
 
 # the LIDAR close approach (dispersed) and angles-only navigation, offline (docs/sensors.md)
 sensors: $(STAMP)

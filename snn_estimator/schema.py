@@ -209,7 +209,8 @@ FIELDS: tuple[Field, ...] = (
           "(Loihi's integer formats with the bit widths below; needs gain_schedule steady_state or "
           'switched)', choices=PRECISIONS),
     Field('weight_bits', 'integer', 8, 'signed weight mantissa bits, one shared exponent per weight '
-          'matrix (Loihi: 8)', low=2, high=24),
+          'matrix (Loihi: 8); with spike_rule synchronous one per row of the state compartments\' weights, '
+          'Omega_f held exactly (docs/decisions.md, 64-65)', low=2, high=24),
     Field('membrane_bits', 'integer', 24, 'bits of the membrane potentials and synaptic currents '
           '(Loihi: 24)', low=8, high=52),
     Field('decay_bits', 'integer', 12, 'bits of the decay constants (Loihi: 12)', low=4, high=24),

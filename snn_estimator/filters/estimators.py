@@ -43,6 +43,7 @@ from snn_estimator.measurements import MeasurementModel
 from snn_estimator.models import StateSpaceModel
 from snn_estimator.schema import RUNTIME
 from snn_estimator.spiking import chip
+from snn_estimator.spiking.chip_synchronous import SynchronousChipNetwork
 from snn_estimator.spiking.network import NETWORK_STREAM, Network, network_rng, weights  # noqa: F401 (re-exported)
 
 from . import kernels
@@ -125,13 +126,12 @@ class Estimator:
         if chip.wanted(config) and self.measurement is not None:
             raise ValueError('the chip network (precision loihi, gain_schedule switched) holds the constant C of '
                              'the model: it takes no measurement model; use precision float64')
-        if chip.wanted(config) and s.spike_rule == 'synchronous':
-            raise ValueError('spike_rule synchronous runs on the float64 network only (the chip network is '
-                             'not yet ticked, docs/decisions.md, 58): use precision float64 and gain_schedule '
-                             'steady_state or time_varying, or another spike_rule')
         net = self.network
-        self.chip = (chip.ChipNetwork(kind, model, config, s, net.decoder, net.alive, self.state.x_hat, net.spikes,
-                                      net.total_spikes, self._chip_gains)
+        # the greedy rules on the factored network; the synchronous rule on the Eq. 15 network itself
+        # (membranes and Omega_f, docs/decisions.md, 64)
+        chip_network = SynchronousChipNetwork if s.spike_rule == 'synchronous' else chip.ChipNetwork
+        self.chip = (chip_network(kind, model, config, s, net.decoder, net.alive, self.state.x_hat, net.spikes,
+                                  net.total_spikes, self._chip_gains)
                      if chip.wanted(config) else None)
         #: What the network codes (schema network_coding): the estimate, or its deviation from
         #: the prediction x_pred (held in the network's ``reference``)

@@ -221,13 +221,18 @@ class _Safety:
                 'events': [(e.time, e.name) for e in g.events]}
 
 
+def _nees(x, x_hat, covariance) -> np.ndarray:
+    """(x - x_hat)^T P^-1 (x - x_hat) per run."""
+    error = x - x_hat
+    return np.einsum('bi,bi->b', error, np.linalg.solve(covariance, error[..., None])[..., 0])
+
+
 def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int = 0,
                  max_duration: float | None = None, record: bool = False) -> list[dict]:
     """Fly ``runs`` approaches (seeds seed..seed+runs-1, random streams as simulate()'s) with
-    filter ``kind``; each run's safety figures (:class:`_Safety`), its spikes, filter steps and
-    mean NEES over its flight (6 states: 95 % of single steps below 12.6 when consistent).
-    A run ends at contact, abort or no-go; the loop ends when every run has ended or after
-    ``max_duration`` s (default the scenario's). ``record``: each run also has 'trajectory',
+    filter ``kind``; each run's safety figures (:class:`_Safety`), spikes, filter steps and mean
+    NEES (6 states). A run ends at contact, abort or no-go; the loop when every run has ended or
+    after ``max_duration`` s (default the scenario's). ``record``: each run also has 'trajectory',
     {'time' (k,), 'truth', 'estimate' (k, 6), 'covariance' (k, 6, 6)} at every step of the loop
     (the estimate at t before the measurement of t, as the ROS estimator publishes it)."""
     seeds = [seed + b for b in range(runs)]
@@ -266,9 +271,8 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
             spikes += estimator.batch_spikes.sum(axis=1)
         k += 1
         flying_runs = np.flatnonzero(flying)
-        error = plant.x[flying_runs] - estimator.batch_x_hat[flying_runs]
-        nees_sum[flying_runs] += np.einsum('bi,bi->b', error,
-                                           np.linalg.solve(estimator.batch_P[flying_runs], error[..., None])[..., 0])
+        nees_sum[flying_runs] += _nees(plant.x[flying_runs], estimator.batch_x_hat[flying_runs],
+                                       estimator.batch_P[flying_runs])
         nees_steps[flying_runs] += 1
         for b in flying_runs:
             safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b])

@@ -177,7 +177,7 @@ class ChipNetwork:
         runs, n, neurons = decoder.shape
         self.runs, self.neurons = runs, neurons
         self._x_range = self._readout_range(settings)
-        self._read_lsb = self._x_range / (self.format.state_limit + 1) if self.format else 1.0
+        self._read_lsb = self._decoder_lsb(decoder)
         # the decoder first: every other weight is built from the quantized one
         self.decoder = np.empty_like(decoder)
         self._read = np.empty((runs, neurons, n))
@@ -196,7 +196,8 @@ class ChipNetwork:
         self.capped_steps = 0
         self.overflows = 0
         self.synops = 0
-        self.rule = _RULES[settings.spike_rule]
+        #: the rule's code for chip_step (None for synchronous: chip_synchronous runs that network)
+        self.rule = _RULES.get(settings.spike_rule)
 
     # ------------------------------------------------------------------ set-up
     def _readout_range(self, settings) -> float:
@@ -204,6 +205,32 @@ class ChipNetwork:
         of the start."""
         spread = np.abs(settings.initial_state) + 4.0 * np.sqrt(np.diag(settings.initial_covariance))
         return READOUT_HEADROOM * float(np.max(spread / settings.state_scale))
+
+    def _decoder_lsb(self, decoder: np.ndarray) -> float:
+        """The readout's LSB (scaled units): the readout range over the state's range, so the
+        readout currents span it (1 in float64)."""
+        return self._x_range / (self.format.state_limit + 1) if self.format else 1.0
+
+    def _realised_leak(self, dt: float) -> tuple[float, float]:
+        """(decay constant, leak rate it realises in 1/s) of one tick of a sample period ``dt``:
+        Loihi's round(lambda dt 2^bits) (0 in float64, where the leak is the designed one)."""
+        s, fmt = self.settings, self.format
+        if not fmt:
+            return 0.0, s.leak_rate
+        unity = 2.0 ** fmt.decay_bits
+        decay_int = float(round(s.leak_rate * dt * unity))
+        if decay_int >= unity:
+            raise ValueError(f'leak_rate * dt = {s.leak_rate * dt} is not below 1')
+        return decay_int, decay_int / (unity * dt)  # the leak the chip realises, designed for
+
+    def _drive_weights(self, weights: np.ndarray):
+        """The n state compartments' weights A, K or B (real, on graded inputs) as the chip holds
+        them: one exponent for the matrix. Returns (values, shift)."""
+        return quantize(weights, 1.0, self.format, fractional=True)
+
+    def _control_weights(self, weights: np.ndarray):
+        """B as the chip holds it (see :meth:`_drive_weights`)."""
+        return self._drive_weights(weights)
 
     def encode(self, run: int, target: np.ndarray) -> np.ndarray:
         """Rates r >= 0 (NNLS over the live neurons) with D r = ``target`` (scaled units);
@@ -230,14 +257,7 @@ class ChipNetwork:
         s, model, fmt = self.settings, self.model, self.format
         n, m = model.n_state, model.n_meas
         unity = 2.0 ** fmt.decay_bits if fmt else 1.0
-        if fmt:
-            self._decay_int = float(round(s.leak_rate * dt * unity))
-            if self._decay_int >= unity:
-                raise ValueError(f'leak_rate * dt = {s.leak_rate * dt} is not below 1')
-            leak = self._decay_int / (unity * dt)  # the leak the chip realises, designed for
-        else:
-            self._decay_int = 0.0
-            leak = s.leak_rate
+        self._decay_int, leak = self._realised_leak(dt)
         self.leak_rate = leak
         self._unity, self._decay = unity, 1.0 - leak * dt
         scale = s.state_scale
@@ -246,13 +266,12 @@ class ChipNetwork:
         self.gains = [np.asarray(gain, dtype=float) for gain in self._gain_source(dt)]
         self.times = np.array(schedule_times(self.config))
         # y = A x_read + K nu + B u in readout LSB: x_read is in LSB already, nu in m, u in m/s^2
-        self._dynamics, self.shifts['dynamics'] = quantize(
-            dt * (a_d / scale[:, None] * scale[None, :] + leak * np.eye(n)), 1.0, fmt, fractional=True)
-        self._control, self.shifts['control'] = quantize(dt * b_d / scale[:, None] / lsb, 1.0, fmt, fractional=True)
+        self._dynamics, self.shifts['dynamics'] = self._drive_weights(
+            dt * (a_d / scale[:, None] * scale[None, :] + leak * np.eye(n)))
+        self._control, self.shifts['control'] = self._control_weights(dt * b_d / scale[:, None] / lsb)
         self._gain_weights = np.empty((len(self.gains), n, m))
         for j, gain in enumerate(self.gains):
-            self._gain_weights[j], self.shifts[f'gain_{j}'] = quantize(
-                dt * gain / scale[:, None] / lsb, 1.0, fmt, fractional=True)
+            self._gain_weights[j], self.shifts[f'gain_{j}'] = self._drive_weights(dt * gain / scale[:, None] / lsb)
         self._c = np.ascontiguousarray(model.measurement_matrix * (scale * lsb)[None, :])
         self._e = np.zeros((self.runs, n))
         self._x_read = np.zeros((self.runs, n))

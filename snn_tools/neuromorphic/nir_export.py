@@ -130,7 +130,7 @@ def network_graph(estimator: Estimator, dt: float, weight_set: int = 0):
     model = estimator.model
     # a leak the chip's 12-bit decay rounds to 0 is written as a time constant of 1e12 s
     tau = np.full(neurons, 1.0 / max(leak, 1e-12))
-    synchronous = s.spike_rule == 'synchronous'  # float64 network only (the chip refuses it)
+    synchronous = s.spike_rule == 'synchronous'
     # the synchronous rule fires above the widened threshold; the reset still subtracts ||D_i||^2
     thresholds = w['thresholds'] * (1.0 + s.threshold_widening) if synchronous else w['thresholds']
     reset = thresholds - 2.0 * w['thresholds']

@@ -29,7 +29,7 @@ from snn_estimator.sim.simulate import simulate
 from snn_estimator.spiking.costs import CHIPS, FLOAT32_MAC_PJ, FLOAT32_MAC_SOURCE, CostModel, energy_pj
 from snn_tools.experiments.tables import time_steps
 from snn_tools.neuromorphic.brian2_sim import run_network
-from snn_tools.neuromorphic.chip import run_all
+from snn_tools.neuromorphic.chip import run_all, synchronous_fixed_point, synchronous_markdown
 from snn_tools.neuromorphic.local_rule import markdown as local_rule_markdown
 from snn_tools.neuromorphic.local_rule import measure as measure_local_rule
 from snn_tools.neuromorphic.nir_export import (
@@ -348,6 +348,8 @@ def markdown(data: dict) -> str:
         lines += chip_markdown(data['chip'])
     if 'local_rule' in data:  # the synchronous rule (snn_tools.neuromorphic.local_rule)
         lines += local_rule_markdown(data['local_rule'])
+    if 'chip_synchronous' in data:  # the synchronous rule in fixed point (snn_tools.neuromorphic.chip)
+        lines += synchronous_markdown(data['chip_synchronous'])
     return '\n'.join(lines) + '\n'
 
 
@@ -433,10 +435,17 @@ def main(argv=None) -> int:
                         help='runs of the synchronous rule section per scenario (LIDAR 0: position only)')
     parser.add_argument('--markdown-only', action='store_true',
                         help='rewrite <out>/neuromorphic.md from <out>/neuromorphic.json, measuring nothing')
+    parser.add_argument('--chip-synchronous-only', action='store_true',
+                        help='compute the fixed-point synchronous network section alone (make chip-synchronous) and '
+                             'add it to the existing <out>/neuromorphic.json')
+    parser.add_argument('--chip-synchronous-runs', type=int, default=20,
+                        help='runs per row of the fixed-point synchronous network section')
     args = parser.parse_args(argv)
     if args.markdown_only:
         (args.out / 'neuromorphic.md').write_text(markdown(json.loads((args.out / 'neuromorphic.json').read_text())))
         return 0
+    if args.chip_synchronous_only:
+        return _chip_synchronous_only(args)
     if args.chip_only:
         return _chip_only(args)
     if args.local_rule_only:
@@ -474,6 +483,8 @@ def main(argv=None) -> int:
         data['chip'] = run_all(args, first['energy_per_step_pj']['loihi'])
         print(f'chip section: {data["chip"]["wall_time_s"]} s', flush=True)
     data['local_rule'] = _measure_local_rule(args)
+    if not args.no_chip:
+        data['chip_synchronous'] = synchronous_fixed_point(args.chip_synchronous_runs)
     data['wall_time_s'] = round(time.perf_counter() - started, 1)
     plot_sweep(sweep, args.out / 'neuromorphic_costs.png')
     (args.out / 'neuromorphic.json').write_text(json.dumps(data, indent=2) + '\n')
@@ -499,6 +510,22 @@ def _local_rule_only(args) -> int:
     path.write_text(json.dumps(data, indent=2) + '\n')
     (args.out / 'neuromorphic.md').write_text(markdown(data))
     print(f'wrote the local rule section into {path} and neuromorphic.md ({data["local_rule"]["wall_time_s"]} s)')
+    return 0
+
+
+def _chip_synchronous_only(args) -> int:
+    """The fixed-point synchronous network's section over the existing results."""
+    if args.chip_synchronous_runs < 1:
+        raise SystemExit('--chip-synchronous-runs must be >= 1')
+    path = args.out / 'neuromorphic.json'
+    data = json.loads(path.read_text())
+    started = time.perf_counter()
+    data['chip_synchronous'] = synchronous_fixed_point(args.chip_synchronous_runs)
+    data['chip_synchronous']['wall_time_s'] = round(time.perf_counter() - started, 1)
+    path.write_text(json.dumps(data, indent=2) + '\n')
+    (args.out / 'neuromorphic.md').write_text(markdown(data))
+    print(f'wrote the fixed-point synchronous section into {path} and neuromorphic.md '
+          f'({data["chip_synchronous"]["wall_time_s"]} s)')
     return 0
 
 

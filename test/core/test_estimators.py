@@ -593,7 +593,8 @@ def test_a_state_the_network_cannot_represent_is_refused_quietly_and_changes_not
     ({'firing_slots': 0}, 'firing_slots'),
     ({'threshold_widening': -0.5}, 'threshold_widening'),
     ({'refractory_ticks': -1}, 'refractory_ticks'),
-    ({'spike_rule': 'synchronous', 'precision': 'loihi', 'gain_schedule': 'steady_state'}, 'float64 network only'),
+    ({'spike_rule': 'synchronous', 'precision': 'loihi', 'gain_schedule': 'steady_state',
+      'network_coding': 'deviation'}, 'float64 network only'),
 ])
 def test_bad_configuration_raises_a_value_error_saying_what_to_fix(changes, message):
     with pytest.raises(ValueError, match=message):

@@ -323,3 +323,26 @@ def test_the_local_rule_table_prices_a_chip_by_its_ticks():
     # the same spikes, 100 ticks of all 200 neurons: the idle updates dominate
     assert loihi_energy_nj(synchronous, 200) == f'{(20000 * 52.0 + 5250 * 23.6 + 10 * 30.7) / 1e3:.0f}' == '1164'
     assert loihi_energy_nj({'rule': 'twin'}, 200) == ''
+
+
+def test_the_exact_coupling_scale_makes_dt_sv_over_sp_a_power_of_two_near_the_packages():
+    from snn_tools.neuromorphic.chip import exact_coupling_scale
+    scenario = rendezvous_scenario(initial_state_dispersion=True)
+    scale = np.array(exact_coupling_scale(scenario))
+    coupling = np.log2(scenario.dt * scale[3:] / scale[:3])
+    np.testing.assert_allclose(coupling, np.rint(coupling), rtol=0, atol=1e-12)
+    ratio = scale / np.asarray(scenario.estimator.state_scale)
+    assert np.all(ratio[:3] == 1.0) and np.all((ratio[3:] > 2 ** -0.5) & (ratio[3:] < 2 ** 0.5))
+
+
+def test_the_fixed_point_synchronous_section_names_the_rows_that_miss_the_goal():
+    from snn_tools.neuromorphic.chip import synchronous_markdown
+    row = {'filter': 'snn_ekf', 'window': 'w', 'state_scale': 's', 'rmse_position_m': 0.011,
+           'rmse_position_float_m': 0.01, 'rmse_ratio_position': 1.1, 'spikes_per_step': 30.0,
+           'spikes_per_step_float': 30.0, 'diverged': 0, 'diverged_float': 0}
+    data = {'runs': 20, 'weight_bits': 8, 'goal_ratio': 1.1,
+            'rule': {'ticks_per_sample': 100, 'firing_slots': 10, 'threshold_widening': 2.0, 'refractory_ticks': 0},
+            'rows': [row, dict(row, state_scale='t', rmse_ratio_position=2.94)]}
+    lines = synchronous_markdown(data)
+    assert sum(line.startswith('| snn_ekf') for line in lines) == 2
+    assert lines[-1].startswith('Goal of issue 40') and 'met in 1 of 2 rows' in lines[-1] and 't (2.94x)' in lines[-1]
