@@ -114,6 +114,7 @@ class Estimator:
         #: x_hat, P, the last gain and the guard's fault flag of every run.
         self.state = FilterState(self.runs, n, m)
         self._estimate = self._single(self.state.x_hat)  # x_hat: a view made once (~0.2 us a step)
+        self._n_input, self._relinearises = model.n_input, self.linearisation.relinearises  # read every step
         #: The spiking network's arrays (empty for a non-spiking filter).
         self.network = Network(self.seeds, n, s.neuron_count if self.spiking else 0, s.decoder_variance,
                                s.silenced_neurons)
@@ -532,7 +533,7 @@ class Estimator:
         FloatingPointError) if a run's P stopped being positive definite or its gain finite
         (reset() or restart() those runs before going on: :attr:`batch_fault` marks them).
         """
-        runs, m = self.runs, self._n_meas
+        runs, m, n_u = self.runs, self._n_meas, self._n_input
         if z is None:
             z, measured = self._no_measurement, self._none_measured
         else:
@@ -544,10 +545,10 @@ class Estimator:
                     z = np.where(measured[:, None], z, 0.0)
         # np.float64, not float: numpy resolves the Python type on every call (~0.15 us a call)
         u = np.ascontiguousarray(u, dtype=np.float64).reshape(runs, -1)
-        if z.shape[1] != m or u.shape[1] != self.model.n_input:
-            raise ValueError(f'z must have {m} and u {self.model.n_input} entries '
+        if z.shape[1] != m or u.shape[1] != n_u:
+            raise ValueError(f'z must have {m} and u {n_u} entries '
                              f'per run, got shapes {z.shape} and {u.shape}')
-        if self.relinearises:
+        if self._relinearises:
             measured = self.linearisation.checked(z, measured)
             if dt != self.program.dt:
                 self.prepare(dt)
