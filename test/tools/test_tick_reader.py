@@ -12,7 +12,14 @@ from snn_estimator.sim.simulate import truth_plant
 nir = pytest.importorskip('nir')
 
 from snn_tools.neuromorphic.nir_export import constant_gain_estimator, network_graph  # noqa: E402
-from snn_tools.neuromorphic.reader_loop import KIND, scenario, synchronous_config  # noqa: E402
+from snn_tools.neuromorphic.reader_loop import (  # noqa: E402
+    KIND,
+    SECTION,
+    markdown,
+    scenario,
+    synchronous_config,
+    write_section,
+)
 from snn_tools.neuromorphic.tick_reader import gate_inputs, reset_to_zero_graph  # noqa: E402
 
 SAMPLES = 40
@@ -121,3 +128,20 @@ def test_a_graph_of_another_rule_or_form_is_refused(exported):
         KIND, synchronous_config(sc).replace(seed=3, refractory_ticks=2), sc.model), sc.dt)
     with pytest.raises(ValueError, match='refractory_ticks'):
         reset_to_zero_graph(refractory)
+
+
+def test_the_norse_section_replaces_itself_and_keeps_the_others(tmp_path):
+    data = {'kind': KIND, 'seeds': [0, 1], 'form': 'comparator', 'duration_s': 10.0, 'metric_window_s': 3.3,
+            'ticks_per_sample': 100, 'firing_slots': 10, 'threshold_widening': 2.0, 'norse_version': '0.0.0',
+            'torch_version': '2.13.0', 'norse': {'rmse_position_m': [0.02, 0.04], 'spikes_per_step': [30.0, 32.0],
+                                                 'wall_s': 1.0},
+            'package': {'rmse_position_m': [0.02, 0.03], 'spikes_per_step': [30.0, 31.0], 'wall_s': 1.0},
+            'ratio_per_run': [1.0, 4 / 3], 'median_norse_m': 0.03, 'median_package_m': 0.025, 'median_ratio': 1.2,
+            'median_spikes_norse': 31.0, 'median_spikes_package': 30.5}
+    page = tmp_path / 'neuromorphic.md'
+    page.write_text('# Neuromorphic\n\n## Before\n\ntext\n', encoding='utf-8')
+    write_section(page, markdown(data))
+    write_section(page, markdown({**data, 'median_ratio': 1.5}))
+    text = page.read_text(encoding='utf-8')
+    assert text.count(SECTION) == 1 and '## Before\n\ntext' in text
+    assert "within 1.2x the package's): missed." in text and '| median | 0.03 | 0.025 | 1.500 |' in text
