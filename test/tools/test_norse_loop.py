@@ -39,7 +39,8 @@ def files(tmp_path_factory):
 
 def test_norse_built_from_the_file_is_the_package_network_spike_for_spike(files):
     """Fed the same measurements and controls, Norse's network fires as the package's in every
-    sample and decodes the same estimate (the leak and the tick's order written into the file)."""
+    sample and decodes the same estimate (the leak and the tick's order written into the file; to
+    ~1e-6 m: Norse rounds the file's arrays to float32)."""
     sc, paths = files
     batch = NorseBatch(paths)
     estimators = [constant_gain_estimator(KIND, synchronous_config(sc).replace(seed=s), sc.model) for s in SEEDS]
@@ -53,7 +54,7 @@ def test_norse_built_from_the_file_is_the_package_network_spike_for_spike(files)
         for b, estimator in enumerate(estimators):
             estimator.step(z[b], u[b], sc.dt)
             assert batch.spikes[b] - before[b] == estimator.spikes.sum(), f'run {b}, sample {k}'
-            np.testing.assert_allclose(x_norse[b], estimator.x_hat, rtol=0, atol=1e-4)
+            np.testing.assert_allclose(x_norse[b], estimator.x_hat, rtol=0, atol=1e-5)  # Norse's float32 arrays
             total += int(estimator.spikes.sum())
     assert total > 20 * SAMPLES * len(SEEDS)
 

@@ -103,7 +103,7 @@ def test_the_comparator_graph_read_as_a_reset_to_zero_simulator_is_the_package_n
     for k, (z, u, x_hat, spikes) in enumerate(rows):
         x_reader, count = reader.sample(z, u)
         assert count == spikes, f'sample {k}'
-        np.testing.assert_allclose(x_reader, x_hat, rtol=0, atol=1e-4, err_msg=f'sample {k}')
+        np.testing.assert_allclose(x_reader, x_hat, rtol=0, atol=1e-9, err_msg=f'sample {k}')
     assert sum(row[3] for row in rows) > 10 * SAMPLES    # the dispersed start's approach: many spikes
 
 
@@ -112,9 +112,9 @@ def test_the_one_compartment_graph_loses_the_overshoot_at_its_reset_to_zero(expo
     ||D_i||^2: the same graph otherwise, another network (docs/decisions.md, 71)."""
     path, sc, rows = exported
     reader = TickReader(reader_file(path, 'diagonal'))
-    counts = [reader.sample(z, u)[1] for z, u, _, _ in rows]
-    assert counts != [row[3] for row in rows]
-    assert counts[0] == rows[0][3] or counts[0] < rows[0][3]   # overshoot lost: never more spikes at first
+    out = [reader.sample(z, u) for z, u, _, _ in rows]
+    assert [count for _, count in out] != [row[3] for row in rows]
+    assert max(np.abs(x - row[2]).max() for (x, _), row in zip(out, rows)) > 0.05   # m, within 4 s (0.15 here)
 
 
 def test_a_graph_of_another_rule_or_form_is_refused(exported):
