@@ -39,6 +39,7 @@ from snn_estimator.plant.control import lqr_control, lqr_gain
 from snn_estimator.plant.sensors import PositionSensor
 from snn_estimator.sim.simulate import truth_plant
 
+from . import tables
 from .reader_loop import (
     KIND,
     export_runs,
@@ -231,6 +232,19 @@ def compare(runs: int = 20, seed: int = 0, duration: float | None = None, form: 
     }
 
 
+def record_section(out: Path, data: dict) -> None:
+    """This run's section of neuromorphic.md: kept in neuromorphic.json (``norse_loop``), from which
+    ``make neuromorphic`` and ``make spike-rules`` rewrite the page; without that file, the section alone."""
+    path = out / 'neuromorphic.json'
+    if not path.exists():
+        write_section(out / 'neuromorphic.md', markdown(data))
+        return
+    everything = json.loads(path.read_text(encoding='utf-8'))
+    everything['norse_loop'] = data
+    path.write_text(json.dumps(everything, indent=2) + '\n', encoding='utf-8')
+    (out / 'neuromorphic.md').write_text(tables.markdown(everything), encoding='utf-8')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='norse_loop', description=__doc__.split('\n\n')[0])
     parser.add_argument('--runs', type=int, default=20)
@@ -244,7 +258,7 @@ def main(argv=None) -> int:
     data = compare(args.runs, args.seed, args.duration, args.form, report=lambda line: print(line, flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / 'norse_loop.json').write_text(json.dumps(data, indent=1) + '\n', encoding='utf-8')
-    write_section(args.out / 'neuromorphic.md', markdown(data))
+    record_section(args.out, data)
     print(f"norse median {data['median_norse_m']:.4g} m, package {data['median_package_m']:.4g} m, "
           f"ratio {data['median_ratio']:.3f}")
     return 0
