@@ -27,6 +27,9 @@ from snn_tools.neuromorphic.reader_loop import (  # noqa: E402
 from snn_tools.neuromorphic.tick_reader import gate_inputs  # noqa: E402
 
 torch.set_num_threads(1)
+# norse_loop writes its section through tables, which imports brian2 (pyparsing names it deprecates)
+pytestmark = [pytest.mark.filterwarnings('ignore::DeprecationWarning:brian2'),
+              pytest.mark.filterwarnings('ignore::DeprecationWarning:pyparsing')]
 SEEDS = (4, 5)
 SAMPLES = 15
 
