@@ -10,6 +10,9 @@
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make spike-rules [RUNS=n]  the local (synchronous) spike rule against greedy and the twin, position and
 #                             LIDAR, dispersed -> results/neuromorphic.{json,md} (its section only)
+#   make norse-loop [RUNS=n] [NORSE_PYTHON=...]  the synchronous network built by Norse (GitHub master, not on
+#                             PyPI: docs/decisions.md, 71) from the .nir file, in the closed loop, against the
+#                             package's on the same seeds -> results/norse_loop.json, its section of neuromorphic.md
 #   make bench | bench-loop | bench-campaign | bench-live | bench-latency [SAMPLES=n]   speed figures -> results/
 #   make spike-budget [RUNS=n]  spikes against accuracy per network coding -> results/spike_budget.{json,md}
 #   make chip-synchronous [RUNS=n]  the synchronous rule on the fixed-point (Loihi-format) Eq. 15 network against
@@ -36,7 +39,7 @@ SCHEDULER ?=
 ROS_WHEELS := "ros-jazzy-rclpy[fastrtps]" ros-jazzy-common-interfaces
 
 .PHONY: venv warm time-first-demo test test-fast lint demo experiments campaign neuromorphic bench bench-loop bench-campaign bench-live bench-latency \
-	spike-budget spike-rules chip-synchronous sensors approach approach-basilisk approach-figure \
+	spike-budget spike-rules chip-synchronous norse-loop sensors approach approach-basilisk approach-figure \
 	docs-screenshots report faults clean
 
 venv: $(STAMP)
@@ -114,6 +117,12 @@ spike-budget: $(STAMP)
 	$(BIN)/python -m snn_tools.experiments.spike_budget $(if $(RUNS),--runs $(RUNS)) --out results/spike_budget.json
 
 # the synchronous (local) spike rule per kind on position and LIDAR (RUNS each, default 100), dispersed start
+# NORSE_PYTHON: a Python with torch and Norse master (norse 1.1.0 on PyPI cannot read the graph) that
+# imports this package (e.g. PYTHONPATH=$(CURDIR) and the .venv's site-packages appended)
+NORSE_PYTHON ?= $(BIN)/python
+norse-loop: $(STAMP)
+	$(NORSE_PYTHON) -m snn_tools.neuromorphic.norse_loop --out results $(if $(RUNS),--runs $(RUNS))
+
 spike-rules: $(STAMP)
 	$(BIN)/python -m snn_tools.neuromorphic.tables --local-rule-only --out results \
 		$(if $(RUNS),--local-rule-runs $(RUNS) $(RUNS))

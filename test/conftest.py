@@ -119,6 +119,7 @@ LONG = frozenset({
     'test_an_interrupt_leaves_a_table_of_the_finished_cells',
     'test_the_shipped_specs_are_valid',
     'test_brian2_from_the_nir_file_matches_the_integer_network',
+    'test_norse_closes_the_loop_within_the_goal_of_the_packages_rmse_over_20_runs',
     'test_the_install_compiles_what_the_demo_runs_and_the_estimator_node_then_compiles_nothing',
 })
 
@@ -148,6 +149,10 @@ def pytest_collection_modifyitems(config, items):
 #: check of test_packaging). A developer without an extra sees a skip; under CI (CI=true), where
 #: `make` installs every extra, such a skip means the install is broken and fails the run.
 MISSING_EXTRA = ('could not import', 'is not installed')
+#: Extras no package index offers, so `make` cannot install them and CI skips their tests without
+#: failing: Norse master (the only Norse that reads the synchronous graph; its 1.1.0 release on PyPI
+#: drops the LI node, and pip cannot fetch GitHub here). docs/decisions.md, 71.
+NOT_ON_AN_INDEX = ("could not import 'norse",)
 _missing_extras: list[str] = []
 
 
@@ -159,7 +164,7 @@ def _record_skip(report) -> None:
     if not (report.skipped and _under_ci()):
         return
     reason = report.longrepr[2] if isinstance(report.longrepr, tuple) else str(report.longrepr)
-    if any(marker in reason for marker in MISSING_EXTRA):
+    if any(marker in reason for marker in MISSING_EXTRA) and not any(name in reason for name in NOT_ON_AN_INDEX):
         _missing_extras.append(f'{report.nodeid}: {reason}')
 
 

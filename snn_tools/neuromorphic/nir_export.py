@@ -75,7 +75,9 @@ SPIKE_RULES = {
                   'together; the fast connections act after'),
     'synchronous': (
         'explicit Euler at tick_s = sample_period / ticks_per_sample, the inputs held over the sample and fed '
-        'at every tick; each tick v and r decay by (1 - leak_rate sample_period)^(1/ticks_per_sample) and '
+        'at every tick, and so is the slow input (slow_dynamics + slow_correction): computed once per sample '
+        'from r at its start, not ticked (snn_tools/neuromorphic/tick_reader.py writes it for a reader that '
+        'ticks every edge); each tick v and r decay by (1 - leak_rate sample_period)^(1/ticks_per_sample) and '
         'v integrates 1/ticks_per_sample of the sample\'s input; then every neuron i fires whose v_i exceeds '
         'its own v_threshold (already widened: (1 + threshold_widening) ||D_i||^2 / 2), if (t + i) mod '
         'firing_slots = 0 for the tick t = 0..ticks_per_sample-1 of the sample and it has not fired in the '

@@ -38,6 +38,7 @@ from snn_tools.neuromorphic.nir_export import (
     network_arrays,
     network_graph,
 )
+from snn_tools.neuromorphic.reader_loop import markdown as norse_loop_markdown
 from snn_tools.neuromorphic.recording import Recording, record_rendezvous, rmse  # noqa: F401 (the tables read them)
 from snn_tools.progress import track
 
@@ -350,6 +351,8 @@ def markdown(data: dict) -> str:
         lines += local_rule_markdown(data['local_rule'])
     if 'chip_synchronous' in data:  # the synchronous rule in fixed point (snn_tools.neuromorphic.chip)
         lines += synchronous_markdown(data['chip_synchronous'])
+    if 'norse_loop' in data:  # Norse in the closed loop (make norse-loop, snn_tools.neuromorphic.norse_loop)
+        lines += norse_loop_markdown(data['norse_loop'])
     return '\n'.join(lines) + '\n'
 
 
@@ -487,6 +490,11 @@ def main(argv=None) -> int:
         data['chip_synchronous'] = synchronous_fixed_point(args.chip_synchronous_runs)
     data['wall_time_s'] = round(time.perf_counter() - started, 1)
     plot_sweep(sweep, args.out / 'neuromorphic_costs.png')
+    previous = args.out / 'neuromorphic.json'
+    if previous.exists():  # make norse-loop's measurement: it needs Norse, which this run does not run
+        norse_loop = json.loads(previous.read_text()).get('norse_loop')
+        if norse_loop is not None:
+            data['norse_loop'] = norse_loop
     (args.out / 'neuromorphic.json').write_text(json.dumps(data, indent=2) + '\n')
     (args.out / 'neuromorphic.md').write_text(markdown(data))
     print(f'wrote {args.out / "neuromorphic.json"}, neuromorphic.md, neuromorphic_costs.png '
