@@ -139,13 +139,13 @@ sensors: $(STAMP)
 # 5 km to contact through the holds, a few dispersed runs per filter and model (docs/decisions.md, 55-57);
 # one BLAS thread: the nonlinear filters' small matrix exponentials are ~40x slower threaded on a loaded machine
 approach: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach $(if $(RUNS),--runs $(RUNS)) --out results
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --runs $(if $(RUNS),$(RUNS),10) --out results
 
-# the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model (~26 min) ->
+# the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model (~40 min) ->
 # results/approach_basilisk.{json,md} and its section of results/REPORT.md
 approach-basilisk: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
-		--runs $(if $(RUNS),$(RUNS),100) --no-extra --out results
+		--runs $(if $(RUNS),$(RUNS),100) --kinds ekf snn_ekf emsif_weighted --no-extra --out results
 
 # the README's approach figure from the results file make demo SCENARIO=approach writes
 approach-figure: $(STAMP)

@@ -133,7 +133,7 @@ def report_section(results: dict) -> str:
     (the model's gain at 5 km and 250 m: CW-model over nonlinear-model estimate error)."""
     cells = results['cells']
     ratios = []
-    for kind in ('ekf', 'snn_ekf'):
+    for kind in ('ekf', 'snn_ekf', 'emsif_weighted', 'snn_emsif_weighted'):
         cw, nonlinear = cells.get(f'{kind}/cw'), cells.get(f'{kind}/nonlinear_circular')
         if cw is None or nonlinear is None:
             continue
@@ -168,12 +168,20 @@ def main(argv=None) -> None:
                         help='truth: cw, nonlinear_circular (two-body, no J2) or basilisk (two-body with J2)')
     parser.add_argument('--out', type=Path, default=Path('results'))
     parser.add_argument('--no-extra', action='store_true', help='leave out EXTRA_CELLS')
+    parser.add_argument('--add', action='store_true',
+                        help="add these cells to the plant's existing results file (same runs and seed) instead of "
+                             'replacing it')
     args = parser.parse_args(argv)
     results = campaign(args.runs, args.kinds, args.models, args.plant, args.seed, () if args.no_extra else EXTRA_CELLS)
+    stem = 'approach' if args.plant == 'nonlinear_circular' else f'approach_{args.plant}'
+    if args.add and (args.out / f'{stem}.json').exists():
+        previous = json.loads((args.out / f'{stem}.json').read_text())
+        if (previous['runs_per_cell'], previous['seed']) != (args.runs, args.seed):
+            parser.error(f"--add: {stem}.json holds {previous['runs_per_cell']} runs from seed {previous['seed']}")
+        results = {**previous, 'cells': {**previous['cells'], **results['cells']}}
     if args.plant == BASILISK_PLANT:
         results['model_error_over_dwell'] = model_error_over_dwell()
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = 'approach' if args.plant == 'nonlinear_circular' else f'approach_{args.plant}'
     (args.out / f'{stem}.json').write_text(json.dumps(results, indent=1) + '\n')
     (args.out / f'{stem}.md').write_text(table(results))
     if args.plant == BASILISK_PLANT and replace_between_markers(args.out / 'REPORT.md', BEGIN, END,
