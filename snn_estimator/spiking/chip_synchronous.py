@@ -65,9 +65,18 @@ class SynchronousChipNetwork(ChipNetwork):
             raise ValueError(f'decoder_lsb must be one of {", ".join(DECODER_LSB_RULES)}, got {decoder_lsb!r}')
         self.decoder_lsb_rule = decoder_lsb
         super().__init__(*args, **kwargs)
+        if self.settings.spike_rule != 'synchronous':
+            raise ValueError(f'{type(self).__name__} runs spike_rule synchronous, got {self.settings.spike_rule!r}')
+        self._refractory = np.zeros((self.runs, self.neurons), dtype=np.int64)
+        #: spikes fired in the same tick as another (counted by the kernel: the rule is synchronous)
+        self.ticks_with_several_spikes = 0
+
+    # ------------------------------------------------------------------ set-up
+    def _build_decoder(self) -> None:
+        """The quantized decoder (the parent's), then Omega_f = -D^T D in the membrane's unit and
+        the integer thresholds (module docstring)."""
+        super()._build_decoder()
         s, fmt = self.settings, self.format
-        if s.spike_rule != 'synchronous':
-            raise ValueError(f'{type(self).__name__} runs spike_rule synchronous, got {s.spike_rule!r}')
         if fmt and self._x_range > self._read_lsb * (fmt.state_limit + 1):
             raise ValueError(f'the readout range ({self._x_range:.3g} scaled units) exceeds membrane_bits '
                              f'{fmt.membrane_bits} at the decoder LSB {self._read_lsb:.3g}: give more membrane bits')
@@ -84,11 +93,25 @@ class SynchronousChipNetwork(ChipNetwork):
             self.fraction_bits = 0
             self.fast_weights = np.ascontiguousarray(-self._gram)
             self.thresholds = np.ascontiguousarray(widened)
-        self._refractory = np.zeros((self.runs, self.neurons), dtype=np.int64)
-        #: spikes fired in the same tick as another (counted by the kernel: the rule is synchronous)
-        self.ticks_with_several_spikes = 0
 
-    # ------------------------------------------------------------------ set-up
+    def _state_unit(self, dt: float, increment: np.ndarray) -> np.ndarray:
+        """On an integer chip, each state's unit moved (by less than 2^0.5 from the package's
+        state_scale) so that its coupling into an earlier state, dt a_kq u_q / u_k, is a power of
+        two where that coupling is the largest entry of A's row k, which sets the row's exponent:
+        exact in any mantissa. For the relative motion: each velocity's unit, so the kinematic
+        coupling dt s_v / s_p (1e-3 at the package's scale, 0.7 % off in 8 bits with its row's
+        exponent) becomes 2^-10 (Decisions 65-66). The estimate is read out in m and m/s whatever the unit."""
+        unit = super()._state_unit(dt, increment)
+        if not self.format:
+            return unit
+        for q in range(1, unit.size):
+            scaled = increment * unit[None, :] / unit[:, None] + self.leak_rate * np.eye(unit.size)
+            rows = np.abs(dt * scaled[:q])  # the rows of A (prepare) into the states before q
+            k = int(np.argmax(rows[:, q]))
+            if rows[k, q] > 0.0 and rows[k, q] >= rows[k].max():
+                unit[q] *= 2.0 ** np.round(np.log2(rows[k, q])) / rows[k, q]
+        return unit
+
     def _decoder_lsb(self, decoder: np.ndarray) -> float:
         """'gram': the smallest LSB (scaled units) at which every entry of D_q^T D_q, the Gram
         of the decoder quantized to it, fits the weight mantissa; 'readout': the factored chip's."""
