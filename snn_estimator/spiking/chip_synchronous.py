@@ -34,6 +34,12 @@ what the readout decodes. The membrane holds ``fraction_bits`` more bits than th
 (the largest that leaves VOLTAGE_HEADROOM times the widest threshold in range), so the per-tick
 bias is rounded finely; the y the compartments send is rounded to the same fraction.
 
+The unit (Decision 66). On the integer chip each velocity is held in the chip's own unit, within
+2^0.5 of the package's state_scale, chosen at prepare so that A's kinematic coupling dt s_v / s_p
+is a power of two, exact in any mantissa (at the package's 1e-3 its 8-bit rounding alone costs
+the SNN-EKF ~3x float over the approach). The decoder is quantized in that unit and the estimate
+read out in m and m/s.
+
 With precision float64 (a switched schedule in float) the same algebra runs in float64 with the
 float decoder: the float kernel's synchronous network, to rounding (test_chip_synchronous.py).
 """
@@ -108,8 +114,9 @@ class SynchronousChipNetwork(ChipNetwork):
             scaled = increment * unit[None, :] / unit[:, None] + self.leak_rate * np.eye(unit.size)
             rows = np.abs(dt * scaled[:q])  # the rows of A (prepare) into the states before q
             k = int(np.argmax(rows[:, q]))
-            if rows[k, q] > 0.0 and rows[k, q] >= rows[k].max():
-                unit[q] *= 2.0 ** np.round(np.log2(rows[k, q])) / rows[k, q]
+            off = np.log2(rows[k, q]) - np.round(np.log2(rows[k, q])) if rows[k, q] > 0.0 else 0.0
+            if rows[k, q] >= rows[k].max() and abs(off) > 1e-6:  # a unit already that close is kept
+                unit[q] *= 2.0 ** -off
         return unit
 
     def _decoder_lsb(self, decoder: np.ndarray) -> float:
