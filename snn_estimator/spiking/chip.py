@@ -176,19 +176,12 @@ class ChipNetwork:
         self._x_hat, self._spikes, self._total_spikes = x_hat, spikes, total_spikes
         runs, n, neurons = decoder.shape
         self.runs, self.neurons = runs, neurons
-        self._x_range = self._readout_range(settings)
-        self._read_lsb = self._decoder_lsb(decoder)
-        # the decoder first: every other weight is built from the quantized one
-        self.decoder = np.empty_like(decoder)
-        self._read = np.empty((runs, neurons, n))
+        #: the chip's unit of each state (x = unit * D r, m or m/s per unit): the package's
+        #: state_scale unless a subclass chooses its own at prepare (_state_unit)
+        self.unit = np.array(settings.state_scale, dtype=float)
+        self._decoder_in = np.array(decoder, dtype=float)  # in the package's scaled units
         self.shifts: dict[str, int] = {}
-        for b in range(runs):
-            integers, self.shifts['decoder'] = quantize(decoder[b], self._read_lsb, self.format)
-            self.decoder[b] = integers * self._read_lsb
-            self._read[b] = integers.T
-        # exact in the readout's LSB: v = D^T e with integer D and e, T_i = ||D_i||^2 / 2
-        self._gram = np.ascontiguousarray(np.einsum('bik,bjk->bij', self._read, self._read))
-        self._thresholds = 0.5 * np.einsum('bii->bi', self._gram)
+        self._build_decoder()
         self._rates0 = np.zeros((runs, neurons))
         self._target0 = np.zeros((runs, n))
         self._dt: float | None = None
@@ -200,11 +193,41 @@ class ChipNetwork:
         self.rule = _RULES.get(settings.spike_rule)
 
     # ------------------------------------------------------------------ set-up
+    def _build_decoder(self) -> None:
+        """The decoder quantized in the chip's unit, first: every other weight is built from it."""
+        decoder = self._decoder_in * (self.settings.state_scale / self.unit)[None, :, None]
+        runs, n, neurons = decoder.shape
+        self._x_range = self._readout_range(self.settings)
+        self._read_lsb = self._decoder_lsb(decoder)
+        self.decoder = np.empty_like(decoder)
+        self._read = np.empty((runs, neurons, n))
+        for b in range(runs):
+            integers, self.shifts['decoder'] = quantize(decoder[b], self._read_lsb, self.format)
+            self.decoder[b] = integers * self._read_lsb
+            self._read[b] = integers.T
+        # exact in the readout's LSB: v = D^T e with integer D and e, T_i = ||D_i||^2 / 2
+        self._gram = np.ascontiguousarray(np.einsum('bik,bjk->bij', self._read, self._read))
+        self._thresholds = 0.5 * np.einsum('bii->bi', self._gram)
+
+    def _state_unit(self, dt: float, increment: np.ndarray) -> np.ndarray:
+        """The chip's unit of each state for steps of ``dt`` (A's increment ``increment``): here the
+        package's state_scale."""
+        return np.array(self.settings.state_scale, dtype=float)
+
+    def _change_unit(self, unit: np.ndarray) -> None:
+        """Hold the states in ``unit``: the decoder re-quantized in it, each run re-encoded from its
+        target (before the first step: the chip's state is loaded from the rates at prepare)."""
+        targets = self._target0 * (self.unit / self.settings.state_scale)  # the package's scaled units
+        self.unit = np.array(unit, dtype=float)
+        self._build_decoder()
+        for b in range(self.runs):
+            self.encode(b, targets[b])
+
     def _readout_range(self, settings) -> float:
-        """Range of the readout currents, scaled units: READOUT_HEADROOM x the largest |x~|
+        """Range of the readout currents, in the chip's units: READOUT_HEADROOM x the largest |x~|
         of the start."""
         spread = np.abs(settings.initial_state) + 4.0 * np.sqrt(np.diag(settings.initial_covariance))
-        return READOUT_HEADROOM * float(np.max(spread / settings.state_scale))
+        return READOUT_HEADROOM * float(np.max(spread / self.unit))
 
     def _decoder_lsb(self, decoder: np.ndarray) -> float:
         """The readout's LSB (scaled units): the readout range over the state's range, so the
@@ -233,8 +256,10 @@ class ChipNetwork:
         return self._drive_weights(weights)
 
     def encode(self, run: int, target: np.ndarray) -> np.ndarray:
-        """Rates r >= 0 (NNLS over the live neurons) with D r = ``target`` (scaled units);
-        returns the decoded S D r. The chip's state is set from r at :meth:`prepare`."""
+        """Rates r >= 0 (NNLS over the live neurons) with D r = ``target`` (the package's scaled
+        units, in the chip's unit); returns the decoded estimate unit * D r. The chip's state is
+        set from r at :meth:`prepare`."""
+        target = np.asarray(target, dtype=float) * (self.settings.state_scale / self.unit)
         decoder = self.decoder[run]
         alive = self._alive[run]
         rates = np.zeros(self.neurons)
@@ -245,7 +270,7 @@ class ChipNetwork:
         self.steps = 0
         if self._dt is not None:
             self._load(run)
-        return self.settings.state_scale * (decoder @ rates)
+        return self.unit * (decoder @ rates)
 
     def prepare(self, dt: float) -> None:
         """Build the weights of sample period ``dt`` (once: a chip network is built for one
@@ -260,8 +285,11 @@ class ChipNetwork:
         self._decay_int, leak = self._realised_leak(dt)
         self.leak_rate = leak
         self._unity, self._decay = unity, 1.0 - leak * dt
-        scale = s.state_scale
         a_d, b_d = model.linearized_increment(None, dt, s.discretization)
+        unit = self._state_unit(dt, a_d)
+        if not np.array_equal(unit, self.unit):
+            self._change_unit(unit)
+        scale = self.unit
         lsb = self._read_lsb
         self.gains = [np.asarray(gain, dtype=float) for gain in self._gain_source(dt)]
         self.times = np.array(schedule_times(self.config))
@@ -344,6 +372,14 @@ class ChipNetwork:
     def initial_rates(self, run: int = 0) -> np.ndarray:
         """The rates r >= 0 the last encoding chose (the state the readout was loaded from)."""
         return self._rates0[run].copy()
+
+    @property
+    def dynamics(self) -> np.ndarray:
+        """A as the state compartments hold it, dt (U^-1 A_d U + lambda I) in the chip's unit U
+        (:attr:`unit`), a copy (after :meth:`prepare`)."""
+        if self._dt is None:
+            raise ValueError('the chip network has no weights yet: call prepare(dt) or step once')
+        return self._dynamics.copy()
 
     @property
     def potentials(self) -> np.ndarray:
@@ -518,8 +554,8 @@ def effective_weights(network: ChipNetwork, weight_set: int = 0) -> dict:
         'Omega_k': -d.T @ k @ c_scaled @ d,
         'F_k': d.T @ k,
         'thresholds': 0.5 * np.einsum('ki,ki->i', d, d),
-        'decoder': d.copy(),
+        'decoder': (network.unit / network.settings.state_scale)[:, None] * d,  # the package's scaled units
         'neurons': d.shape[1],
-        'gain': network.settings.state_scale[:, None] * k,
+        'gain': network.unit[:, None] * k,
         'leak_rate': network.leak_rate,
     }

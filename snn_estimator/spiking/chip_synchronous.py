@@ -34,6 +34,12 @@ what the readout decodes. The membrane holds ``fraction_bits`` more bits than th
 (the largest that leaves VOLTAGE_HEADROOM times the widest threshold in range), so the per-tick
 bias is rounded finely; the y the compartments send is rounded to the same fraction.
 
+The unit (Decision 66). On the integer chip each velocity is held in the chip's own unit, within
+2^0.5 of the package's state_scale, chosen at prepare so that A's kinematic coupling dt s_v / s_p
+is a power of two, exact in any mantissa (at the package's 1e-3 its 8-bit rounding alone costs
+the SNN-EKF ~3x float over the approach). The decoder is quantized in that unit and the estimate
+read out in m and m/s.
+
 With precision float64 (a switched schedule in float) the same algebra runs in float64 with the
 float decoder: the float kernel's synchronous network, to rounding (test_chip_synchronous.py).
 """
@@ -65,9 +71,18 @@ class SynchronousChipNetwork(ChipNetwork):
             raise ValueError(f'decoder_lsb must be one of {", ".join(DECODER_LSB_RULES)}, got {decoder_lsb!r}')
         self.decoder_lsb_rule = decoder_lsb
         super().__init__(*args, **kwargs)
+        if self.settings.spike_rule != 'synchronous':
+            raise ValueError(f'{type(self).__name__} runs spike_rule synchronous, got {self.settings.spike_rule!r}')
+        self._refractory = np.zeros((self.runs, self.neurons), dtype=np.int64)
+        #: spikes fired in the same tick as another (counted by the kernel: the rule is synchronous)
+        self.ticks_with_several_spikes = 0
+
+    # ------------------------------------------------------------------ set-up
+    def _build_decoder(self) -> None:
+        """The quantized decoder (the parent's), then Omega_f = -D^T D in the membrane's unit and
+        the integer thresholds (module docstring)."""
+        super()._build_decoder()
         s, fmt = self.settings, self.format
-        if s.spike_rule != 'synchronous':
-            raise ValueError(f'{type(self).__name__} runs spike_rule synchronous, got {s.spike_rule!r}')
         if fmt and self._x_range > self._read_lsb * (fmt.state_limit + 1):
             raise ValueError(f'the readout range ({self._x_range:.3g} scaled units) exceeds membrane_bits '
                              f'{fmt.membrane_bits} at the decoder LSB {self._read_lsb:.3g}: give more membrane bits')
@@ -84,11 +99,26 @@ class SynchronousChipNetwork(ChipNetwork):
             self.fraction_bits = 0
             self.fast_weights = np.ascontiguousarray(-self._gram)
             self.thresholds = np.ascontiguousarray(widened)
-        self._refractory = np.zeros((self.runs, self.neurons), dtype=np.int64)
-        #: spikes fired in the same tick as another (counted by the kernel: the rule is synchronous)
-        self.ticks_with_several_spikes = 0
 
-    # ------------------------------------------------------------------ set-up
+    def _state_unit(self, dt: float, increment: np.ndarray) -> np.ndarray:
+        """On an integer chip, each state's unit moved (by less than 2^0.5 from the package's
+        state_scale) so that its coupling into an earlier state, dt a_kq u_q / u_k, is a power of
+        two where that coupling is the largest entry of A's row k, which sets the row's exponent:
+        exact in any mantissa. For the relative motion: each velocity's unit, so the kinematic
+        coupling dt s_v / s_p (1e-3 at the package's scale, 0.7 % off in 8 bits with its row's
+        exponent) becomes 2^-10 (Decisions 65-66). The estimate is read out in m and m/s whatever the unit."""
+        unit = super()._state_unit(dt, increment)
+        if not self.format:
+            return unit
+        for q in range(1, unit.size):
+            scaled = increment * unit[None, :] / unit[:, None] + self.leak_rate * np.eye(unit.size)
+            rows = np.abs(dt * scaled[:q])  # the rows of A (prepare) into the states before q
+            k = int(np.argmax(rows[:, q]))
+            off = np.log2(rows[k, q]) - np.round(np.log2(rows[k, q])) if rows[k, q] > 0.0 else 0.0
+            if rows[k, q] >= rows[k].max() and abs(off) > 1e-6:  # a unit already that close is kept
+                unit[q] *= 2.0 ** -off
+        return unit
+
     def _decoder_lsb(self, decoder: np.ndarray) -> float:
         """'gram': the smallest LSB (scaled units) at which every entry of D_q^T D_q, the Gram
         of the decoder quantized to it, fits the weight mantissa; 'readout': the factored chip's."""

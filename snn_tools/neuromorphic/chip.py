@@ -193,10 +193,11 @@ def synchronous_fixed_point(runs: int, weight_bits: int = 8) -> dict:
                 config = scenario.estimator.replace(spike_rule='synchronous', state_scale=scale, **SCHEDULE)
                 started = time.perf_counter()
                 float_run = simulate(scenario, kind, runs=runs, config=config, trajectories=False)
-                fixed = simulate(scenario, kind, runs=runs, trajectories=False,
-                                 config=config.replace(precision='loihi', weight_bits=weight_bits))
+                fixed_config = config.replace(precision='loihi', weight_bits=weight_bits)
+                fixed = simulate(scenario, kind, runs=runs, trajectories=False, config=fixed_config)
                 rows.append({'filter': kind, 'window': window, 'state_scale': label,
                              'velocity_scale_m_s': float(scale[3]), 'weight_bits': weight_bits,
+                             'chip_velocity_unit_m_s': _chip_velocity_unit(scenario, kind, fixed_config),
                              'rmse_position_m': _position_rmse(fixed),
                              'rmse_position_float_m': _position_rmse(float_run),
                              'rmse_ratio_position': _position_rmse(fixed) / _position_rmse(float_run),
@@ -213,6 +214,13 @@ def synchronous_fixed_point(runs: int, weight_bits: int = 8) -> dict:
             'rule': {'ticks_per_sample': settings.ticks_per_sample, 'firing_slots': settings.firing_slots,
                      'threshold_widening': settings.threshold_widening,
                      'refractory_ticks': settings.refractory_ticks}}
+
+
+def _chip_velocity_unit(scenario, kind: str, config) -> float:
+    """The velocity unit the integer chip chose for itself (m/s per unit; docs/decisions.md, 66)."""
+    estimator = make_estimator(kind, config, scenario.model)
+    estimator.prepare(scenario.dt)
+    return float(estimator.chip.unit[3])
 
 
 def _position_rmse(result) -> float:
@@ -235,16 +243,20 @@ def synchronous_markdown(data: dict) -> list[str]:
               'that the Gram matrix fits), per-neuron integer thresholds (1 + w) ||D_i||^2 / 2, binary '
               'spikes, 12-bit decays; the slow input D^T y from n state compartments (A, K, B in '
               f'{data["weight_bits"]}-bit mantissas, one exponent per row; each input u_j scaled so the largest '
-              'weight of its column is a power of two). The synchronous rule as the float kernel runs it '
+              'weight of its column is a power of two; each velocity held in the chip\'s own unit, within '
+              '2^0.5 of the state scale, that makes the kinematic coupling dt s_v / s_p of A a power of two, the '
+              'estimate read out in m and m/s). The synchronous rule as the float kernel runs it '
               f'(T = {rule["ticks_per_sample"]} ticks, K = {rule["firing_slots"]} slots, w = '
               f'{rule["threshold_widening"]:g}, R = {rule["refractory_ticks"]}): every eligible neuron above its '
               'own threshold fires in the tick, no global comparison. Against the same network in float64 '
               f'(precision float64), both with the 4-set schedule, dispersed start, {data["runs"]} runs, seeds '
-              '0.. ; position RMSE (norm of the x, y, z RMSE) over the window. docs/decisions.md, 64-65.'), '',
-             '| filter | window | state scale | RMSE pos. (m) | float (m) | ratio | spikes/step | float | '
-             'diverged |', '|---|---|---|---|---|---|---|---|---|']
+              '0.. ; position RMSE (norm of the x, y, z RMSE) over the window. docs/decisions.md, 64-66.'), '',
+             '| filter | window | state scale | chip velocity unit (mm/s) | RMSE pos. (m) | float (m) | ratio | '
+             'spikes/step | float | diverged |', '|---|---|---|---|---|---|---|---|---|---|']
     for row in data['rows']:
-        lines.append(f"| {row['filter']} | {row['window']} | {row['state_scale']} | {row['rmse_position_m']:.4g} | "
+        unit = row.get('chip_velocity_unit_m_s')
+        lines.append(f"| {row['filter']} | {row['window']} | {row['state_scale']} | "
+                     f"{'' if unit is None else f'{unit * 1e3:.6g}'} | {row['rmse_position_m']:.4g} | "
                      f"{row['rmse_position_float_m']:.4g} | {row['rmse_ratio_position']:.3f} | "
                      f"{row['spikes_per_step']:.1f} | {row['spikes_per_step_float']:.1f} | "
                      f"{row['diverged']} / {row['diverged_float']} |")
