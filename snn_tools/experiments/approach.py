@@ -80,6 +80,11 @@ def table(results: dict) -> str:
         holds = cell['summary']['holds']
         errors = [holds[h.name]['estimate_error'] for h in HOLDS]
         lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
+    lines += ['', 'Hold error (truth - hold, position, m) at each hold\'s go, mean (max):', '',
+              '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |', '|---|' + '---|' * len(HOLDS)]
+    for name, cell in results['cells'].items():
+        errors = [cell['summary']['holds'][h.name]['hold_error'] for h in HOLDS]
+        lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
     lines += ['', 'Corridor and CAM: truth outside the cone (m, max), abort after the truth left the cone (s), '
               'the CAM\'s two-orbit free drift (closest range, m; keep-out re-entries):', '',
               '| filter / model | corridor exits | excess m (max) | abort | abort - exit s (mean) | '
