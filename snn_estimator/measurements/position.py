@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .base import NON_FINITE, VALID, MeasurementModel
+from .base import NON_FINITE, TOO_CLOSE, TOO_FAR, VALID, MeasurementModel
 
 AXIS_NAMES = ('x', 'y', 'z')
 
@@ -53,3 +53,33 @@ class Position(MeasurementModel):
     def validity(self, x) -> np.ndarray:
         finite = np.isfinite(np.asarray(x, dtype=float)).all(axis=-1)
         return np.where(finite, VALID, NON_FINITE).astype(np.int8)
+
+
+class RelativeGPS(Position):
+    """``relative_gps``: the position (z = C x, as :class:`Position`) from differential GPS
+    between chaser and target, valid only from ``min_range`` m out (to ``max_range``, 0: no
+    limit). Close to a large target its antennas see multipath and the target's shadow, so
+    missions hand over to a LIDAR (HTV left relative GPS at 500 m; docs/decisions.md, 72).
+    Not in :data:`MODELS` (no sensor node flies it yet): the approach stacks it."""
+
+    name = 'relative_gps'
+    parameters = ('min_range', 'max_range')
+    has_limits = True
+
+    def __init__(self, noise, min_range: float = 0.0, max_range: float = 0.0, n_state: int = 6):
+        super().__init__(noise, (0, 1, 2), n_state)
+        self.min_range, self.max_range = float(min_range), float(max_range)
+        if not (0.0 <= self.min_range and 0.0 <= self.max_range and (not self.max_range
+                                                                     or self.max_range > self.min_range)):
+            raise ValueError(f'relative_gps needs 0 <= min_range < max_range (0: no limit), m; got '
+                             f'{min_range!r}, {max_range!r}')
+
+    def validity(self, x) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        finite = np.isfinite(x).all(axis=-1)
+        r = np.linalg.norm(np.where(finite[..., None], x[..., :3], 0.0), axis=-1)
+        codes = np.where(finite, VALID, NON_FINITE)
+        codes = np.where(finite & (r < self.min_range), TOO_CLOSE, codes)
+        if self.max_range:
+            codes = np.where(finite & (r > self.max_range), TOO_FAR, codes)
+        return codes.astype(np.int8)

@@ -172,14 +172,15 @@ class SamplePeriod:
         self.next_ns = None
 
 
-def docking_sensors(field_of_view: bool = True):
+def docking_sensors(field_of_view: bool = True, mounting_rotation=D.CLOSE_SENSOR_MOUNTING):
     """The docking suite's two sensors (defaults.DOCKING_LIDAR, DOCKING_CAMERA) on the chaser,
-    looking back at the target (defaults.CLOSE_SENSOR_MOUNTING): the LIDAR far (1.8 m - 3 km),
-    the docking camera close (5 cm - 30 m; its field of view unless ``field_of_view`` is False).
-    Each one's range limits hand the approach over: the LIDAR alone beyond 30 m, both between
-    30 m and 1.8 m, the camera alone inside."""
+    turned by ``mounting_rotation`` (default defaults.CLOSE_SENSOR_MOUNTING: looking back at a
+    target behind the chaser; the approach from behind uses the identity, boresight +V-bar):
+    the LIDAR far (1.8 m - 3 km), the docking camera close (5 cm - 30 m; its field of view
+    unless ``field_of_view`` is False). Each one's range limits hand the approach over: the
+    LIDAR alone beyond 30 m, both between 30 m and 1.8 m, the camera alone inside."""
     lidar, camera = D.DOCKING_LIDAR, D.DOCKING_CAMERA
-    mounting = {'mounting_rotation': D.CLOSE_SENSOR_MOUNTING}
+    mounting = {'mounting_rotation': tuple(mounting_rotation)}
     return (make_model('range_azimuth_elevation', lidar['noise'], range_noise_growth=lidar['range_noise_growth'],
                        min_range=lidar['min_range'], max_range=lidar['max_range'], **mounting),
             make_model('docking_camera', camera['noise'], min_range=camera['min_range'],

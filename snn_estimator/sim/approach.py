@@ -3,7 +3,9 @@ points at 5 km, 2 km, 250 m and 20 m on V-bar, each left on a go from the estima
 covariance, then a final approach in a 10 deg cone to contact (snn_estimator.plant.approach).
 The loop steps the blocks simulate() steps (truth Plant, PositionSensor, an Estimator, the LQR),
 with the guidance giving the LQR its setpoint, u = u_ff - K (x_hat - x_ref), and records the
-safety figures of each run (docs/decisions.md, 55-57).
+safety figures of each run (docs/decisions.md, 55-57). With ``sensors='by_range'`` the filter
+fuses relative GPS, a LIDAR and a docking camera, each present only inside its range, so the
+navigation hands over by range as on HTV and ATV (docs/decisions.md, 72).
 """
 
 from __future__ import annotations
@@ -13,8 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from snn_estimator import defaults as D
-from snn_estimator.config import EstimatorConfig
+from snn_estimator.config import EstimatorConfig, sensor_boundary_layer
 from snn_estimator.filters.estimators import make_estimator
+from snn_estimator.measurements.position import RelativeGPS
+from snn_estimator.measurements.stacked import Stacked
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, DYNAMICS_MODELS, StateSpaceModel, relative_motion
 from snn_estimator.plant.approach import (
     APPROACH_ELLIPSOID,
@@ -29,7 +33,7 @@ from snn_estimator.plant.approach import (
 )
 from snn_estimator.plant.basilisk_truth import BasiliskPlant, BasiliskSettings, OrbitSettings
 from snn_estimator.plant.control import lqr_gain
-from snn_estimator.plant.sensors import PositionSensor
+from snn_estimator.plant.sensors import FusedSensor, PositionSensor, design_noise, docking_sensors
 from snn_estimator.plant.truth import Plant
 
 #: The holds (docs/decisions.md, 55): 5 km (HTV's AI point), 2 km (the approach ellipsoid's
@@ -52,6 +56,15 @@ CONTACT_SPEED, CONTACT_LATERAL = (0.03, 0.05), 0.1
 BASILISK_PLANT = 'basilisk'
 #: Free drift for the passive-safety figure: two orbits (issue 39), sampled every 10 s.
 DRIFT_ORBITS, DRIFT_STEP = 2.0, 10.0
+#: What the filters measure with: Table 6's position sensor at every range, or the sensors by
+#: range (relative GPS, LIDAR, docking camera: :func:`by_range_sensors`).
+SENSOR_SUITES = ('position', 'by_range')
+#: Relative GPS, m: from 500 m out (HTV switched from relative GPS to its laser radar at 500 m;
+#: docs/decisions.md, 72), R = Table 6's 1e-2 m^2 per axis (no flown figure: today's sensor).
+RELATIVE_GPS_MIN_RANGE = 500.0
+#: The LIDAR's R_hat is its R at 250 m, where it alone measures at a hold (defaults.DOCKING_LIDAR's
+#: 100 m is the 360 s rendezvous'); the camera's at defaults.DOCKING_CAMERA's 10 m.
+APPROACH_LIDAR_DESIGN_RANGE = 250.0
 
 
 @dataclass(frozen=True)
@@ -79,6 +92,9 @@ class ApproachScenario:
     #: Basilisk truth (two-body with J2 by default) instead of the ``truth`` model, which then
     #: serves only the sensor's geometry and the passive-safety drift; None: the model truth.
     basilisk: BasiliskSettings | None = None
+    #: A stacked measurement (:func:`by_range_sensors`) the loop measures with and the filters
+    #: linearise; None: Table 6's position sensor (``measurement_noise``) at every range.
+    sensor: Stacked | None = None
 
     def guidance(self) -> ApproachGuidance:
         return approach_guidance(self.model.mean_motion, self.holds, self.legs, self.corridor,
@@ -96,9 +112,11 @@ def approach_guidance(mean_motion: float, holds=HOLDS, legs=LEGS, corridor: Corr
 def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circular',
                       orbit_radius: float = DEFAULT_ORBIT_RADIUS, dt: float = 1.0,
                       max_duration: float = 30000.0, holds=HOLDS, legs=LEGS, disturbance=None,
-                      **estimator_changes) -> ApproachScenario:
+                      sensors: str = 'position', **estimator_changes) -> ApproachScenario:
     """5 km behind the target on V-bar to contact, measured by Table 6's position sensor (R =
-    1e-2 m^2 per 1 s sample at every range: no sensor hand-over yet), on a model truth
+    1e-2 m^2 per 1 s sample at every range), or with ``sensors='by_range'`` by the sensors of
+    each range (:func:`by_range_sensors`; the spiking filters then code the deviation from the
+    prediction, defaults.SENSOR_NETWORK, as on the other angle sensors), on a model truth
     (``plant``: cw or nonlinear_circular, two-body without J2), or on Basilisk's two-body
     integration with J2 (``plant`` basilisk: a 400 km orbit at 51.6 deg, thrust unlimited as on
     the model truth; the nonlinear_circular model is then the passive-safety drift's); the filters predict with
@@ -106,22 +124,28 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
     start dispersed about the truth as in the far-range scenario (defaults.FAR_RANGE_ESTIMATOR),
     at the first of ``holds`` (one of ``legs`` between two holds); ``disturbance``: see
     :class:`ApproachScenario`."""
-    for name, value, allowed in (('dynamics_model', dynamics_model, DYNAMICS_MODELS),
-                                 ('plant', plant, DYNAMICS_MODELS + (BASILISK_PLANT,))):
-        if value not in allowed:
-            raise ValueError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+    for name, value, choices in (('dynamics_model', dynamics_model, DYNAMICS_MODELS),
+                                 ('plant', plant, DYNAMICS_MODELS + (BASILISK_PLANT,)),
+                                 ('sensors', sensors, SENSOR_SUITES)):
+        if value not in choices:
+            raise ValueError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
     basilisk = None
     if plant == BASILISK_PLANT:
         plant = 'nonlinear_circular'
         basilisk = BasiliskSettings(orbit=OrbitSettings(semi_major_axis=orbit_radius), thrust_limit=None)
     x0 = np.array([-holds[0].distance, 0.0, 0.0, 0.0, 0.0, 0.0])
+    sensor, sensing = None, {}
+    if sensors == 'by_range':
+        sensor = by_range_sensors()
+        r_hat = by_range_noise(sensor)
+        sensing = {'measurement_noise': r_hat, 'boundary_layer': sensor_boundary_layer(r_hat), **D.SENSOR_NETWORK}
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, 'initial_state': tuple(x0),
-                                          'dynamics_model': dynamics_model, **estimator_changes})
+                                          'dynamics_model': dynamics_model, **sensing, **estimator_changes})
     return ApproachScenario(
         model=relative_motion(dynamics_model, orbit_radius), truth=relative_motion(plant, orbit_radius), x0=x0,
         dt=dt, max_duration=max_duration, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
         measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config, holds=tuple(holds),
-        legs=tuple(legs), disturbance=disturbance, basilisk=basilisk)
+        legs=tuple(legs), disturbance=disturbance, sensor=sensor, basilisk=basilisk)
 
 
 def _truth(scenario: ApproachScenario, seeds: list[int]):
@@ -132,6 +156,29 @@ def _truth(scenario: ApproachScenario, seeds: list[int]):
     return BasiliskPlant(scenario.x0, scenario.process_noise, seeds, dt=scenario.dt, orbit=settings.orbit,
                          chaser_mass=settings.chaser_mass, thrust_limit=settings.thrust_limit,
                          cache_dir=settings.cache_dir)
+
+
+def by_range_sensors() -> Stacked:
+    """Relative GPS from RELATIVE_GPS_MIN_RANGE out, the docking suite's LIDAR (1.8 m - 3 km) and
+    docking camera (5 cm - 30 m, 30 deg field of view) on the chaser looking forward along +V-bar
+    at the target ahead (identity mounting), stacked in that order: beyond 3 km relative GPS
+    alone, then with the LIDAR, the LIDAR alone inside 500 m, with the camera inside 30 m, the
+    camera alone inside 1.8 m."""
+    gps = RelativeGPS(D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), min_range=RELATIVE_GPS_MIN_RANGE)
+    lidar, camera = docking_sensors(field_of_view=True, mounting_rotation=(0.0, 0.0, 0.0, 1.0))
+    return Stacked([gps, lidar, camera])
+
+
+def by_range_noise(sensor: Stacked) -> np.ndarray:
+    """The filters' R_hat of :func:`by_range_sensors`: block-diagonal, relative GPS's R, the
+    LIDAR's R at APPROACH_LIDAR_DESIGN_RANGE, the camera's at its design range (Decision 46)."""
+    gps, lidar, camera = sensor.parts
+    r_hat = np.zeros((sensor.dim, sensor.dim))
+    blocks = (gps.noise, design_noise(lidar, APPROACH_LIDAR_DESIGN_RANGE),
+              design_noise(camera, D.DOCKING_CAMERA['design_range']))
+    for part, block in zip(sensor.slices, blocks):
+        r_hat[part, part] = block
+    return r_hat
 
 
 def free_drift_ranges(model: StateSpaceModel, x, duration: float, dt: float = DRIFT_STEP) -> np.ndarray:
@@ -221,6 +268,26 @@ class _Safety:
                 'events': [(e.time, e.name) for e in g.events]}
 
 
+class _Trajectory:
+    """Every run's time, truth, estimate and covariance at each step of the loop (fly_approach's
+    ``record``)."""
+
+    def __init__(self):
+        self.rows = {'time': [], 'truth': [], 'estimate': [], 'covariance': []}
+
+    def __bool__(self) -> bool:
+        return True
+
+    def keep(self, t: float, x, estimator) -> None:
+        for key, value in (('time', t), ('truth', x.copy()), ('estimate', estimator.batch_x_hat.copy()),
+                           ('covariance', estimator.batch_P.copy())):
+            self.rows[key].append(value)
+
+    def of_run(self, b: int) -> dict:
+        return {'time': np.array(self.rows['time']),
+                **{key: np.array([v[b] for v in self.rows[key]]) for key in ('truth', 'estimate', 'covariance')}}
+
+
 def _nees(x, x_hat, covariance) -> np.ndarray:
     """(x - x_hat)^T P^-1 (x - x_hat) per run."""
     error = x - x_hat
@@ -236,12 +303,13 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
     {'time' (k,), 'truth', 'estimate' (k, 6), 'covariance' (k, 6, 6)} at every step of the loop
     (the estimate at t before the measurement of t, as the ROS estimator publishes it)."""
     seeds = [seed + b for b in range(runs)]
-    estimator = make_estimator(kind, scenario.estimator.replace(seed=seed), scenario.model, runs=runs, seeds=seeds)
+    estimator = make_estimator(kind, scenario.estimator.replace(seed=seed), scenario.model, runs=runs, seeds=seeds,
+                               measurement=scenario.sensor)
     if not estimator.has_covariance:
         raise ValueError(f'the approach decides its holds and its corridor on the covariance, and {kind} has none: '
                          'use a filter kind with a covariance (ekf, emsif, snn_ekf, snn_emsif, ...)')
     plant = _truth(scenario, seeds)
-    sensor = PositionSensor(scenario.truth, scenario.measurement_noise, seeds)
+    sensing = _Sensing(scenario, seeds)
     gain = lqr_gain(scenario.model, scenario.lqr_weights[0] * np.eye(6), scenario.lqr_weights[1] * np.eye(3))
     guidance = [scenario.guidance() for _ in seeds]
     safety = [_Safety(scenario, g) for g in guidance]
@@ -250,21 +318,17 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
     spikes = np.zeros(runs, dtype=np.int64)
     nees_sum, nees_steps = np.zeros(runs), np.zeros(runs, dtype=np.int64)
     k = 0
-    trajectory = {'time': [], 'truth': [], 'estimate': [], 'covariance': []}
-
-    def keep(t):
-        if record:
-            for key, value in (('time', t), ('truth', plant.x.copy()), ('estimate', estimator.batch_x_hat.copy()),
-                               ('covariance', estimator.batch_P.copy())):
-                trajectory[key].append(value)
+    trajectory = _Trajectory() if record else None
     while k < steps and any(g.active for g in guidance):
         x_hat, covariance, t = estimator.batch_x_hat.copy(), estimator.batch_P, k * dt
-        keep(t)
+        if trajectory:
+            trajectory.keep(t, plant.x, estimator)
         u = np.zeros((runs, 3))
         flying = [g.active for g in guidance]
         for b, g in enumerate(guidance):
             u[b] = approach_control(g, gain, t, dt, x_hat[b], covariance[b])
-        estimator.step(sensor.measure(plant.x), u, dt)
+        z, valid = sensing.measure(plant.x)
+        estimator.step(z, u, dt, valid=valid)
         fault = scenario.disturbance
         plant.step(u if fault is None or t < fault[0] else u + np.asarray(fault[1], dtype=float), dt)
         if estimator.spiking:
@@ -276,17 +340,43 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
         nees_steps[flying_runs] += 1
         for b in flying_runs:
             safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b])
-    keep(k * dt)
+    if trajectory:
+        trajectory.keep(k * dt, plant.x, estimator)
     flights = [{'seed': s, 'kind': kind, 'dynamics_model': scenario.estimator.dynamics_model,
                 'spikes': int(spikes[b]) if estimator.spiking else None, 'steps': k,
-                'nees': float(nees_sum[b] / max(nees_steps[b], 1)), **safety[b].figures()}
+                'nees': float(nees_sum[b] / max(nees_steps[b], 1)), 'sensor_samples': sensing.samples(b),
+                **safety[b].figures()}
                for b, s in enumerate(seeds)]
-    if record:
+    if trajectory:
         for b, flight in enumerate(flights):
-            flight['trajectory'] = {'time': np.array(trajectory['time']),
-                                    **{key: np.array([v[b] for v in trajectory[key]])
-                                       for key in ('truth', 'estimate', 'covariance')}}
+            flight['trajectory'] = trajectory.of_run(b)
     return flights
+
+
+class _Sensing:
+    """The truth-side sensor of every run: Table 6's PositionSensor, or the stacked sensors'
+    FusedSensor (each sensor NaN outside its range; seeds as simulate()'s)."""
+
+    def __init__(self, scenario: ApproachScenario, seeds):
+        if scenario.sensor is None:
+            self.sensor = PositionSensor(scenario.truth, scenario.measurement_noise, seeds)
+            self.fused = None
+        else:
+            self.sensor = self.fused = FusedSensor(scenario.sensor, seeds)
+
+    def measure(self, x) -> tuple:
+        """``(z, valid)``: the sample of every run (NaN for an absent sensor) and the runs some
+        sensor measured (None: all, the position sensor)."""
+        if self.fused is None:
+            return self.sensor.measure(x), None
+        sample = self.fused.measure(x)
+        return sample.z, sample.valid
+
+    def samples(self, run: int) -> dict | None:
+        """Samples each stacked sensor gave ``run``, by sensor name (None: the position sensor)."""
+        if self.fused is None:
+            return None
+        return {part.name: int(count[run]) for part, count in zip(self.fused.model.parts, self.fused.counts)}
 
 
 #: How a run ends: contact, abort (CAM), no-go at a hold, or still flying at max_duration.

@@ -12,6 +12,7 @@ import pytest
 from snn_estimator import ClohessyWiltshire
 from snn_estimator.measurements import (
     MODELS,
+    NON_FINITE,
     OUT_OF_VIEW,
     REASONS,
     SINGULAR,
@@ -21,6 +22,7 @@ from snn_estimator.measurements import (
     make_model,
     rotation_from_quaternion,
 )
+from snn_estimator.measurements.position import RelativeGPS
 from snn_estimator.plant.sensors import MeasurementSensor, PositionSensor, SamplePeriod
 
 GEOMETRIC = [name for name in MODELS if name != 'position']
@@ -436,3 +438,20 @@ def test_docking_camera_limits_contact_to_thirty_metres_in_a_thirty_degree_cone(
                   [10.0, 10.0 * off[0], 0, 0, 0, 0], [10.0, 0, 10.0 * off[1], 0, 0, 0]])
     assert [REASONS[c] for c in model.validity(x)] == ['valid', 'too_close', 'valid', 'too_far', 'valid',
                                                        'out_of_view']
+
+
+def test_relative_gps_is_the_position_inside_its_range_limits_and_draws_position_sensor_s_noise():
+    """relative_gps (the approach's far sensor, decision 72): h = C x, TOO_CLOSE inside min_range,
+    TOO_FAR beyond max_range; its MeasurementSensor's samples equal PositionSensor's where valid."""
+    gps = RelativeGPS(1e-2 * np.eye(3), min_range=500.0, max_range=6000.0)
+    x = np.array([[-400.0, 3.0, 1.0, 0, 0, 0], [-2000.0, 3.0, 1.0, 0, 0, 0], [-7000.0, 0, 0, 0, 0, 0],
+                  [np.nan, 0, 0, 0, 0, 0]])
+    np.testing.assert_array_equal(gps.validity(x), [TOO_CLOSE, VALID, TOO_FAR, NON_FINITE])
+    np.testing.assert_array_equal(gps.h(x[:3]), x[:3, :3])
+    seeds = [0, 1, 2]
+    sample = MeasurementSensor(gps, seeds).measure(x[:3])
+    reference = PositionSensor(ClohessyWiltshire(), 1e-2 * np.eye(3), seeds).measure(x[:3])
+    np.testing.assert_array_equal(sample.z[1], reference[1])
+    assert np.isnan(sample.z[[0, 2]]).all()
+    with pytest.raises(ValueError, match='min_range < max_range'):
+        RelativeGPS(1e-2 * np.eye(3), min_range=500.0, max_range=100.0)
