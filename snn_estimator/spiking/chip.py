@@ -345,14 +345,19 @@ class ChipNetwork:
             return 0
         return int(np.searchsorted(self.times, (self.steps + 0.5) * self._dt))
 
-    def step(self, z, u, dt: float) -> None:
-        """Advance every run by one sample (``z`` None: no measurement, no correction)."""
-        self.prepare(dt)
+    def _inputs(self, z, u) -> tuple[bool, np.ndarray, np.ndarray]:
+        """(measured, z, u) as a step's kernel takes them: z zeros when None; ValueError unless finite."""
         measured = z is not None
         z = np.zeros((self.runs, self.model.n_meas)) if z is None else np.ascontiguousarray(z, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
         if not (np.isfinite(z).all() and np.isfinite(u).all()):
             raise ValueError('z and u must be finite')
+        return measured, z, u
+
+    def step(self, z, u, dt: float) -> None:
+        """Advance every run by one sample (``z`` None: no measurement, no correction)."""
+        self.prepare(dt)
+        measured, z, u = self._inputs(z, u)
         fmt = self.format
         limit = float(fmt.state_limit) if fmt else math.inf
         options = (fmt is not None, self.rule, self.settings.max_spikes_per_step, measured, self._unity,

@@ -209,11 +209,7 @@ class SynchronousChipNetwork(ChipNetwork):
     def step(self, z, u, dt: float) -> None:
         """Advance every run by one sample of T ticks (``z`` None: no measurement)."""
         self.prepare(dt)
-        measured = z is not None
-        z = np.zeros((self.runs, self.model.n_meas)) if z is None else np.ascontiguousarray(z, dtype=float)
-        u = np.ascontiguousarray(u, dtype=float)
-        if not (np.isfinite(z).all() and np.isfinite(u).all()):
-            raise ValueError('z and u must be finite')
+        measured, z, u = self._inputs(z, u)
         s, fmt = self.settings, self.format
         limit = float(fmt.state_limit) if fmt else math.inf
         options = (fmt is not None, measured, self._unity, self._decay_int, self._decay, limit,

@@ -90,6 +90,16 @@ def _f(stats: dict | None, key: str = 'mean', scale: float = 1.0, digits: int = 
     return '-' if stats is None else f'{stats[key] * scale:.{digits}f}'
 
 
+def _per_hold(results: dict, key: str, title: str) -> list[str]:
+    """A table of one figure at each hold's go, mean (max), a row per cell."""
+    lines = ['', f"{title} at each hold's go, mean (max):", '',
+             '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |', '|---|' + '---|' * len(HOLDS)]
+    for name, cell in results['cells'].items():
+        errors = [cell['summary']['holds'][h.name][key] for h in HOLDS]
+        lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
+    return lines
+
+
 def table(results: dict) -> str:
     """The markdown tables of :func:`campaign`'s results."""
     lines = [f"Approach, {results['runs_per_cell']} dispersed runs per cell (seeds {results['seed']}.."
@@ -108,20 +118,8 @@ def table(results: dict) -> str:
                      f"{closing} | "
                      f"{_f(s['lateral_at_contact'], 'max')} | {_f(s.get('nees'), digits=2)} | "
                      f"{_f(s['spikes'], digits=0)} |")
-    lines += ['', 'Estimate error (truth - estimate, position, m) at each hold\'s go, mean (max):', '',
-              '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |',
-              '|---|' + '---|' * len(HOLDS)]
-    for name, cell in results['cells'].items():
-        holds = cell['summary']['holds']
-        errors = [holds[h.name]['estimate_error'] for h in HOLDS]
-        lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
-    lines += ['', 'Hold-point error (truth - hold point, position, m) at each hold\'s go, mean (max):', '',
-              '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |',
-              '|---|' + '---|' * len(HOLDS)]
-    for name, cell in results['cells'].items():
-        holds = cell['summary']['holds']
-        errors = [holds[h.name]['hold_error'] for h in HOLDS]
-        lines.append(f'| {name} | ' + ' | '.join(f"{_f(e)} ({_f(e, 'max')})" for e in errors) + ' |')
+    lines += _per_hold(results, 'estimate_error', 'Estimate error (truth - estimate, position, m)')
+    lines += _per_hold(results, 'hold_error', 'Hold-point error (truth - hold point, position, m)')
     lines += ['', 'Corridor and CAM: truth outside the cone (m, max), abort after the truth left the cone (s), '
               'the CAM\'s two-orbit free drift (closest range, m; keep-out re-entries):', '',
               '| filter / model | corridor exits | excess m (max) | abort | abort - exit s (mean) | '
