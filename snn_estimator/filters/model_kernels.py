@@ -208,14 +208,9 @@ def transition(params, x, u, dt, substeps, stages, trial):
     n = x.shape[0]
     h = dt / substeps
     for _ in range(substeps):
-        _f(mean_motion, radius, x, u, stages[0])
-        for stage in range(1, 4):
-            step = h if stage == 3 else 0.5 * h
-            for i in range(n):
-                trial[i] = x[i] + step * stages[stage - 1, i]
-            _f(mean_motion, radius, trial, u, stages[stage])
+        _rk4_drift(mean_motion, radius, x, u, h, stages, trial, trial)  # trial is free once the stages are in
         for i in range(n):
-            x[i] = x[i] + (h / 6.0) * (stages[0, i] + 2.0 * stages[1, i] + 2.0 * stages[2, i] + stages[3, i])
+            x[i] = x[i] + h * trial[i]
 
 
 @_jit

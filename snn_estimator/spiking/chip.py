@@ -323,8 +323,15 @@ class ChipNetwork:
     def snapshot(self) -> tuple:
         """The state a step changes (readout, coding error, potentials, counters), copied; the
         estimate and spike arrays belong to the estimator, which copies them itself."""
-        arrays = None if self._dt is None else (self._e.copy(), self._x_read.copy(), self._v.copy())
-        return arrays, (self.steps, self.capped_steps, self.overflows, self.synops)
+        arrays = None if self._dt is None else tuple(a.copy() for a in self._live())
+        return arrays, tuple(getattr(self, name) for name in self._COUNTERS)
+
+    #: The counters a snapshot keeps.
+    _COUNTERS = ('steps', 'capped_steps', 'overflows', 'synops')
+
+    def _live(self) -> tuple:
+        """The arrays a step changes (a snapshot copies them, restore writes them back)."""
+        return self._e, self._x_read, self._v
 
     def restore(self, snapshot: tuple) -> None:
         """Return to ``snapshot`` (see :meth:`snapshot`); one taken before :meth:`prepare` is
@@ -335,8 +342,10 @@ class ChipNetwork:
                 for b in range(self.runs):
                     self._load(b)
         else:
-            self._e[...], self._x_read[...], self._v[...] = arrays
-        self.steps, self.capped_steps, self.overflows, self.synops = counters
+            for live, saved in zip(self._live(), arrays):
+                live[...] = saved
+        for name, value in zip(self._COUNTERS, counters):
+            setattr(self, name, value)
 
     # ------------------------------------------------------------------ stepping
     def active_set(self) -> int:

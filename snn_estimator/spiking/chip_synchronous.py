@@ -191,19 +191,10 @@ class SynchronousChipNetwork(ChipNetwork):
         self._x_hat[run] = self._x_read[run] * self._read_scale
         self.steps = 0
 
-    def snapshot(self) -> tuple:
-        arrays = None if self._dt is None else (self._v.copy(), self._x_read.copy(), self._refractory.copy())
-        return arrays, (self.steps, self.capped_steps, self.overflows, self.synops, self.ticks_with_several_spikes)
+    _COUNTERS = ChipNetwork._COUNTERS + ('ticks_with_several_spikes',)
 
-    def restore(self, snapshot: tuple) -> None:
-        arrays, counters = snapshot
-        if arrays is None:
-            if self._dt is not None:
-                for b in range(self.runs):
-                    self._load(b)
-        else:
-            self._v[...], self._x_read[...], self._refractory[...] = arrays
-        self.steps, self.capped_steps, self.overflows, self.synops, self.ticks_with_several_spikes = counters
+    def _live(self) -> tuple:
+        return self._v, self._x_read, self._refractory
 
     # ------------------------------------------------------------------ stepping
     def step(self, z, u, dt: float) -> None:
