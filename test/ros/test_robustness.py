@@ -670,8 +670,12 @@ def test_controller_watches_every_sensor_topic_it_is_given_and_no_other():
                           harness.received[qos.DIAGNOSTICS][-1].status[0].message, timeout=1.0)
         step(31, ('lidar',), settle=0.3)  # the LIDAR back: the loop measures again
 
-        def lidar_speaks():  # as a sensor does, on: one message may reach a loaded machine's watchdog late
-            lidar.publish(Range(header=Header(stamp=ns_to_stamp(31 * DT), frame_id='lidar'), range=float('inf')))
+        ticks = iter(range(1, 1000))
+
+        def lidar_speaks():  # the LIDAR and the clock go on, as in a loop: on a loaded machine the watchdog
+            now = 31 * DT + next(ticks) * 100_000  # ns: may wake after its 0.3 s and find them stopped
+            harness.clock(now)
+            lidar.publish(Range(header=Header(stamp=ns_to_stamp(now), frame_id='lidar'), range=float('inf')))
             return not controller.safe_mode
         assert spin_until(executor, lidar_speaks, timeout=3.0)
         assert step(32, ('lidar',)).accel.linear.x != 0.0 and not controller.safe_mode
