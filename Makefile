@@ -3,6 +3,8 @@
 #                             over ROS 2 (LIVE=1: live view, Foxglove at ws://localhost:8765)
 #   make demo SCENARIO=approach   5 km to contact over ROS 2 -> results/approach_ros.json; make approach-figure
 #                             draws it -> results/figures/approach_ros.png
+#   make demo SCENARIO=approach SENSOR=by_range   the same on relative GPS, the LIDAR and the docking camera,
+#                             a sensor node each -> results/approach_ros_by_range.json
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the quick loop: no ROS process, the first case of every-kind tests (~1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
@@ -26,6 +28,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.snn_rendezvous-installed
 ESTIMATOR ?=
 SCENARIO ?=
+SENSOR ?=
 MODE ?= lockstep
 PLANT ?= cw
 RTF ?=
@@ -77,12 +80,13 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 -m "not slow and not exhaustive" test
 
 # SCENARIO=approach: 5 km to contact (one BLAS thread: the nonlinear filter's 6x6 exponentials), its
-# results file results/approach_ros.json (make approach-figure draws it)
+# results file results/approach_ros.json (make approach-figure draws it); SENSOR: position (default) or a
+# suite (docs/sensors.md; with the approach: by_range -> results/approach_ros_by_range.json)
 demo: $(STAMP)
 	$(if $(SCENARIO),OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1) $(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR)) $(if $(SENSOR),--sensor $(SENSOR)) \
 		$(if $(RTF),--real-time-factor $(RTF)) $(if $(LIVE),--live-view) \
-		$(if $(SCENARIO),--scenario $(SCENARIO) $(if $(filter approach,$(SCENARIO)),--results results/approach_ros.json))
+		$(if $(SCENARIO),--scenario $(SCENARIO) $(if $(filter approach,$(SCENARIO)),--results results/approach_ros$(if $(filter-out position,$(SENSOR)),_$(SENSOR)).json))
 
 experiments: $(STAMP)
 	$(BIN)/snn_experiments $(if $(RUNS),--runs $(RUNS)) --out results \

@@ -371,8 +371,13 @@ def encode_measurement(model, z: np.ndarray, stamp_ns: int, frame_id: str) -> by
 def encode_no_measurement(model, reason: str, stamp_ns: int, frame_id: str) -> bytes:
     """CDR of "sampled at ``stamp_ns``, nothing measured" (``reason``: a REASONS key of
     snn_estimator.measurements) for a model with limits: Range -inf when too close, +inf
-    otherwise (REP 117); a Vector3Stamped of NaN. A position has no limits: ValueError."""
+    otherwise (REP 117); a Vector3Stamped, or a PointStamped (relative_gps), of NaN. A model
+    without limits (position) measures or loses every sample: ValueError."""
     form = model.message_form
+    if not model.has_limits:
+        raise ValueError(f'{model.name} has no limits: every sample is measured or lost')
+    if form == 'point':
+        return encode_point(np.full(model.dim, math.nan), model.measured_axes, stamp_ns, frame_id)
     if form == 'range':
         return encode_range(-math.inf if reason == 'too_close' else math.inf, stamp_ns, frame_id,
                             model.field_of_view, model.min_range, model.max_range or math.inf,
@@ -390,6 +395,8 @@ def decode_measurement(model, data: bytes) -> tuple[int, str, np.ndarray | None]
     form = model.message_form
     if form == 'point':
         record = decode_point(data)
+        if model.has_limits and np.isnan(record.vector).all():  # relative_gps out of its range
+            return record.stamp_ns, record.frame_id, None
         return record.stamp_ns, record.frame_id, measurement_of(record, model.measured_axes)
     if form == 'range':
         record = decode_range(data)

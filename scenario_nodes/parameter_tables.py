@@ -171,12 +171,13 @@ SENSOR = MODEL + (
     Spec('seed', 0, 'Seed of the measurement noise (stream 2 of the seed)', low=0),
     _time_jump_threshold('a truth'),
     # the measurement model and its geometry (snn_estimator.measurements; docs/sensors.md)
-    Spec('model', 'position', 'Measurement model; position publishes PointStamped in frame_id, the others '
-         'their message in sensor_frame_id (docs/sensors.md)', choices=tuple(MEASUREMENT_MODELS)),
+    Spec('model', 'position', 'Measurement model; position and relative_gps publish PointStamped in frame_id, '
+         'the others their message in sensor_frame_id (docs/sensors.md)', choices=tuple(MEASUREMENT_MODELS)),
 ) + SENSOR_GEOMETRY + (
     Spec('field_of_view', 2.0 * np.pi, 'Full cone angle about the sensor x axis, rad (2 pi: no limit); '
          'outside it no measurement (counted)', low=1e-9, high=2.0 * np.pi),
-    Spec('min_range', 0.0, 'Shortest range measured, m (range 0 is never measured)', low=0.0),
+    Spec('min_range', 0.0, 'Shortest range measured, m (range 0 is never measured; relative_gps: where '
+         'multipath and the target\'s shadow end it, 500 m in the approach, docs/decisions.md, 72)', low=0.0),
     Spec('max_range', 0.0, 'Longest range measured, m (0: no limit)', low=0.0),
     Spec('range_noise_growth', -1.0, 'Growth g of the range noise with the range r: sigma_r^2 = R_rr + '
          '(g r^e)^2, m^(1-e), e = 1 for range_azimuth_elevation and range, 2 for docking_camera '
@@ -435,6 +436,7 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
         'lqr_controller': {'measurement_topics': ['camera', 'lidar']},
         'recorder': {'topics': topics}}
     suites['docking'] = _docking_suite(network)
+    suites['by_range'] = _by_range_suite()
     return suites
 
 
@@ -465,6 +467,59 @@ def _docking_suite(network: dict) -> dict[str, dict]:
 
 #: The filters' and the truth's model of the approach over ROS (issue 39, part 4).
 APPROACH_MODEL = 'nonlinear_circular'
+
+
+def _by_range_suite() -> dict[str, dict]:
+    """The approach's sensors by range (offline: approach_scenario(sensors='by_range'), decision
+    72), for the approach only (config/sensor_by_range.yaml after config/scenario_approach.yaml):
+    relative GPS, the LIDAR and the docking camera, each its own node on its own topic with its
+    range limits and the offline FusedSensor's seed (sensor i: i * FUSED_SEED_OFFSET), sampling
+    every truth, the approach's time step; the estimator fuses them with the offline R_hat
+    blocks (by_range_noise) and boundary layers, and the other estimator values that the
+    by-range scenario changes (the spiking filters' deviation coding). docs/decisions.md, 80."""
+    from snn_estimator.sim.approach import APPROACH_SENSOR_MOUNTING, approach_scenario
+    s = approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='by_range')
+    plain = approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL).estimator
+    approach = scenarios()['approach']
+    names = registry.SENSOR_NODES['by_range']
+    mounting = [float(v) for v in APPROACH_SENSOR_MOUNTING]
+    estimator = {f.name: dataclasses.replace(f, default=getattr(s.estimator, f.name)).parameter_default
+                 for f in schema.FIELDS if f.name not in ('measurement_noise', 'boundary_layer')
+                 and repr(getattr(s.estimator, f.name)) != repr(getattr(plain, f.name))}
+    estimator['sensors'] = list(names)
+    nodes = {}
+    for i, (name, part, block) in enumerate(zip(names, s.sensor.parts, s.sensor.slices)):
+        values = {**approach['position_sensor'], 'model': part.name, 'measurement_noise': _diagonal(part.noise),
+                  'min_range': float(part.min_range), 'max_range': float(part.max_range),
+                  'seed': i * FUSED_SEED_OFFSET}
+        r_hat = np.asarray(s.estimator.measurement_noise)[block, block]  # by_range_noise's block
+        own = {'model': part.name, 'measurement_noise': _diagonal(r_hat),
+               'boundary_layer': [float(v) for v in np.asarray(s.estimator.boundary_layer)[block]]}
+        if part.message_form == 'point':  # in the LVLH frame, as the position sensor's
+            own['sensor_frame_id'] = _default(MODEL, 'frame_id')
+        else:
+            values.update(mounting_rotation=mounting, sensor_frame_id=name,
+                          range_noise_growth=float(part.range_noise_growth))
+            values.update({} if part.field_of_view >= 2.0 * np.pi else {'field_of_view': float(part.field_of_view)})
+            own['mounting_rotation'] = mounting
+        nodes[name] = values
+        estimator.update({f'{name}.{key}': value for key, value in own.items()})
+    watched = {'measurement_topics': list(names)}
+    topics = [t for t in approach['recorder']['topics'] if t != MEASUREMENT] + list(names)
+    return {**nodes, 'estimator': estimator, 'cw_plant': watched, 'lqr_controller': watched,
+            'recorder': {'topics': topics}}
+
+
+def _diagonal(matrix) -> list[float]:
+    """The diagonal of a diagonal covariance (what a measurement_noise parameter of n values is)."""
+    matrix = np.asarray(matrix, dtype=float)
+    if np.count_nonzero(matrix - np.diag(np.diag(matrix))):
+        raise ValueError('a sensor of a suite takes a diagonal R')
+    return [float(v) for v in np.diag(matrix)]
+
+
+def _default(table, name: str):
+    return next(spec.default for spec in table if spec.name == name)
 
 
 def scenarios() -> dict[str, dict[str, dict]]:

@@ -92,7 +92,33 @@ TOOLS = {
 #: scenario_nodes.parameter_tables.sensor_suites): the sensor node renamed, and its
 #: `measurement` remapped to its name, when it is not the one sensor on `measurement`.
 SENSOR_NODES = {'position': ('position_sensor',), 'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar'),
-                'docking': ('lidar', 'camera')}
+                'docking': ('lidar', 'camera'), 'by_range': ('relative_gps', 'lidar', 'camera')}
+
+
+class Scenario(NamedTuple):
+    """What a scenario flies: its truth plants and sensor choices (a suite's values are for one
+    scenario's time step and geometry). The values of scenarios other than the rendezvous are
+    scenario_nodes.parameter_tables.scenarios, config/scenario_<name>.yaml."""
+
+    plants: tuple[str, ...]
+    sensors: tuple[str, ...]
+
+
+#: The scenarios (snn_demo --scenario, the launch file's scenario:=): the rendezvous of Table 6 on
+#: either plant and its suites; the approach on the cw plant node (its dynamics_model set), on the
+#: position sensor or the approach's sensors by range (docs/decisions.md, 67 and 80).
+SCENARIOS = {'rendezvous': Scenario(('cw', 'basilisk'), ('position', 'lidar', 'camera+lidar', 'docking')),
+             'approach': Scenario(('cw',), ('position', 'by_range'))}
+
+
+def check_scenario(scenario: str, plant: str, sensor: str) -> None:
+    """ValueError naming the choices when ``scenario`` does not fly ``plant`` or ``sensor``."""
+    if scenario not in SCENARIOS:
+        raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}; got {scenario!r}")
+    plants, sensors = SCENARIOS[scenario]
+    if plant not in plants or sensor not in sensors:
+        raise ValueError(f"the {scenario} scenario flies plant {' | '.join(plants)} and sensor "
+                         f"{' | '.join(sensors)}; got plant {plant!r}, sensor {sensor!r}")
 
 
 def executables() -> dict:

@@ -32,7 +32,7 @@ from .base import (  # noqa: F401 (the interface, re-exported)
     wrap_angle,
 )
 from .docking_camera import DockingCamera
-from .position import Position
+from .position import Position, RelativeGPS
 from .range_rate import RangeRate
 from .ranging import Range
 from .spherical import LineOfSight, RangeAzimuthElevation
@@ -45,6 +45,7 @@ MODELS: dict[str, type[MeasurementModel]] = {
     'range': Range,
     'range_rate': RangeRate,
     'docking_camera': DockingCamera,
+    'relative_gps': RelativeGPS,
 }
 
 
@@ -59,4 +60,4 @@ def make_model(name: str, noise, **parameters) -> MeasurementModel:
 
 __all__ = ['MODELS', 'MeasurementModel', 'REASONS', 'make_model', 'wrap_angle',
            'Position', 'RangeAzimuthElevation', 'LineOfSight', 'Range', 'RangeRate',
-           'DockingCamera']
+           'DockingCamera', 'RelativeGPS']

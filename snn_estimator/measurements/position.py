@@ -60,7 +60,7 @@ class RelativeGPS(Position):
     between chaser and target, valid only from ``min_range`` m out (to ``max_range``, 0: no
     limit). Close to a large target its antennas see multipath and the target's shadow, so
     missions hand over to a LIDAR (HTV left relative GPS at 500 m; docs/decisions.md, 72).
-    Not in :data:`MODELS` (no sensor node flies it yet): the approach stacks it."""
+    Outside its range a sensor node publishes a PointStamped of NaN ("nothing measured")."""
 
     name = 'relative_gps'
     parameters = ('min_range', 'max_range')

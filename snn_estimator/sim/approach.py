@@ -65,6 +65,9 @@ RELATIVE_GPS_MIN_RANGE = 500.0
 #: The LIDAR's R_hat is its R at 250 m, where it alone measures at a hold (defaults.DOCKING_LIDAR's
 #: 100 m is the 360 s rendezvous'); the camera's at defaults.DOCKING_CAMERA's 10 m.
 APPROACH_LIDAR_DESIGN_RANGE = 250.0
+#: The close sensors' mounting on the chaser, [x, y, z, w]: identity, boresight along +V-bar at the
+#: target ahead (the approach comes from behind).
+APPROACH_SENSOR_MOUNTING = (0.0, 0.0, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -165,7 +168,7 @@ def by_range_sensors() -> Stacked:
     alone, then with the LIDAR, the LIDAR alone inside 500 m, with the camera inside 30 m, the
     camera alone inside 1.8 m."""
     gps = RelativeGPS(D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), min_range=RELATIVE_GPS_MIN_RANGE)
-    lidar, camera = docking_sensors(field_of_view=True, mounting_rotation=(0.0, 0.0, 0.0, 1.0))
+    lidar, camera = docking_sensors(field_of_view=True, mounting_rotation=APPROACH_SENSOR_MOUNTING)
     return Stacked([gps, lidar, camera])
 
 

@@ -238,12 +238,14 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     policy the nodes got, see :attr:`Pipeline.scheduling`)}. Raises RuntimeError
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
-    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameter_tables.sensor_suites.
+    ``sensor``: position (Table 6) or a suite of scenario_nodes.parameter_tables.sensor_suites
+    that ``scenario`` flies (scenario_nodes.registry.SCENARIOS; the approach: by_range).
     ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE). ``listeners``: subscribers
     besides the pipeline's, topic -> count (a probe), counted in each node's hold. ``scenario``:
     rendezvous (Table 6, the parameter file's) or one of scenario_nodes.parameter_tables.scenarios
-    (approach: the CW plant node on the nonlinear truth, the position sensor, until contact or an
-    abort; its duration, the scenario's limit, unless ``duration`` is given)."""
+    (approach: the CW plant node on the nonlinear truth, the position sensor or the sensors by
+    range, until contact or an abort; its duration, the scenario's limit, unless ``duration`` is
+    given)."""
     scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
@@ -257,22 +259,15 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     plant_name = registry.plant_node(plant)
     overrides = {plant_name: plant_values, 'estimator': {'filter_type': estimator},
                  'recorder': {'output': str(run_dir / 'bag'), 'storage': storage}}
-    if sensor != 'position':
-        suites = sensor_suites()
-        if sensor not in suites:
-            raise ValueError(f"sensor must be position or one of {', '.join(suites)}; got {sensor!r}")
-        for name, values in suites[sensor].items():
-            overrides.setdefault(plant_name if name == 'cw_plant' else name, {}).update(values)
+    registry.check_scenario(scenario, plant, sensor)
+    # as the files load: the scenario's over the parameter file, the sensor suite's over both
     if scenario != 'rendezvous':
-        known = scenarios()
-        if scenario not in known:
-            raise ValueError(f"scenario must be rendezvous or one of {', '.join(known)}; got {scenario!r}")
-        if plant != 'cw' or sensor != 'position':
-            raise ValueError(f'the {scenario} scenario runs on the cw plant node (its dynamics_model set) and '
-                             f'the position sensor; got plant {plant!r}, sensor {sensor!r}')
-        for name, values in known[scenario].items():
+        for name, values in scenarios()[scenario].items():
             overrides.setdefault(name, {}).update({k: v for k, v in values.items()
                                                    if not (name == plant_name and k in plant_values)})
+    if sensor != 'position':
+        for name, values in sensor_suites()[sensor].items():
+            overrides.setdefault(plant_name if name == 'cw_plant' else name, {}).update(values)
     for name, values in (extra or {}).items():
         overrides.setdefault(name, {}).update(values)
     pipeline = Pipeline(run_dir, params_file, overrides, pipeline_env(domain_id), namespace=namespace,
@@ -382,7 +377,8 @@ def main(argv=None) -> int:
     parser.add_argument('--plant', default='cw', choices=tuple(registry.plants()),
                         help='truth: cw (the model the filters use) or basilisk (J2, thrust limits)')
     parser.add_argument('--sensor', default='position', choices=('position', *sensor_suites()),
-                        help="position (Table 6's partial position) or a sensor suite (docs/sensors.md)")
+                        help="position (Table 6's partial position) or a sensor suite (docs/sensors.md); "
+                             'by_range (relative GPS, LIDAR, docking camera) with --scenario approach')
     parser.add_argument('--scenario', default='rendezvous', choices=('rendezvous', *scenarios()),
                         help='rendezvous (Table 6, 360 s) or approach (5 km behind on V-bar to contact through the '
                              'holds, nonlinear truth and filter model, 1 s steps, until contact or abort)')

@@ -106,9 +106,12 @@ CONFIG_FILES = {
 
 
 def sensor_overlay(name: str) -> str:
-    """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml."""
+    """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml and,
+    for a suite of another scenario (registry.SCENARIOS), that scenario's file."""
+    scenario = next(s for s, entry in registry.SCENARIOS.items() if name in entry.sensors)
+    after = () if scenario == 'rendezvous' else (f'scenario_{scenario}.yaml',)
     return _overlay(f'the {name} sensor suite instead of the position sensor (docs/sensors.md)', 'sensor_suites',
-                    f'sensor_{name}.yaml', sensor_suites()[name])
+                    f'sensor_{name}.yaml', sensor_suites()[name], after)
 
 
 def scenario_overlay(name: str) -> str:
@@ -117,10 +120,12 @@ def scenario_overlay(name: str) -> str:
                     f'scenario_{name}.yaml', scenarios()[name])
 
 
-def _overlay(title: str, source: str, file_name: str, nodes: dict) -> str:
+def _overlay(title: str, source: str, file_name: str, nodes: dict, after=()) -> str:
+    files = ' '.join(f'--params-file config/{name}' for name in ('rendezvous.yaml', *after, file_name))
     out = [f'# snn_rendezvous: {title}.',
-           f'# Generated from scenario_nodes/parameter_tables.py ({source}). Load it after the scenario file:',
-           f'#   --ros-args --params-file config/rendezvous.yaml --params-file config/{file_name}',
+           f"# Generated from scenario_nodes/parameter_tables.py ({source}). Load it after the scenario "
+           f"file{'s' if after else ''}:",
+           f'#   --ros-args {files}',
            '']
     for node, values in nodes.items():
         out.extend([f'/**/{node}:', '  ros__parameters:'])

@@ -19,15 +19,19 @@ from snn_estimator.measurements import (
     TOO_CLOSE,
     TOO_FAR,
     VALID,
+    RelativeGeometry,
     make_model,
     rotation_from_quaternion,
 )
 from snn_estimator.measurements.position import RelativeGPS
 from snn_estimator.plant.sensors import MeasurementSensor, PositionSensor, SamplePeriod
 
-GEOMETRIC = [name for name in MODELS if name != 'position']
+#: The models that see the line of sight (observer, mounting); position and relative_gps measure C x.
+GEOMETRIC = [name for name, cls in MODELS.items() if issubclass(cls, RelativeGeometry)]
+CARTESIAN = ('position', 'relative_gps')
 ANGLE_MODELS = ('range_azimuth_elevation', 'line_of_sight', 'docking_camera')
-NOISE = {'position': 1e-2, 'range_azimuth_elevation': [1e-4, 1e-6, 1e-6], 'line_of_sight': [1e-6, 1e-6],
+NOISE = {'position': 1e-2, 'relative_gps': 1e-2, 'range_azimuth_elevation': [1e-4, 1e-6, 1e-6],
+         'line_of_sight': [1e-6, 1e-6],
          'range': 1e-4, 'range_rate': 1e-6, 'docking_camera': [2.5e-5, 1e-6, 1e-6]}
 
 
@@ -59,7 +63,7 @@ def central_differences(model, x, steps):
 def fd_steps(model, x):
     """Steps well below the distance to the nearest singularity (the range; for angles the
     distance of the line of sight from the sensor z axis)."""
-    if model.name == 'position':
+    if model.name in CARTESIAN:
         return np.full(x.shape, 1e-3)
     rho = model.line_of_sight(x)
     scale = np.hypot(rho[..., 0], rho[..., 1]) if model.name in ANGLE_MODELS else np.linalg.norm(rho, axis=-1)
@@ -81,7 +85,7 @@ def check_jacobian(model, x):
 @pytest.mark.parametrize('name', list(MODELS))
 def test_every_jacobian_equals_central_differences_at_random_states(name):
     rng = np.random.default_rng(list(MODELS).index(name))
-    for mounting in (mountings(rng) if name != 'position' else [{}]):
+    for mounting in (mountings(rng) if name in GEOMETRIC else [{}]):
         model = make_model(name, NOISE[name], **mounting)
         x = np.concatenate([rng.normal(size=(200, 3)) * rng.choice([0.5, 50.0, 5000.0], size=(200, 1)),
                             rng.normal(size=(200, 3))], axis=1)
@@ -161,12 +165,12 @@ def test_position_of_inverts_h_where_one_sample_determines_the_position(name):
     """h(position_of(z)) = z for any mounting and observer (range and both angles, position on
     every axis); None where one sample does not fix the position (a restart cannot use it)."""
     rng = np.random.default_rng(11)
-    for geometry in (mountings(rng) if name != 'position' else [{}]):
+    for geometry in (mountings(rng) if name in GEOMETRIC else [{}]):
         model = make_model(name, NOISE[name], **geometry)
         x = np.concatenate([rng.uniform(-80.0, 80.0, size=(20, 3)), rng.normal(size=(20, 3))], axis=1)
         x = x[model.valid(x)]
         p = model.position_of(model.h(x))
-        if name in ('position', 'range_azimuth_elevation', 'docking_camera'):
+        if name in (*CARTESIAN, 'range_azimuth_elevation', 'docking_camera'):
             np.testing.assert_allclose(p, x[:, :3], rtol=0, atol=1e-9)
         else:
             assert p is None
@@ -323,7 +327,7 @@ def test_bad_geometry_parameters_are_refused_with_the_field_named(changes, messa
 
 def test_the_registry_lists_every_model_and_refuses_an_unknown_one():
     assert set(MODELS) == {'position', 'range_azimuth_elevation', 'line_of_sight', 'range', 'range_rate',
-                           'docking_camera'}
+                           'docking_camera', 'relative_gps'}
     for name, cls in MODELS.items():
         model = make_model(name, NOISE[name])
         assert model.name == name and isinstance(model, cls)

@@ -17,6 +17,7 @@ from scenario_nodes.codec import (  # noqa: E402
     decode_range,
     decode_vector3,
     encode_no_measurement,
+    encode_point,
     encode_range,
     encode_vector3,
     read_measurement,
@@ -117,8 +118,10 @@ def test_a_sample_that_is_not_finite_never_leaves_and_bad_ranges_are_refused():
 @pytest.mark.parametrize('name', [name for name in MODELS if name != 'position'])
 def test_a_sample_the_sensor_could_not_measure_says_so_and_reads_as_none(name):
     """Outside its limits a sensor publishes "nothing measured" (REP 117's -inf too close, +inf
-    no detection for sensor_msgs/Range; NaN in every component of a Vector3Stamped), which
-    reads as z None: the estimator predicts over that step at once (docs/sensors.md)."""
+    no detection for sensor_msgs/Range; NaN in every component of a Vector3Stamped, or of
+    relative_gps's PointStamped), which reads as z None: the estimator predicts over that step
+    at once (docs/sensors.md). Table 6's position, which has no limits, says no such thing: a
+    NaN point stays a broken sample."""
     model = make_model(name, NOISE[name], min_range=1.0, max_range=100.0)
     for reason in ('too_close', 'too_far', 'out_of_view', 'singular'):
         data = encode_no_measurement(model, reason, 12_300_000_000, 'lidar')
@@ -131,8 +134,10 @@ def test_a_sample_the_sensor_could_not_measure_says_so_and_reads_as_none(name):
         read_measurement(model, data, 'camera')
     with pytest.raises(ValueError, match='no limits'):
         encode_no_measurement(make_model('position', 1e-2), 'too_far', 0, 'lvlh')
+    with pytest.raises(MessageError, match='non_finite'):
+        read_measurement(make_model('position', 1e-2), encode_point(np.full(3, math.nan), (0, 1, 2), 0, 'lvlh'), 'lvlh')
     partly = measurement_to_message(model, model.h(np.array([[50.0, 1.0, 2.0, 0.0, 0.0, 0.0]]))[0], 0, 'lidar')
     if model.dim > 1 and name != 'range':  # one NaN among finite components is a broken sample
-        partly.vector.x = math.nan
+        (partly.point if model.message_form == 'point' else partly.vector).x = math.nan
         with pytest.raises(MessageError, match='non_finite'):
             message_to_measurement(model, partly)
