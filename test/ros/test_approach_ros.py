@@ -138,3 +138,35 @@ def test_a_no_go_at_the_first_hold_ends_the_run_after_its_step():
     assert [(t, name, phase) for t, name, phase in said] == [(3000.0, 'no_go 5 km', 'no_go'),
                                                              (3000.0, 'no_go', 'no_go')]
     assert plant['ended_by'] == 'requested' and plant['steps'] == 3001 and max(truths) == 3001 * NS
+
+
+@pytest.mark.slow
+def test_the_approach_on_a_sensor_node_per_sensor_equals_the_offline_by_range_loop_through_the_lidars_arrival(
+        tmp_path):
+    """``make demo SCENARIO=approach SENSOR=by_range``: relative GPS, the LIDAR and the docking
+    camera each their own node and topic, the estimator fusing them with the offline R_hat
+    (by_range_noise). Over the first 2600 s, through the LIDAR's arrival inside 3 km (2548 s),
+    every estimate and truth is fly_approach(approach_scenario(sensors='by_range'))'s, and every
+    sensor answered every truth, "nothing measured" outside its range (~25 s here)."""
+    steps = 2600
+    result = run_pipeline(tmp_path / 'run', scenario='approach', sensor='by_range', duration=float(steps),
+                          timeout=300.0)
+    data = read_bag(result['bag'])
+    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='by_range'),
+                           DEFAULT_FILTER, max_duration=float(steps), record=True)[0]
+    trajectory = offline['trajectory']
+    ranges = np.linalg.norm(np.asarray(trajectory['truth'])[:, :3], axis=1)
+    assert ranges[0] > 3000.0 > ranges[-1]  # the window crosses the LIDAR's 3 km
+    for times, values, expected in ((data.truth_t, data.truth, trajectory['truth']),
+                                    (data.estimate_t, data.estimate, trajectory['estimate'])):
+        k = np.round(times).astype(int)
+        inside = k <= steps
+        assert sorted(k[inside]) == list(range(steps + 1))
+        np.testing.assert_allclose(values[inside], np.asarray(expected)[k[inside]], rtol=0, atol=1e-9)
+    # every truth answered; the samples offline took (its loop measures the truths before the last)
+    for name, offline_name in (('relative_gps', 'relative_gps'), ('lidar', 'range_azimuth_elevation'),
+                               ('camera', 'docking_camera')):
+        stamps, said = data.reports[name]
+        assert len(stamps) == steps + 1, name
+        assert said[stamps < steps * NS].sum() == offline['sensor_samples'][offline_name], name
+    assert offline['sensor_samples']['range_azimuth_elevation'] > 0 == offline['sensor_samples']['docking_camera']

@@ -182,3 +182,45 @@ def test_with_publish_not_measured_false_a_sample_out_of_view_is_not_published()
         spin_until(executor, lambda: False, timeout=0.3)
         assert [stamp_to_ns(m.header.stamp) for m in probe.received] == [200_000_000]
         assert probe.diagnostics()['measurement_rejected.out_of_view'] == '1'
+
+
+#: Ranges (m) behind the target on V-bar across the approach's sensors, and which of them each
+#: sensor of the by_range suite measures (docs/decisions.md, 72: relative GPS from 500 m out,
+#: the LIDAR 1.8 m - 3 km, the docking camera 5 cm - 30 m).
+BY_RANGE_RANGES = (5000.0, 3100.0, 2900.0, 600.0, 400.0, 40.0, 20.0, 1.0, 0.03)
+BY_RANGE_MEASURES = {'relative_gps': (1, 1, 1, 1, 0, 0, 0, 0, 0), 'lidar': (0, 0, 1, 1, 1, 1, 1, 0, 0),
+                     'camera': (0, 0, 0, 0, 0, 0, 1, 1, 0)}
+
+
+@pytest.mark.parametrize('name', list(BY_RANGE_MEASURES))
+def test_each_sensor_node_of_the_approach_by_range_answers_every_truth_and_measures_only_in_its_range(name):
+    """The by_range suite's sensor nodes (config/sensor_by_range.yaml's values), each alone: a
+    truth within its range gives a measurement, one outside it "nothing measured" at that stamp
+    (relative GPS: a PointStamped of NaN; the LIDAR and the camera: a Vector3Stamped of NaN),
+    counted as too_close / too_far; nothing is left unanswered."""
+    from geometry_msgs.msg import PointStamped
+
+    from scenario_nodes.parameter_tables import sensor_suites
+    values = {**sensor_suites()['by_range'][name], 'diagnostics_period': 0.0}
+    model = make_model(values['model'], values['measurement_noise'], min_range=values['min_range'],
+                       max_range=values['max_range'])
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, PointStamped if model.message_form == 'point' else Vector3Stamped)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, **values)
+        assert spin_until(executor, probe.ready)
+        for k, r in enumerate(BY_RANGE_RANGES):
+            probe.truth.publish(state_to_odometry(np.array([-r, 0.0, 0.0, 0.0, 0.0, 0.0]), None,
+                                                  (k + 1) * 1_000_000_000, 'lvlh', 'chaser'))
+        assert spin_until(executor, lambda: len(probe.received) == len(BY_RANGE_RANGES))
+        spin_until(executor, lambda: probe.diagnostics().get('measurements_published') == str(len(BY_RANGE_RANGES)))
+        samples = [message_to_measurement(model, m) for m in probe.received]
+        assert [stamp_to_ns(m.header.stamp) for m in probe.received] == [
+            (k + 1) * 1_000_000_000 for k in range(len(BY_RANGE_RANGES))]
+        assert tuple(int(z is not None) for z in samples) == BY_RANGE_MEASURES[name]
+        for z, r in zip(samples, BY_RANGE_RANGES):
+            if z is not None:  # x (position) or the range (angle sensors) within a few sigmas
+                assert abs(abs(z[0]) - r) < 5.0 + 1e-3 * r, (name, r, z)
+        values = probe.diagnostics()
+        unmeasured = BY_RANGE_MEASURES[name].count(0)
+        assert int(values['measurement_rejected.too_close']) + int(values.get('measurement_rejected.too_far', 0)) \
+            == int(values['measurement_rejected']) == unmeasured
