@@ -6,6 +6,8 @@ live view): the nodes, their start order and subscriber counts of scenario_nodes
     ros2 launch snn_rendezvous rendezvous.launch.py plant:=basilisk   # Basilisk truth (J2)
     ros2 launch snn_rendezvous rendezvous.launch.py keep_alive:=true  # stay up after the scenario
     ros2 launch snn_rendezvous rendezvous.launch.py live_view:=true   # Foxglove: ws://localhost:8765
+    ros2 launch snn_rendezvous rendezvous.launch.py sensor:=docking   # a sensor node per sensor
+    ros2 launch snn_rendezvous rendezvous.launch.py scenario:=approach sensor:=by_range  # 5 km to contact
 
 Each node is its own process; swapping the estimator is only the `estimator` argument. When
 the plant has flown the scenario it exits and the launch shuts the others down (the recorder
@@ -50,6 +52,17 @@ def generate_launch_description():
             default_value=PathJoinSubstitution([FindPackageShare(PACKAGE), 'config', 'rendezvous.yaml']),
             description='Parameter file for all nodes (default: the paper scenario, Table 6)'),
         DeclareLaunchArgument(
+            'scenario', default_value='rendezvous', choices=list(registry.SCENARIOS),
+            description='rendezvous (Table 6: params_file alone) | approach (5 km behind on V-bar to contact '
+                        'through the holds, the cw plant on the nonlinear truth: config/scenario_approach.yaml '
+                        'after params_file, as snn_demo --scenario approach; docs/decisions.md, 67)'),
+        DeclareLaunchArgument(
+            'sensor', default_value='position', choices=list(registry.SENSOR_NODES),
+            description="position (Table 6's sensor) | a sensor suite, one node per sensor, each on its own "
+                        'topic: config/sensor_<suite>.yaml after the scenario\'s files (docs/sensors.md). '
+                        'The rendezvous flies lidar, camera+lidar, docking; the approach by_range (relative '
+                        'GPS, the LIDAR, the docking camera)'),
+        DeclareLaunchArgument(
             'plant', default_value='cw', choices=list(PLANTS),
             description='Truth: cw (the Clohessy-Wiltshire model the filters use) | basilisk '
                         '(Basilisk orbits with J2 and thrust limits; needs the basilisk extra)'),
@@ -81,8 +94,9 @@ def generate_launch_description():
 
 
 def _nodes(context):
-    """The nodes of the pipeline description (scenario_nodes.registry) for the plant and the
-    optional nodes asked for, in its start order (the plant last), each with the subscriber
+    """The nodes of the pipeline description (scenario_nodes.registry) for the plant, the sensor
+    choice and the optional nodes asked for, in its start order (the plant last), each with
+    the parameter files of the scenario and the sensor choice (:func:`_parameter_files`) and the subscriber
     counts it waits for (decisions.md, 33 and 41), with ``scheduling``, ``--launch-prefix`` and
     the end of the launch resolved: with batch each runs as ``chrt --batch 0 [launch-prefix]
     <executable>``."""
@@ -95,10 +109,13 @@ def _nodes(context):
     end_with_plant = LaunchConfiguration('keep_alive').perform(context) != 'true'
     plant = LaunchConfiguration('plant').perform(context)
     plant_name = registry.plant_node(plant)
+    scenario, sensor = (LaunchConfiguration(name).perform(context) for name in ('scenario', 'sensor'))
+    registry.check_scenario(scenario, plant, sensor)
     estimator = LaunchConfiguration('estimator').perform(context)
     optional = [node for argument, node in OPTIONAL_ARGUMENTS.items()
                 if LaunchConfiguration(argument).perform(context).lower() in ('true', '1')]
-    started = registry.pipeline(plant, optional)
+    started = registry.pipeline(plant, optional, sensor)
+    files = _parameter_files(params, scenario, sensor)
     extra = registry.subscriber_counts(started)
     extra[plant_name].update({
         'mode': LaunchConfiguration('mode'), 'exit_when_done': end_with_plant,
@@ -107,7 +124,7 @@ def _nodes(context):
     if estimator:
         extra.setdefault('estimator', {})['filter_type'] = estimator
     actions = [Node(package=PACKAGE, executable=node.entry.name, name=node.name, exec_name=node.name,
-                    namespace=namespace, parameters=[params] + ([extra[node.name]] if node.name in extra else []),
+                    namespace=namespace, parameters=files + ([extra[node.name]] if node.name in extra else []),
                     remappings=[tuple(rule.split(':=')) for rule in node.remaps], output='screen', prefix=prefix)
                for node in started]
     plant_action = next(action for action, node in zip(actions, started) if node.name == plant_name)
@@ -119,3 +136,12 @@ def _nodes(context):
             target_action=plant_action,
             on_exit=[EmitEvent(event=Shutdown(reason='the plant has flown the scenario'))])))
     return actions
+
+
+def _parameter_files(params, scenario: str, sensor: str) -> list:
+    """params_file, then the package's config/scenario_<scenario>.yaml (not for the rendezvous,
+    which is params_file's own), then config/sensor_<sensor>.yaml (not for position): each
+    file's values win over the ones before, as snn_demo layers them."""
+    extra = ([f'scenario_{scenario}.yaml'] if scenario != 'rendezvous' else []) + (
+        [f'sensor_{sensor}.yaml'] if sensor != 'position' else [])
+    return [params] + [PathJoinSubstitution([FindPackageShare(PACKAGE), 'config', name]) for name in extra]

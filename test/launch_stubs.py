@@ -54,7 +54,7 @@ def load_launch_file(monkeypatch) -> tuple[dict, dict]:
 
 #: The launch arguments' values of a plain `ros2 launch snn_rendezvous rendezvous.launch.py`.
 DEFAULTS = {'keep_alive': 'false', 'plant': 'cw', 'estimator': '', 'record': 'false', 'live_view': 'false',
-            'scheduling': 'normal'}
+            'scheduling': 'normal', 'scenario': 'rendezvous', 'sensor': 'position'}
 
 
 def launched_nodes(monkeypatch, **arguments) -> dict[str, dict]:

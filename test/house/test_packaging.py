@@ -223,6 +223,46 @@ def test_launch_file_starts_the_nodes_with_the_arguments_and_ends_with_the_plant
         assert all(by_name[name][0].items() >= values.items() for name, values in counts.items())
 
 
+def test_the_launch_files_scenario_and_sensor_load_their_files_after_params_file_and_start_a_node_per_sensor(
+        monkeypatch):
+    """scenario:=approach sensor:=by_range: config/scenario_approach.yaml, then config/sensor_by_range.yaml
+    after params_file, as snn_demo layers them; relative GPS, the LIDAR and the docking camera each
+    a sensor node on its own topic, counted by the estimator, controller and plant as the pipeline
+    description says. The defaults load params_file alone; a choice a scenario does not fly is refused."""
+    from launch_stubs import launched_nodes, load_launch_file
+
+    from scenario_nodes import registry
+
+    namespace, created = load_launch_file(monkeypatch)
+    namespace['generate_launch_description']()
+    arguments = {a.args[0]: a.kwargs for a in created['argument']}
+    assert arguments['scenario']['default_value'] == 'rendezvous' and arguments['sensor']['default_value'] == 'position'
+    assert set(arguments['scenario']['choices']) == {'rendezvous', 'approach'}
+    assert 'by_range' in arguments['sensor']['choices']
+    params = ('config', 'params_file', None)
+    share = ('share', PACKAGE)
+    nodes = launched_nodes(monkeypatch)
+    assert all(n['parameters'][:1] == [params] and not any(isinstance(p, tuple) and p[0] == 'join'
+                                                           for p in n['parameters']) for n in nodes.values())
+    nodes = launched_nodes(monkeypatch, scenario='approach', sensor='by_range')
+    assert list(nodes) == ['lqr_controller', 'estimator', 'relative_gps', 'lidar', 'camera', 'cw_plant']
+    for name, node in nodes.items():
+        assert node['parameters'][:3] == [params, ('join', (share, 'config', 'scenario_approach.yaml')),
+                                          ('join', (share, 'config', 'sensor_by_range.yaml'))], name
+    for name in ('relative_gps', 'lidar', 'camera'):
+        assert nodes[name]['executable'] == 'position_sensor' and nodes[name]['remappings'] == [('measurement', name)]
+    counts = registry.subscriber_counts(registry.pipeline('cw', (), 'by_range'))
+    assert all(nodes[name]['parameters'][3].items() >= values.items() for name, values in counts.items())
+    assert nodes['lidar']['parameters'][3] == {'min_measurement_subscribers': 2}  # estimator and controller
+    nodes = launched_nodes(monkeypatch, scenario='approach')
+    assert 'position_sensor' in nodes and nodes['estimator']['parameters'][:2] == [
+        params, ('join', (share, 'config', 'scenario_approach.yaml'))]
+    for bad in ({'scenario': 'approach', 'sensor': 'docking'}, {'scenario': 'approach', 'plant': 'basilisk'},
+                {'sensor': 'by_range'}):
+        with pytest.raises(ValueError, match='scenario flies plant'):
+            launched_nodes(monkeypatch, **bad)
+
+
 def test_the_fast_dds_profile_is_what_the_demo_points_fast_dds_at():
     """config/fastdds.xml: a default data-writer profile whose heartbeat period is 100 ms
     (docs/decisions.md, 38), set by snn_demo's environment unless the user set another."""
