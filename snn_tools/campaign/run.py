@@ -79,7 +79,7 @@ def write_table(out: Path, spec: CampaignSpec, rows: list[dict]) -> Path:
 def write_outputs(out: Path, spec: CampaignSpec) -> list[dict]:
     """Table, summary and figures of whatever cells are finished; returns the rows."""
     cells = spec.cells()
-    rows = read_rows(out, cells)
+    rows = read_rows(out, cells, spec.scenario)
     write_table(out, spec, rows)
     write_report(out, spec, rows, total_cells=len(cells))
     return rows
@@ -174,7 +174,7 @@ def _compute(client, spec: CampaignSpec, cells: list[Cell], out: Path,
         done = partials[cell.name]
         done[index] = partial
         if len(done) == batches:
-            row = cell_row(cell.filter, cell.settings, spec.runs, spec.seed,
+            row = cell_row(spec.scenario, cell.filter, cell.settings, spec.runs, spec.seed,
                            [done[i] for i in range(batches)])
             write_atomic(cell_path(out, cell), json.dumps(row) + '\n')
             del partials[cell.name]
