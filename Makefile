@@ -9,6 +9,8 @@
 #   make test-fast            the quick loop: no ROS process, the first case of every-kind tests (~1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
 #   make campaign SPEC=config/campaigns/example.yaml [WORKERS=2] [SCHEDULER=tcp://host:8786]
+#   make campaign SPEC=config/campaigns/approach.yaml   the approach to contact as a campaign: safety figures
+#                             per cell, cw beside nonlinear_circular (~1 min) -> runs/campaign_approach/
 #   make neuromorphic         NIR export, Brian2 re-run, cost per estimate -> results/neuromorphic.*
 #   make spike-rules [RUNS=n]  the local (synchronous) spike rule against greedy and the twin, position and
 #                             LIDAR, dispersed -> results/neuromorphic.{json,md} (its section only)

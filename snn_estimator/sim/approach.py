@@ -327,15 +327,15 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
         if trajectory:
             trajectory.keep(t, plant.x, estimator)
         u = np.zeros((runs, 3))
-        flying = [g.active for g in guidance]
+        flying = np.array([g.active for g in guidance])
         for b, g in enumerate(guidance):
             u[b] = approach_control(g, gain, t, dt, x_hat[b], covariance[b])
         z, valid = sensing.measure(plant.x)
         estimator.step(z, u, dt, valid=valid)
         fault = scenario.disturbance
         plant.step(u if fault is None or t < fault[0] else u + np.asarray(fault[1], dtype=float), dt)
-        if estimator.spiking:
-            spikes += estimator.batch_spikes.sum(axis=1)
+        if estimator.spiking:  # a run's spikes until it ends, whatever the others of its batch still fly
+            spikes[flying] += estimator.batch_spikes[flying].sum(axis=1)
         k += 1
         flying_runs = np.flatnonzero(flying)
         nees_sum[flying_runs] += _nees(plant.x[flying_runs], estimator.batch_x_hat[flying_runs],

@@ -1,4 +1,5 @@
-"""One campaign cell, run on any machine: settings -> scenario -> batched Monte Carlo -> row.
+"""One campaign cell, run on any machine: settings -> scenario -> batched Monte Carlo -> row
+(or, for the approach, -> flights -> their safety figures: snn_tools.campaign.approach_cells).
 
 The part of a campaign that faces the core and knows nothing of Dask, so ``make experiments``
 can call :func:`run_cell` directly and get the numbers a campaign would put in its table.
@@ -10,7 +11,8 @@ batch is one :func:`run_chunk` call (one Dask task in a campaign) returning sums
 ``seed + b`` whatever batch it lands in (the core's runs in a batch are independent, bit for
 bit), so a cell's numbers depend on the spec only, never on the worker or the order.
 
-:data:`SETTINGS` is the one table of allowed setting names and where each goes.
+:data:`SETTINGS` is the one table of allowed setting names and where each goes;
+:data:`RUNNERS` says how each scenario's cells are checked, batched and combined.
 """
 
 from __future__ import annotations
@@ -35,15 +37,27 @@ from snn_estimator.sim.scenarios import (
     van_der_pol_scenario,
 )
 from snn_estimator.sim.simulate import simulate
+from snn_tools.campaign.approach_cells import (
+    FIRST_HOLDS,
+    approach_cell_scenario,
+    approach_chunk,
+    check_approach,
+    combine_approach,
+)
 from snn_tools.paths import PACKAGE, SOURCE_ROOT
 
+#: The approach from 5 km to contact (snn_estimator.sim.approach): its cells fly approaches.
+APPROACH = 'approach'
 #: Scenario name -> factory(preset, [factory arguments], **EstimatorConfig changes).
-SCENARIOS: dict[str, Callable[..., Scenario]] = {
+SCENARIOS: dict[str, Callable[..., Any]] = {
     'rendezvous': rendezvous_scenario,
     'far_range': far_range_scenario,
     'van_der_pol': van_der_pol_scenario,
     'docking': docking_scenario,  # Sec. 3.2 to contact on the docking suite (docs/sensors.md)
+    APPROACH: approach_cell_scenario,  # ApproachScenario, not Scenario: see RUNNERS
 }
+#: The scenarios whose cells are Monte-Carlo batches of a Scenario (simulate()).
+MONTE_CARLO = tuple(name for name in SCENARIOS if name != APPROACH)
 #: Scenarios whose truth starts with a relative position (m): their rows get final_range_*,
 #: delta_v_* and saturated_steps_mean.
 RANGE_SCENARIOS = ('rendezvous', 'far_range', 'docking')
@@ -89,28 +103,38 @@ def _basilisk(**changes):
 
 
 _RENDEZVOUS = ('rendezvous',)
-_ORBITAL = ('rendezvous', 'far_range')
+_ORBITAL = ('rendezvous', 'far_range', APPROACH)
+#: The scenarios whose factory builds the filters' model from the estimator's dynamics_model
+#: (rendezvous and docking fly Sec. 3.2's CW model, Van der Pol has no relative motion).
+_RELATIVE_MOTION = ('far_range', APPROACH)
 #: Every setting a campaign spec may name (in ``grid`` or ``settings``) and where it goes. Every
 #: EstimatorConfig field but the seed (the spec's own ``seed``) is one; adding a key is one line.
 SETTINGS: dict[str, Setting] = {
     **{field.name: Setting(ESTIMATOR, 'see EstimatorConfig (snn_estimator/config.py)')
        for field in dataclasses.fields(EstimatorConfig) if field.name != 'seed'},
+    'dynamics_model': Setting(ESTIMATOR, "the filters' model of relative motion: cw | nonlinear_circular",
+                              _RELATIVE_MOTION),
     'preset': Setting(FACTORY, 'default | as_published (the paper\'s literal network)',
                       ('rendezvous', 'van_der_pol', 'docking')),
     'cw_model': Setting(FACTORY, 'standard | as_published (filters and LQR use the printed Eq. 41)',
                         _RENDEZVOUS),
     'orbit_radius': Setting(FACTORY, 'target orbit radius, m', _ORBITAL),
-    'plant': Setting(FACTORY, 'cw (the model the filters use) | basilisk (two-body gravity, J2, thrust limit)',
-                     _ORBITAL),
+    'plant': Setting(FACTORY, 'the truth: cw | nonlinear_circular (two-body without J2; far_range, approach) '
+                     '| basilisk (two-body gravity, J2; thrust limit but on the approach)', _ORBITAL),
     'j2': Setting(DERIVED, "Basilisk truth: Earth's J2 on (true) or off", _ORBITAL,
                   apply=_basilisk(j2=bool)),
     'eccentricity': Setting(DERIVED, "Basilisk truth: the target orbit's eccentricity", _ORBITAL,
                             apply=_basilisk(eccentricity=float)),
-    'duration': Setting(SCENARIO, 'simulated time, s'),
-    'dt': Setting(SCENARIO, 'time step of the loop, s'),
-    'metric_window': Setting(SCENARIO, 'final window the readings average over, s'),
+    'sensors': Setting(FACTORY, 'position (Table 6 at every range) | by_range (relative GPS, LIDAR, '
+                       'docking camera, each in its range)', (APPROACH,)),
+    'first_hold': Setting(FACTORY, f'the hold the approach starts at: {" | ".join(FIRST_HOLDS)}', (APPROACH,)),
+    'max_duration': Setting(FACTORY, 'an approach still flying after this many s ends (outcome hold, '
+                            'transfer or final)', (APPROACH,)),
+    'duration': Setting(SCENARIO, 'simulated time, s', MONTE_CARLO),
+    'dt': Setting(SCENARIO, 'time step of the loop, s', MONTE_CARLO),
+    'metric_window': Setting(SCENARIO, 'final window the readings average over, s', MONTE_CARLO),
     'truth_noise': Setting(SCENARIO, "the truth's process noise: spectral_density (variance Q dt per "
-                           'step) | held_sample (w ~ N(0, Q) held over the step, ~Q dt^2)'),
+                           'step) | held_sample (w ~ N(0, Q) held over the step, ~Q dt^2)', MONTE_CARLO),
     'silenced_fraction': Setting(DERIVED, 'fraction of neurons silenced, chosen with the seed',
                                  apply=_silence_fraction),
 }
@@ -168,7 +192,10 @@ def _check_timing(scenario: Scenario) -> None:
 def check_cell(scenario_name: str, kind: str, settings: dict, seed: int) -> None:
     """Build everything the cell's runs build and take one step, so that a bad value is
     refused before a campaign starts (ValueError or TypeError from the core, naming the field)."""
-    scenario = build_scenario(scenario_name, settings, seed)
+    RUNNERS[scenario_name].check(build_scenario(scenario_name, settings, seed), kind, seed)
+
+
+def _check_monte_carlo(scenario: Scenario, kind: str, seed: int) -> None:
     simulate(dataclasses.replace(scenario, duration=scenario.dt), kind, runs=1, seed=seed)
 
 
@@ -197,12 +224,21 @@ def code_version() -> str:
 
 def run_chunk(scenario_name: str, kind: str, settings: dict, seed: int, first_run: int,
               runs: int) -> dict:
-    """Runs first_run .. first_run + runs - 1 of a cell (seeds seed + b), reduced to the sums
-    :func:`combine` needs; the arrays stay on the worker. This is one Dask task."""
+    """Runs first_run .. first_run + runs - 1 of a cell (seeds seed + b), reduced by the
+    scenario's runner to what its combine needs, with the code version and the worker time;
+    the arrays stay on the worker. This is one Dask task."""
     started = time.perf_counter()
     scenario = build_scenario(scenario_name, settings, seed)
+    partial = RUNNERS[scenario_name].chunk(scenario_name, scenario, kind, seed, first_run, runs)
+    return {**partial, 'code_version': code_version(), 'wall_time_s': time.perf_counter() - started}
+
+
+def _monte_carlo_chunk(scenario_name: str, scenario: Scenario, kind: str, seed: int, first_run: int,
+                       runs: int) -> dict:
+    """The sums of :func:`combine` over a batch of simulate()'s runs (a diverged run counted,
+    its numbers left out)."""
     result = simulate(scenario, kind, runs=runs, seed=seed + first_run, trajectories=False)
-    sums, kept = result.sums, ~result.diverged  # a run that diverged is counted, its numbers left out
+    sums, kept = result.sums, ~result.diverged
     error = sums.error[kept]
     spiking = result.neuron_count > 0
     orbital = scenario_name in RANGE_SCENARIOS
@@ -224,8 +260,6 @@ def run_chunk(scenario_name: str, kind: str, settings: dict, seed: int, first_ru
         'final_range': result.final_range()[kept] if orbital else None,
         'capped_steps': int(result.capped_steps),
         'states': scenario.model.state_names,
-        'code_version': code_version(),
-        'wall_time_s': time.perf_counter() - started,
     }
 
 
@@ -261,14 +295,45 @@ def combine(partials: list[dict]) -> dict:
                         f'{name}_verdict': check['verdict']})
     row['capped_steps'] = sum(p['capped_steps'] for p in partials)
     row['diverged_runs'] = sum(p.get('diverged', 0) for p in partials)  # left out of every figure above
-    row['code_version'] = ' '.join(sorted({p['code_version'] for p in partials}))
-    row['wall_time_s'] = sum(p['wall_time_s'] for p in partials)
     return row
 
 
-def cell_row(filter_kind: str, settings: dict, runs: int, seed: int, partials: list[dict]) -> dict:
-    """A cell's row of the table: ``filter``, the settings, ``runs``, ``seed``, the readings."""
-    return {'filter': filter_kind, **settings, 'runs': runs, 'seed': seed, **combine(partials)}
+@dataclass(frozen=True)
+class CellRunner:
+    """How the cells of a scenario run: ``check(scenario, kind, seed)`` builds the filter and
+    steps once (ValueError for a bad value), ``chunk(scenario_name, scenario, kind, seed,
+    first_run, runs)`` runs one batch of a cell (one Dask task) and ``combine(partials)`` turns
+    the batches into the readings of the row."""
+
+    check: Callable[[Any, str, int], None]
+    chunk: Callable[[str, Any, str, int, int, int], dict]
+    combine: Callable[[list[dict]], dict]
+
+
+#: Scenario name -> its runner: Monte-Carlo batches of simulate(), or flown approaches.
+RUNNERS: dict[str, CellRunner] = {
+    **{name: CellRunner(_check_monte_carlo, _monte_carlo_chunk, combine) for name in MONTE_CARLO},
+    APPROACH: CellRunner(check_approach, approach_chunk, combine_approach),
+}
+
+
+def row_identity(scenario_name: str, settings: dict, seed: int = 0) -> dict:
+    """The ``scenario`` and ``dynamics_model`` columns of a cell's row: the filters' model of
+    relative motion as the built scenario has it (None for Van der Pol). Also fills in the rows
+    of cells finished before these columns existed (spec.read_rows)."""
+    model = build_scenario(scenario_name, settings, seed).model
+    return {'scenario': scenario_name, 'dynamics_model': getattr(model, 'dynamics_model', None)}
+
+
+def cell_row(scenario_name: str, filter_kind: str, settings: dict, runs: int, seed: int,
+             partials: list[dict]) -> dict:
+    """A cell's row of the table: ``filter``, ``scenario``, ``dynamics_model``, the settings,
+    ``runs``, ``seed``, the readings of the scenario's runner, the code version(s) and the
+    worker time."""
+    return {'filter': filter_kind, **row_identity(scenario_name, settings, seed), **settings,
+            'runs': runs, 'seed': seed, **RUNNERS[scenario_name].combine(partials),
+            'code_version': ' '.join(sorted({p['code_version'] for p in partials})),
+            'wall_time_s': sum(p['wall_time_s'] for p in partials)}
 
 
 def run_cell(scenario_name: str, filter_kind: str, settings: dict, runs: int, seed: int = 0,
@@ -276,4 +341,4 @@ def run_cell(scenario_name: str, filter_kind: str, settings: dict, runs: int, se
     """One cell in this process: the row a campaign with the same spec puts in its table."""
     partials = [run_chunk(scenario_name, filter_kind, settings, seed, first, count)
                 for first, count in chunk_bounds(runs, runs_per_task)]
-    return cell_row(filter_kind, settings, runs, seed, partials)
+    return cell_row(scenario_name, filter_kind, settings, runs, seed, partials)

@@ -20,7 +20,9 @@ import json
 import math
 from pathlib import Path
 
-from snn_tools.campaign.spec import load_spec, read_rows, state_names, swept
+from snn_tools.campaign.approach_cells import TABLE_COLUMNS as APPROACH_COLUMNS
+from snn_tools.campaign.cells import APPROACH
+from snn_tools.campaign.spec import identity_columns, load_spec, read_rows, state_names, swept
 from snn_tools.figures import UNITS, label_of
 
 #: The page's <title> and heading start with this (the browser test looks for it).
@@ -132,11 +134,41 @@ def _comparison(spec, rows, states, key: str):
     return fig
 
 
-def _table(spec, rows, states, key: str) -> str:
-    """The cells as an HTML table with one select per filterable column."""
+def _approach_bars(spec, rows, key: str):
+    """Grouped bars of the approach: one safety figure per grid point (x) and filter (colour);
+    a menu picks the figure (approach_cells.TABLE_COLUMNS)."""
+    import plotly.graph_objects as go
+    fig = go.Figure()
+    for kind in spec.filters:
+        mine = [r for r in rows if r['filter'] == kind]
+        fig.add_trace(go.Bar(
+            x=[_point_label(r, spec.grid) for r in mine], y=[_finite(r.get(APPROACH_COLUMNS[0])) for r in mine],
+            name=label_of(kind), customdata=[[cell_key(r, spec.grid), key] for r in mine],
+            hovertemplate=f'{label_of(kind)}<br>%{{x}}<br>%{{y:.4g}}<extra></extra>'))
+    buttons = [{'label': column, 'method': 'update',
+                'args': [{'y': [[_finite(r.get(column)) for r in rows if r['filter'] == kind]
+                                for kind in spec.filters]},
+                         {'yaxis.title.text': column}]} for column in APPROACH_COLUMNS]
+    fig.update_layout(barmode='group', title='filters compared: safety figures per grid point (menu: figure)',
+                      yaxis={'title': APPROACH_COLUMNS[0]}, height=420,
+                      updatemenus=[{'buttons': buttons, 'x': 1.0, 'y': 1.18, 'xanchor': 'right'}])
+    return fig
+
+
+def _readings(spec, rows, states) -> list[str]:
+    """The reading columns of the table: the approach's safety figures, or RMSE per state and
+    the spike fraction, final range and NEES where the rows have them."""
+    if spec.scenario == APPROACH:
+        return list(APPROACH_COLUMNS)
     extra = [c for c in ('spike_fraction', 'final_range_median', 'nees_average') if any(_finite(r.get(c)) is not None
                                                                                        for r in rows)]
-    columns = ['filter', *spec.grid, *(f'rmse_{s}' for s in states), *extra]
+    return [*(f'rmse_{s}' for s in states), *extra]
+
+
+def _table(spec, rows, states, key: str) -> str:
+    """The cells as an HTML table with one select per filterable column."""
+    names = identity_columns(spec)
+    columns = ['filter', *names, *_readings(spec, rows, states)]
     selects = []
     for name in ['filter', *spec.grid]:
         values = sorted({_text(r[name]) for r in rows})
@@ -149,7 +181,7 @@ def _table(spec, rows, states, key: str) -> str:
         cells = []
         for c in columns:
             value = row.get(c)
-            cells.append(f'<td>{html.escape(_text(value)) if c in ("filter", *spec.grid) else _number(value)}</td>')
+            cells.append(f'<td>{html.escape(_text(value)) if c in ("filter", *names) else _number(value)}</td>')
         data = ' '.join(f'data-{_attr(n)}="{html.escape(_text(row[n]))}"' for n in ['filter', *spec.grid])
         body.append(f'<tr data-cell="{html.escape(cell_key(row, spec.grid))}" {data}>{"".join(cells)}</tr>')
     return (f'<div class="filters" data-table="{key}">{" ".join(selects)} <button>show all</button>'
@@ -174,20 +206,22 @@ def section(name: str, spec, rows: list[dict], total_cells: int) -> str:
     status = 'complete' if len(rows) == total_cells else f'incomplete: {len(rows)} of {total_cells} cells'
     parts = [f'<section id="{key}"><h2>{html.escape(name)}</h2>',
              f'<p>{html.escape(spec.description.strip())}</p>' if spec.description.strip() else '',
-             f'<p>Scenario {spec.scenario}, {spec.runs} runs per cell, seed {spec.seed}, {status}. RMSE over the '
-             'final window of each run (ordinary RMSE over runs and time). Hover for values; click a cell or a '
-             'bar to filter the table.</p>']
+             f'<p>Scenario {spec.scenario}, {spec.runs} runs per cell, seed {spec.seed}, {status}. '
+             + ('Safety figures of the flown approaches (summarize() of each cell\'s flights). '
+                if spec.scenario == APPROACH else
+                'RMSE over the final window of each run (ordinary RMSE over runs and time). ')
+             + 'Hover for values; click a cell or a bar to filter the table.</p>']
     if not rows:
         return ''.join(parts) + '<p>No finished cells yet.</p></section>'
-    figures = []
-    shown = list(dict.fromkeys([states[0], states[len(states) // 2]]))
+    figures = [_approach_bars(spec, rows, key)] if spec.scenario == APPROACH else []
+    shown = list(dict.fromkeys([states[0], states[len(states) // 2]])) if states else []
     axes = swept(spec)
     for state in shown:
         if len(axes) >= 2:
             figures.append(_heatmaps(spec, rows, state, key))
         elif len(axes) == 1:
             figures.append(_line(spec, rows, state, key))
-    if len(spec.filters) > 1 or not figures:
+    if states and (len(spec.filters) > 1 or not figures):
         figures.append(_comparison(spec, rows, states, key))
     for index, fig in enumerate(figures):
         parts.append(pio.to_html(fig, include_plotlyjs=False, full_html=False, div_id=f'{key}-figure-{index}',
@@ -289,7 +323,7 @@ def write_experiments_page(out: Path, names) -> Path | None:
         folder = Path(out) / 'campaigns' / name
         if (folder / 'spec.yaml').exists():
             spec = load_spec(str(folder / 'spec.yaml'))
-            campaigns.append((name, spec, read_rows(folder, spec.cells()), len(spec.cells())))
+            campaigns.append((name, spec, read_rows(folder, spec.cells(), spec.scenario), len(spec.cells())))
     try:
         import plotly  # noqa: F401
     except ImportError:

@@ -19,8 +19,10 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
 from snn_estimator.filters.estimators import FILTER_KINDS
+from snn_tools.campaign.approach_cells import TABLE_COLUMNS as APPROACH_COLUMNS
+from snn_tools.campaign.cells import APPROACH, SCENARIOS
 from snn_tools.campaign.page import write_campaign_page  # the interactive page of the same rows
-from snn_tools.campaign.spec import state_names, swept
+from snn_tools.campaign.spec import identity_columns, state_names, swept
 from snn_tools.figures import UNITS, colour_of, label_of
 
 #: Rows per filter listed in summary.md (all of them are in results.parquet).
@@ -112,7 +114,6 @@ def heatmap(spec, rows: list[dict], state: str, path: Path) -> Path | None:
 
 def _window(spec) -> str:
     """The metric window as the spec sets it, or the scenario's default."""
-    from snn_tools.campaign.cells import SCENARIOS
     if 'metric_window' in spec.grid:
         return 'metric_window (per cell)'
     return _text(spec.settings.get('metric_window', SCENARIOS[spec.scenario]().metric_window))
@@ -184,18 +185,40 @@ def figures(out: Path, spec, rows: list[dict]) -> list[Path]:
 
 
 def _filter_table(spec, rows: list[dict], kind: str, states: list[str]) -> list[str]:
-    """Markdown table of one filter's rows: grid settings, RMSE per state, spikes, range."""
+    """Markdown table of one filter's rows: scenario, dynamics model and grid settings, then RMSE
+    per state, spikes, range, or for the approach its safety figures (approach_cells.TABLE_COLUMNS)."""
     mine = [r for r in rows if r['filter'] == kind]
-    extra = [c for c in ('spike_fraction', 'final_range_median') if any(r.get(c) is not None for r in mine)]
-    head = [*spec.grid, *(f'rmse_{s}' for s in states), *extra]
+    if spec.scenario == APPROACH:
+        readings = list(APPROACH_COLUMNS)
+    else:
+        extra = [c for c in ('spike_fraction', 'final_range_median') if any(r.get(c) is not None for r in mine)]
+        readings = [*(f'rmse_{s}' for s in states), *extra]
+    names = identity_columns(spec)
+    head = [*names, *readings]
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     for row in mine[:SUMMARY_ROWS]:
-        cells = [_text(row[k]) for k in spec.grid]
-        cells += [_number(row.get(c)) for c in head[len(spec.grid):]]
+        cells = [_text(row.get(k, '-')) for k in names]
+        cells += [_number(row.get(c)) for c in readings]
         lines.append('| ' + ' | '.join(cells) + ' |')
     if len(mine) > SUMMARY_ROWS:
         lines.append(f'\n(first {SUMMARY_ROWS} of {len(mine)} rows; all in results.parquet)')
     return lines
+
+
+def _readings_text(spec) -> str:
+    """What the readings of the rows are."""
+    common = ('Common random numbers: every cell runs seeds seed .. seed + runs - 1 (the same plant, '
+              'sensor and decoder noise), so cells differ only by their settings. ')
+    if spec.scenario == APPROACH:
+        return common + ('Each cell flies its runs to contact, abort or no-go (snn_estimator.sim.approach); '
+                         'its row is summarize() of the flights, flattened: `contact_rate` (contacts / runs), '
+                         '`success`, closing speed (m/s) and lateral offset (m) at contact, '
+                         '`corridor_violation_runs`, `keep_out_entry_before_go`, `outcomes_abort` / '
+                         '`outcomes_no_go`, delta-v (m/s per run), the mean NEES, the hold-point error (m) at '
+                         "each hold's go, spikes per run (all of summarize()'s figures in results.parquet).")
+    return common + (f'Readings over the final {_window(spec)} s: `rmse_<state>`, the ordinary RMSE over runs '
+                     'and time; `mean_error_<state>` (in results.parquet), the time average of |mean over '
+                     'runs of the error|.')
 
 
 def write_report(out: Path, spec, rows: list[dict], total_cells: int) -> Path:
@@ -209,11 +232,7 @@ def write_report(out: Path, spec, rows: list[dict], total_cells: int) -> Path:
         (f'Scenario {spec.scenario}, {spec.runs} runs per cell, seed {spec.seed}; '
          f'{total_cells // len(spec.filters)} grid points x {len(spec.filters)} filters = '
          f'{total_cells} cells, {status}.'), '',
-        ('Common random numbers: every cell runs seeds seed .. seed + runs - 1 (the same plant, '
-         'sensor and decoder noise), so cells differ only by their settings. Readings over the '
-         f'final {_window(spec)} s: `rmse_<state>`, the ordinary RMSE over runs and time; '
-         '`mean_error_<state>` (in results.parquet), the time average of |mean over runs of the '
-         'error|.'), '',
+        _readings_text(spec), '',
         (f'Fixed settings: {spec.settings or "none (scenario defaults)"}. Spec sha256 '
          f'`{spec.digest()[:16]}`; code {", ".join(versions) or "-"}; worker time '
          f'{sum(r["wall_time_s"] for r in rows):.0f} s.'), '',

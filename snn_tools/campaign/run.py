@@ -5,7 +5,8 @@
 A spec (see config/campaigns/example.yaml) names the scenario, the runs per cell, the filters,
 a ``grid`` of settings (every combination is a grid point) and optional fixed ``settings``;
 the allowed setting names are campaign_cells.SETTINGS. One *cell* is one filter at one grid
-point. Everything is checked before anything runs: unknown keys, bad values (every cell is built
+point. ``scenario: approach`` (config/campaigns/approach.yaml) flies each cell's runs from 5 km
+to contact and gives their safety figures (campaign.approach_cells) instead of RMSE. Everything is checked before anything runs: unknown keys, bad values (every cell is built
 and stepped once), empty grids.
 
 DIR receives ``spec.yaml`` and ``spec.sha256`` (the normalised spec and its hash), one JSON file
@@ -79,7 +80,7 @@ def write_table(out: Path, spec: CampaignSpec, rows: list[dict]) -> Path:
 def write_outputs(out: Path, spec: CampaignSpec) -> list[dict]:
     """Table, summary and figures of whatever cells are finished; returns the rows."""
     cells = spec.cells()
-    rows = read_rows(out, cells)
+    rows = read_rows(out, cells, spec.scenario)
     write_table(out, spec, rows)
     write_report(out, spec, rows, total_cells=len(cells))
     return rows
@@ -174,7 +175,7 @@ def _compute(client, spec: CampaignSpec, cells: list[Cell], out: Path,
         done = partials[cell.name]
         done[index] = partial
         if len(done) == batches:
-            row = cell_row(cell.filter, cell.settings, spec.runs, spec.seed,
+            row = cell_row(spec.scenario, cell.filter, cell.settings, spec.runs, spec.seed,
                            [done[i] for i in range(batches)])
             write_atomic(cell_path(out, cell), json.dumps(row) + '\n')
             del partials[cell.name]

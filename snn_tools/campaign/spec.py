@@ -19,6 +19,7 @@ from snn_tools.campaign.cells import (
     SCENARIOS,
     check_cell,
     check_setting,
+    row_identity,
 )
 from snn_tools.paths import config_file
 
@@ -265,13 +266,18 @@ def cell_path(out: Path, cell: Cell) -> Path:
     return out / 'cells' / f'{cell.name}.json'
 
 
-def read_rows(out: Path, cells: list[Cell]) -> list[dict]:
-    """The rows of the finished cells, in spec order (a cell file is complete or absent)."""
+def read_rows(out: Path, cells: list[Cell], scenario: str | None = None) -> list[dict]:
+    """The rows of the finished cells, in spec order (a cell file is complete or absent). Given
+    the ``scenario``, a row written before rows had the scenario and dynamics_model columns
+    gets them (cells.row_identity), so a resumed campaign's table has them on every row."""
     rows = []
     for cell in cells:
         path = cell_path(out, cell)
         if path.exists():
-            rows.append(json.loads(path.read_text()))
+            row = json.loads(path.read_text())
+            if scenario is not None and 'scenario' not in row:
+                row = {'filter': row['filter'], **row_identity(scenario, cell.settings), **row}
+            rows.append(row)
     return rows
 
 
@@ -283,3 +289,10 @@ def state_names(rows: list[dict]) -> list[str]:
 def swept(spec) -> list[str]:
     """Grid settings with more than one value: the axes of the figures."""
     return [name for name, values in spec.grid.items() if len(values) > 1]
+
+
+def identity_columns(spec) -> list[str]:
+    """The scenario and the filters' dynamics model, then the grid settings: the columns of the
+    summary's and the page's tables that say which cell a row is (dynamics_model once, where
+    the grid sweeps it)."""
+    return ['scenario', *(['dynamics_model'] if 'dynamics_model' not in spec.grid else []), *spec.grid]

@@ -126,7 +126,7 @@ def test_numbers_written_1e_3_are_numbers(tmp_path):
 
 
 def test_the_shipped_specs_are_valid():
-    for name in ('campaigns/example.yaml', 'campaigns/bench.yaml', 'campaigns/docking.yaml'):
+    for name in ('campaigns/example.yaml', 'campaigns/bench.yaml', 'campaigns/docking.yaml', 'campaigns/approach.yaml'):
         validate(load_spec(name))
 
 
