@@ -159,15 +159,17 @@ def _samples_table(results: dict) -> list[str]:
     """Samples each sensor gave per run (mean over the runs) in the cells flown on stacked sensors."""
     cells = {name: [f['sensor_samples'] for f in cell['flights'] if f.get('sensor_samples')]
              for name, cell in results['cells'].items()}
-    cells = {name: samples for name, samples in cells.items() if samples}
-    if not cells:
-        return []
-    sensors = list(next(iter(cells.values()))[0])
-    lines = ['', 'Sensors by range: samples per run (mean; one a second while the sensor is in range):', '',
-             '| filter / model | ' + ' | '.join(sensors) + ' |', '|---|' + '---|' * len(sensors)]
+    suites: dict[tuple, dict] = {}  # one table per suite (its sensors' names)
     for name, samples in cells.items():
-        lines.append(f'| {name} | ' + ' | '.join(f'{sum(s[k] for s in samples) / len(samples):.0f}' for k in sensors)
-                     + ' |')
+        if samples:
+            suites.setdefault(tuple(samples[0]), {})[name] = samples
+    lines = []
+    for sensors, suite in suites.items():
+        lines += ['', 'Sensors by range: samples per run (mean; one a second while the sensor is in range):', '',
+                  '| filter / model | ' + ' | '.join(sensors) + ' |', '|---|' + '---|' * len(sensors)]
+        for name, samples in suite.items():
+            lines.append(f'| {name} | ' + ' | '.join(f'{sum(s[k] for s in samples) / len(samples):.0f}'
+                                                     for k in sensors) + ' |')
     return lines
 
 
