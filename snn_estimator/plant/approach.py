@@ -140,6 +140,12 @@ class ObservabilityManoeuvre:
     size: float
     delay: float
 
+    def __post_init__(self):
+        if not self.size or not np.isfinite(self.size):
+            raise ValueError(f'the observability hop needs a finite, non-zero size (m); got {self.size!r}')
+        if not self.delay >= 0.0:
+            raise ValueError(f'the observability hop delay is s after arrival, >= 0; got {self.delay!r}')
+
 
 class OutOfPlaneHop:
     """The observability manoeuvre of one hold, flown once: 'waiting' until ``arrived + delay``,
@@ -155,10 +161,6 @@ class OutOfPlaneHop:
     acceleration over the step (the filters know it: it is in the commanded u)."""
 
     def __init__(self, manoeuvre: ObservabilityManoeuvre, mean_motion: float, arrived: float):
-        if not manoeuvre.size or not np.isfinite(manoeuvre.size):
-            raise ValueError(f'the observability hop needs a finite, non-zero size (m); got {manoeuvre.size!r}')
-        if not manoeuvre.delay >= 0.0:
-            raise ValueError(f'the observability hop delay is s after arrival, >= 0; got {manoeuvre.delay!r}')
         self.manoeuvre, self.n = manoeuvre, float(mean_motion)
         self.begins = float(arrived) + float(manoeuvre.delay)
         self.phase = 'waiting'

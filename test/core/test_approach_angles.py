@@ -97,6 +97,13 @@ def test_a_bad_suite_or_range_uncertainty_is_refused_with_the_choices(changes, m
         approach_scenario(**changes)
 
 
+@pytest.mark.parametrize('size, delay, message', [(0.0, 300.0, 'non-zero size'), (np.nan, 300.0, 'finite'),
+                                                   (200.0, -1.0, 'delay')])
+def test_a_hop_without_a_size_or_with_a_negative_delay_is_refused(size, delay, message):
+    with pytest.raises(ValueError, match=message):
+        ObservabilityManoeuvre('5 km', size, delay)
+
+
 def test_a_manoeuvre_at_a_hold_the_guidance_does_not_fly_is_refused_with_the_holds():
     with pytest.raises(ValueError, match="hold must be one of 5 km, 2 km, 250 m, 20 m; got '4 km'"):
         approach_scenario(manoeuvre=ObservabilityManoeuvre('4 km', 200.0, 0.0)).guidance()
