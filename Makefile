@@ -138,7 +138,7 @@ sensors: $(STAMP)
 
 # 5 km to contact through the holds, a few dispersed runs per filter and model (docs/decisions.md, 55-57);
 # one BLAS thread: the nonlinear filters' small matrix exponentials are ~40x slower threaded on a loaded machine.
-# ANGLES=1 adds the angles-only far camera with and without its observability hop (decisions 73-75; ~10 min more)
+# ANGLES=1 adds the angles-only far camera with and without its observability hop (decisions 73-75; ~7 min more here)
 approach: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --runs $(if $(RUNS),$(RUNS),10) --out results \
 		$(if $(ANGLES),--angles)

@@ -23,6 +23,7 @@ from snn_estimator.sim.approach import (
     FAR_CAMERA_NOISE,
     approach_scenario,
     fly_approach,
+    range_figures,
 )
 
 N = ClohessyWiltshire().mean_motion
@@ -107,6 +108,17 @@ def test_a_hop_without_a_size_or_with_a_negative_delay_is_refused(size, delay, m
 def test_a_manoeuvre_at_a_hold_the_guidance_does_not_fly_is_refused_with_the_holds():
     with pytest.raises(ValueError, match="hold must be one of 5 km, 2 km, 250 m, 20 m; got '4 km'"):
         approach_scenario(manoeuvre=ObservabilityManoeuvre('4 km', 200.0, 0.0)).guidance()
+
+
+def test_the_range_figures_are_the_range_error_and_three_sigma_along_the_estimated_line_of_sight():
+    """On V-bar the line of sight is x: the 3-sigma is 3 sqrt(P_xx); 3-4-0 m off V-bar it is
+    3 sqrt(l^T P l) with l = (-0.6, 0.8, 0) for the estimate at (-3, 4, 0) (range 5)."""
+    p = np.diag([100.0, 4.0, 9.0, 1.0, 1.0, 1.0])
+    figures = range_figures([-5010.0, 0, 0, 0, 0, 0], [-5000.0, 0, 0, 0, 0, 0], p)
+    assert figures == {'range_error': pytest.approx(10.0), 'range_three_sigma': pytest.approx(30.0)}
+    figures = range_figures([-3.0, 4.0, 0.5, 0, 0, 0], [-3.0, 4.0, 0.0, 0, 0, 0], p)
+    assert figures['range_error'] == pytest.approx(np.sqrt(25.25) - 5.0)
+    assert figures['range_three_sigma'] == pytest.approx(3.0 * np.sqrt(0.36 * 100.0 + 0.64 * 4.0))
 
 
 # ------------------------------------------------------------------ the hop alone
