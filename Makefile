@@ -143,9 +143,11 @@ sensors: $(STAMP)
 	$(BIN)/python -m snn_tools.experiments.sensors $(if $(RUNS),--runs $(RUNS)) --out results
 
 # 5 km to contact through the holds, a few dispersed runs per filter and model (docs/decisions.md, 55-57);
-# one BLAS thread: the nonlinear filters' small matrix exponentials are ~40x slower threaded on a loaded machine
+# one BLAS thread: the nonlinear filters' small matrix exponentials are ~40x slower threaded on a loaded machine.
+# ANGLES=1 adds the angles-only far camera with and without its observability hop (decisions 73-75; ~7 min more here)
 approach: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --runs $(if $(RUNS),$(RUNS),10) --out results
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --runs $(if $(RUNS),$(RUNS),10) --out results \
+		$(if $(ANGLES),--angles)
 
 # the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model (~40 min) ->
 # results/approach_basilisk.{json,md} and its section of results/REPORT.md

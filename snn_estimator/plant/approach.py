@@ -7,6 +7,8 @@ Each part owns its state and is read and tested alone: :class:`GoNoGo` decides o
 the estimate and its covariance, :class:`Corridor` is the cone's geometry, and
 :class:`ApproachGuidance` holds the sequence (hold, transfer, final approach, abort) and gives
 the LQR its setpoint, u = u_ff - K (x_hat - x_ref) (docs/decisions.md, 55-57).
+:class:`OutOfPlaneHop` flies the observability manoeuvre of an angles-only far phase at a hold,
+before its go/no-go starts (docs/decisions.md, 74).
 """
 
 from __future__ import annotations
@@ -128,6 +130,69 @@ class Leg:
     max_acceleration: float = 2e-3
 
 
+@dataclass(frozen=True)
+class ObservabilityManoeuvre:
+    """An out-of-plane hop at the hold named ``hold``: ``delay`` s after the vehicle reached it,
+    a burn of n ``size`` m/s along y starts the free out-of-plane oscillation y = size sin(n t),
+    a second burn half an orbit later, back on V-bar, stops it (:class:`OutOfPlaneHop`)."""
+
+    hold: str
+    size: float
+    delay: float
+
+    def __post_init__(self):
+        if not self.size or not np.isfinite(self.size):
+            raise ValueError(f'the observability hop needs a finite, non-zero size (m); got {self.size!r}')
+        if not self.delay >= 0.0:
+            raise ValueError(f'the observability hop delay is s after arrival, >= 0; got {self.delay!r}')
+
+
+class OutOfPlaneHop:
+    """The observability manoeuvre of one hold, flown once: 'waiting' until ``arrived + delay``,
+    then 'flying' half an orbit on the free out-of-plane oscillation, then 'done'.
+
+    Why out of plane: bearings alone cannot tell x from k x while the chaser sits on V-bar
+    (Woffinden & Geller 2009: with linear dynamics the range is observable only through a
+    known thrust that moves the chaser across the line of sight); a known y offset of
+    ``size`` m turns the azimuth by size / r, and the filter, which predicts with the same
+    commanded u, sees size / r_hat instead. Out of plane the CW motion is a free oscillation
+    decoupled from the V-bar hold (y'' = -n^2 y): the hop costs two burns of n size m/s and
+    leaves the along-track hold alone. ``update`` gives the setpoint's (y, v_y) and the burn's
+    acceleration over the step (the filters know it: it is in the commanded u)."""
+
+    def __init__(self, manoeuvre: ObservabilityManoeuvre, mean_motion: float, arrived: float):
+        self.manoeuvre, self.n = manoeuvre, float(mean_motion)
+        self.begins = float(arrived) + float(manoeuvre.delay)
+        self.phase = 'waiting'
+        self.started: float | None = None
+        self.ended: float | None = None
+
+    @property
+    def duration(self) -> float:
+        """Half an orbit, s: the free oscillation is back on V-bar."""
+        return np.pi / self.n
+
+    @property
+    def done(self) -> bool:
+        return self.phase == 'done'
+
+    def update(self, t: float, dt: float) -> tuple[float, float, float]:
+        """At time ``t`` for the step of ``dt`` s: the setpoint's y (m), v_y (m/s) before this
+        step's burn, and the burn's acceleration along y (m/s^2; zero between the burns)."""
+        size, n = self.manoeuvre.size, self.n
+        if self.phase == 'waiting' and t >= self.begins:
+            self.phase, self.started = 'flying', t
+            return 0.0, 0.0, n * size / dt
+        if self.phase != 'flying':
+            return 0.0, 0.0, 0.0
+        phase = n * (t - self.started - 0.5 * dt)  # a burn over a step acts at its middle
+        y, v_y = size * np.sin(phase), n * size * np.cos(phase)
+        if t - self.started >= self.duration:
+            self.phase, self.ended = 'done', t
+            return y, v_y, -v_y / dt
+        return y, v_y, 0.0
+
+
 @dataclass
 class GuidanceEvent:
     time: float
@@ -141,22 +206,30 @@ class ApproachGuidance:
     After the go of the hold outside the keep-out sphere, an estimate whose 3-sigma leaves the
     ``corridor`` aborts: one step of ``cam_delta_v`` m/s along -x (back, away from the port),
     then free drift. A no-go ends the approach at its hold. ``mean_motion`` (rad/s) gives the
-    feed-forward a setpoint moving along V-bar needs (CW: f_z = 2 n v_x, f_x = dv_x/dt)."""
+    feed-forward a setpoint moving along V-bar needs (CW: f_z = 2 n v_x, f_x = dv_x/dt).
+    With a ``manoeuvre`` (:class:`ObservabilityManoeuvre`) its hold flies the out-of-plane hop
+    first (:class:`OutOfPlaneHop`); that hold's go/no-go starts when the hop is done."""
 
     def __init__(self, holds, legs, corridor: Corridor, mean_motion: float, final_speed: float = 0.04,
-                 cam_delta_v: float = 0.4, keep_out_radius: float = KEEP_OUT_RADIUS):
+                 cam_delta_v: float = 0.4, keep_out_radius: float = KEEP_OUT_RADIUS,
+                 manoeuvre: ObservabilityManoeuvre | None = None):
         if len(legs) != len(holds) - 1:
             raise ValueError(f'legs: one per transfer between the {len(holds)} holds, got {len(legs)}')
+        names = [h.name for h in holds]
+        if manoeuvre is not None and manoeuvre.hold not in names:
+            raise ValueError(f"the observability manoeuvre's hold must be one of {', '.join(names)}; "
+                             f'got {manoeuvre.hold!r}')
+        self.manoeuvre = manoeuvre
         self.holds, self.legs, self.corridor = tuple(holds), tuple(legs), corridor
         self.n, self.final_speed, self.cam_delta_v = float(mean_motion), float(final_speed), float(cam_delta_v)
         #: Index of the first hold whose go allows entering the keep-out sphere.
         self.keep_out_hold = next((i for i, h in enumerate(self.holds) if h.distance <= keep_out_radius),
                                   len(self.holds)) - 1
         self.phase, self.index = 'hold', 0
-        self.gonogo = GoNoGo(self.holds[0], 0.0)
         self.decisions: list[GoNoGo] = []
         self.events: list[GuidanceEvent] = []
         self._s, self._v = self.holds[0].distance, 0.0  # setpoint distance behind the port, speed
+        self._arrive(0.0)
 
     @property
     def active(self) -> bool:
@@ -174,11 +247,13 @@ class ApproachGuidance:
         """Advance the sequence to time ``t`` on the estimate; returns (x_ref, u_ff, u_cam): the
         setpoint (6,), its feed-forward acceleration (3,) and the CAM's acceleration over this
         step (3,), zero but in the step of an abort."""
-        cam = np.zeros(3)
+        cam, hop_ref, hop_u = np.zeros(3), np.zeros(6), np.zeros(3)
         if self.active and self.corridor_armed() and self.corridor.estimate_leaves(x_hat, covariance):
             self._finish(t, 'abort', {'three_sigma_lateral': self.corridor.three_sigma_lateral(x_hat, covariance),
                                       'corridor_radius': self.corridor.radius(x_hat[0])})
             cam[0] = -self.cam_delta_v / dt
+        elif self.phase == 'hold' and self.hop is not None and not self.hop.done:
+            hop_ref, hop_u = self._fly_hop(t, dt)
         elif self.phase == 'hold':
             self._hold(t, x_hat, covariance)
         v_old = self._v
@@ -189,9 +264,28 @@ class ApproachGuidance:
             self._s -= self._v * dt
         elif self.phase != 'hold':
             self._v = 0.0
-        x_ref = np.array([-self._s, 0.0, 0.0, self._v, 0.0, 0.0])
-        u_ff = np.array([(self._v - v_old) / dt, 0.0, 2.0 * self.n * self._v]) if self.active else np.zeros(3)
+        x_ref = np.array([-self._s, 0.0, 0.0, self._v, 0.0, 0.0]) + hop_ref
+        u_ff = np.array([(self._v - v_old) / dt, 0.0, 2.0 * self.n * self._v]) + hop_u if self.active else np.zeros(3)
         return x_ref, u_ff, cam
+
+    def _arrive(self, t: float) -> None:
+        """At hold ``self.index`` at ``t``: its go/no-go starts, or first its hop."""
+        hold = self.holds[self.index]
+        self.gonogo = GoNoGo(hold, t)
+        manoeuvre = self.manoeuvre
+        self.hop = OutOfPlaneHop(manoeuvre, self.n, t) if manoeuvre and manoeuvre.hold == hold.name else None
+
+    def _fly_hop(self, t: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """The hop's setpoint offset (6,) and burn (3,); its go/no-go starts when it is done."""
+        before = self.hop.phase
+        y, v_y, a_y = self.hop.update(t, dt)
+        if self.hop.phase != before:
+            hold = self.holds[self.index]
+            self.events.append(GuidanceEvent(t, f'hop {hold.name}' if self.hop.phase == 'flying'
+                                             else f'hop done {hold.name}'))
+            if self.hop.done:
+                self.gonogo = GoNoGo(hold, t)
+        return np.array([0.0, y, 0.0, 0.0, v_y, 0.0]), np.array([0.0, a_y, 0.0])
 
     def _hold(self, t, x_hat, covariance) -> None:
         decision = self.gonogo.update(t, x_hat, covariance)
@@ -216,7 +310,7 @@ class ApproachGuidance:
             self._s, self._v = target.distance, 0.0
             self.index += 1
             self.phase = 'hold'
-            self.gonogo = GoNoGo(target, t)
+            self._arrive(t)
             self.events.append(GuidanceEvent(t, f'arrive {target.name}'))
 
     def _finish(self, t: float, phase: str, detail: dict | None = None) -> None:

@@ -5,7 +5,10 @@ The loop steps the blocks simulate() steps (truth Plant, PositionSensor, an Esti
 with the guidance giving the LQR its setpoint, u = u_ff - K (x_hat - x_ref), and records the
 safety figures of each run (docs/decisions.md, 55-57). With ``sensors='by_range'`` the filter
 fuses relative GPS, a LIDAR and a docking camera, each present only inside its range, so the
-navigation hands over by range as on HTV and ATV (docs/decisions.md, 72).
+navigation hands over by range as on HTV and ATV (docs/decisions.md, 72). With
+``sensors='angles_far'`` a far camera measuring the line of sight alone replaces relative GPS,
+and the guidance flies an out-of-plane hop at the 5 km hold that makes the range observable
+before its go (docs/decisions.md, 73-75).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import numpy as np
 from snn_estimator import defaults as D
 from snn_estimator.config import EstimatorConfig, sensor_boundary_layer
 from snn_estimator.filters.estimators import make_estimator
+from snn_estimator.measurements import make_model
 from snn_estimator.measurements.position import RelativeGPS
 from snn_estimator.measurements.stacked import Stacked
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, DYNAMICS_MODELS, StateSpaceModel, relative_motion
@@ -27,6 +31,7 @@ from snn_estimator.plant.approach import (
     Corridor,
     HoldPoint,
     Leg,
+    ObservabilityManoeuvre,
     approach_control,
     at_port,
     port_contact,
@@ -56,9 +61,21 @@ CONTACT_SPEED, CONTACT_LATERAL = (0.03, 0.05), 0.1
 BASILISK_PLANT = 'basilisk'
 #: Free drift for the passive-safety figure: two orbits (issue 39), sampled every 10 s.
 DRIFT_ORBITS, DRIFT_STEP = 2.0, 10.0
-#: What the filters measure with: Table 6's position sensor at every range, or the sensors by
-#: range (relative GPS, LIDAR, docking camera: :func:`by_range_sensors`).
-SENSOR_SUITES = ('position', 'by_range')
+#: What the filters measure with: Table 6's position sensor at every range, the sensors by
+#: range (relative GPS, LIDAR, docking camera: :func:`by_range_sensors`), or the same with an
+#: angles-only far camera instead of relative GPS (:func:`angles_far_sensors`).
+SENSOR_SUITES = ('position', 'by_range', 'angles_far')
+#: The far camera (docs/decisions.md, 73): line-of-sight noise, rad (1 sigma per angle), full
+#: field-of-view cone, rad, and minimum range, m (closer, the target is resolved: no centroid).
+FAR_CAMERA_NOISE, FAR_CAMERA_FIELD_OF_VIEW, FAR_CAMERA_MIN_RANGE = 2e-4, np.radians(18.0), 1000.0
+#: The angles suite's start: the along-track (range) error's 1 sigma as a fraction of the
+#: range, the hand-over from ground or radar tracking that a far camera cannot improve.
+ANGLES_RANGE_UNCERTAINTY = 0.02
+#: The observability hop at the 5 km hold (docs/decisions.md, 74): 200 m out of plane, 300 s
+#: after arrival (the LQR has settled the start's error), for half an orbit.
+ANGLES_HOP = ObservabilityManoeuvre('5 km', 200.0, 300.0)
+#: ``manoeuvre`` of :func:`approach_scenario` that takes the suite's own (ANGLES_HOP for angles_far).
+SUITE_MANOEUVRE = 'suite'
 #: Relative GPS, m: from 500 m out (HTV switched from relative GPS to its laser radar at 500 m;
 #: docs/decisions.md, 72), R = Table 6's 1e-2 m^2 per axis (no flown figure: today's sensor).
 RELATIVE_GPS_MIN_RANGE = 500.0
@@ -98,24 +115,28 @@ class ApproachScenario:
     #: A stacked measurement (:func:`by_range_sensors`) the loop measures with and the filters
     #: linearise; None: Table 6's position sensor (``measurement_noise``) at every range.
     sensor: Stacked | None = None
+    #: The guidance's observability hop (plant.approach.ObservabilityManoeuvre); None: none.
+    manoeuvre: ObservabilityManoeuvre | None = None
 
     def guidance(self) -> ApproachGuidance:
         return approach_guidance(self.model.mean_motion, self.holds, self.legs, self.corridor,
-                                 self.final_speed, self.cam_delta_v)
+                                 self.final_speed, self.cam_delta_v, self.manoeuvre)
 
 
 def approach_guidance(mean_motion: float, holds=HOLDS, legs=LEGS, corridor: Corridor | None = None,
-                      final_speed: float = FINAL_SPEED, cam_delta_v: float = CAM_DELTA_V) -> ApproachGuidance:
+                      final_speed: float = FINAL_SPEED, cam_delta_v: float = CAM_DELTA_V,
+                      manoeuvre: ObservabilityManoeuvre | None = None) -> ApproachGuidance:
     """The approach's guidance for a target orbit of ``mean_motion`` rad/s: by default this
     module's holds, legs, corridor and speeds (what the controller node's guidance approach flies)."""
     return ApproachGuidance(holds, legs, corridor or Corridor(), mean_motion, final_speed=final_speed,
-                            cam_delta_v=cam_delta_v)
+                            cam_delta_v=cam_delta_v, manoeuvre=manoeuvre)
 
 
 def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circular',
                       orbit_radius: float = DEFAULT_ORBIT_RADIUS, dt: float = 1.0,
                       max_duration: float = 30000.0, holds=HOLDS, legs=LEGS, disturbance=None,
-                      sensors: str = 'position', **estimator_changes) -> ApproachScenario:
+                      sensors: str = 'position', manoeuvre=SUITE_MANOEUVRE,
+                      range_uncertainty: float = ANGLES_RANGE_UNCERTAINTY, **estimator_changes) -> ApproachScenario:
     """5 km behind the target on V-bar to contact, measured by Table 6's position sensor (R =
     1e-2 m^2 per 1 s sample at every range), or with ``sensors='by_range'`` by the sensors of
     each range (:func:`by_range_sensors`; the spiking filters then code the deviation from the
@@ -126,7 +147,10 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
     ``dynamics_model``, the LQR is designed on its linearisation at the port (CW). The filters
     start dispersed about the truth as in the far-range scenario (defaults.FAR_RANGE_ESTIMATOR),
     at the first of ``holds`` (one of ``legs`` between two holds); ``disturbance``: see
-    :class:`ApproachScenario`."""
+    :class:`ApproachScenario`. With ``sensors='angles_far'`` (:func:`angles_far_sensors`) the
+    start's along-track sigma is ``range_uncertainty`` times the range, and ``manoeuvre`` is
+    the guidance's observability hop: SUITE_MANOEUVRE (ANGLES_HOP on that suite, none on the
+    others), None, or a plant.approach.ObservabilityManoeuvre."""
     for name, value, choices in (('dynamics_model', dynamics_model, DYNAMICS_MODELS),
                                  ('plant', plant, DYNAMICS_MODELS + (BASILISK_PLANT,)),
                                  ('sensors', sensors, SENSOR_SUITES)):
@@ -138,17 +162,32 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
         basilisk = BasiliskSettings(orbit=OrbitSettings(semi_major_axis=orbit_radius), thrust_limit=None)
     x0 = np.array([-holds[0].distance, 0.0, 0.0, 0.0, 0.0, 0.0])
     sensor, sensing = None, {}
-    if sensors == 'by_range':
-        sensor = by_range_sensors()
+    if sensors != 'position':
+        sensor = by_range_sensors() if sensors == 'by_range' else angles_far_sensors()
         r_hat = by_range_noise(sensor)
         sensing = {'measurement_noise': r_hat, 'boundary_layer': sensor_boundary_layer(r_hat), **D.SENSOR_NETWORK}
+    if sensors == 'angles_far':
+        sensing['initial_covariance'] = angles_initial_covariance(holds[0].distance, range_uncertainty)
+    if manoeuvre == SUITE_MANOEUVRE:
+        manoeuvre = ANGLES_HOP if sensors == 'angles_far' else None
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, 'initial_state': tuple(x0),
                                           'dynamics_model': dynamics_model, **sensing, **estimator_changes})
     return ApproachScenario(
         model=relative_motion(dynamics_model, orbit_radius), truth=relative_motion(plant, orbit_radius), x0=x0,
         dt=dt, max_duration=max_duration, process_noise=D.RENDEZVOUS_PROCESS_NOISE * np.eye(6),
         measurement_noise=D.RENDEZVOUS_MEASUREMENT_NOISE * np.eye(3), estimator=config, holds=tuple(holds),
-        legs=tuple(legs), disturbance=disturbance, sensor=sensor, basilisk=basilisk)
+        legs=tuple(legs), disturbance=disturbance, sensor=sensor, basilisk=basilisk, manoeuvre=manoeuvre)
+
+
+def angles_initial_covariance(distance: float, range_uncertainty: float) -> tuple:
+    """P0's diagonal of the angles suite: the far-range scenario's (defaults.FAR_RANGE_ESTIMATOR)
+    with the along-track variance (``range_uncertainty`` ``distance``)^2, m^2, on V-bar the range."""
+    if not 0.0 < range_uncertainty < 1.0:
+        raise ValueError(f'range_uncertainty is the start\'s range sigma as a fraction of the range, in (0, 1); '
+                         f'got {range_uncertainty!r}')
+    p0 = list(D.FAR_RANGE_ESTIMATOR['initial_covariance'])
+    p0[0] = max(p0[0], (range_uncertainty * distance) ** 2)
+    return tuple(p0)
 
 
 def _truth(scenario: ApproachScenario, seeds: list[int]):
@@ -172,12 +211,25 @@ def by_range_sensors() -> Stacked:
     return Stacked([gps, lidar, camera])
 
 
+def angles_far_sensors(noise: float = FAR_CAMERA_NOISE) -> Stacked:
+    """:func:`by_range_sensors` with a far camera in place of relative GPS: line of sight
+    (azimuth, elevation; ``noise`` rad 1 sigma each) from FAR_CAMERA_MIN_RANGE out, no maximum
+    range, FAR_CAMERA_FIELD_OF_VIEW, on the chaser looking forward along +V-bar. Beyond 3 km the
+    camera alone (the 5 km hold: angles only), with the LIDAR from 3 km to 1 km, the LIDAR alone
+    to 30 m, then as :func:`by_range_sensors`."""
+    camera = make_model('line_of_sight', (noise ** 2, noise ** 2), min_range=FAR_CAMERA_MIN_RANGE,
+                        field_of_view=FAR_CAMERA_FIELD_OF_VIEW)
+    lidar, docking_camera = docking_sensors(field_of_view=True, mounting_rotation=(0.0, 0.0, 0.0, 1.0))
+    return Stacked([camera, lidar, docking_camera])
+
+
 def by_range_noise(sensor: Stacked) -> np.ndarray:
-    """The filters' R_hat of :func:`by_range_sensors`: block-diagonal, relative GPS's R, the
-    LIDAR's R at APPROACH_LIDAR_DESIGN_RANGE, the camera's at its design range (Decision 46)."""
-    gps, lidar, camera = sensor.parts
+    """The filters' R_hat of :func:`by_range_sensors` or :func:`angles_far_sensors`:
+    block-diagonal, the far sensor's R (relative GPS or the far camera), the LIDAR's R at
+    APPROACH_LIDAR_DESIGN_RANGE, the camera's at its design range (Decision 46)."""
+    far, lidar, camera = sensor.parts
     r_hat = np.zeros((sensor.dim, sensor.dim))
-    blocks = (gps.noise, design_noise(lidar, APPROACH_LIDAR_DESIGN_RANGE),
+    blocks = (far.noise, design_noise(lidar, APPROACH_LIDAR_DESIGN_RANGE),
               design_noise(camera, D.DOCKING_CAMERA['design_range']))
     for part, block in zip(sensor.slices, blocks):
         r_hat[part, part] = block
@@ -209,6 +261,17 @@ def passive_safety(model: StateSpaceModel, x, keep_out: float = KEEP_OUT_RADIUS)
     return {'min_range': float(ranges.min()), 'enters_keep_out': enters}
 
 
+def range_figures(x, x_hat, covariance) -> dict[str, float]:
+    """The estimate's range error |r_hat - r| (m) against the truth ``x``, and its range 3-sigma
+    (m): 3 sqrt(l^T P l) along the estimated line of sight l = p_hat / |p_hat| (what angles alone
+    leave unknown; docs/decisions.md, 74)."""
+    p_hat = np.asarray(x_hat, dtype=float)[:3]
+    r_hat = float(np.linalg.norm(p_hat))
+    line = p_hat / r_hat
+    return {'range_error': abs(r_hat - float(np.linalg.norm(np.asarray(x)[:3]))),
+            'range_three_sigma': 3.0 * float(np.sqrt(max(line @ np.asarray(covariance)[:3, :3] @ line, 0.0)))}
+
+
 class _Safety:
     """The safety figures of one run, from its truth, control and guidance, step by step."""
 
@@ -228,8 +291,9 @@ class _Safety:
         self.cam = None
         self.seen_decisions = 0
 
-    def step(self, t: float, dt: float, x, x_hat, u) -> None:
-        """After the step to ``t``: the truth ``x``, the estimate ``x_hat``, the control ``u`` held."""
+    def step(self, t: float, dt: float, x, x_hat, u, covariance) -> None:
+        """After the step to ``t``: the truth ``x``, the estimate ``x_hat`` and its ``covariance``,
+        the control ``u`` held."""
         g, s = self.guidance, self.scenario
         self.delta_v += float(np.linalg.norm(u)) * dt
         p = x[:3]
@@ -250,6 +314,7 @@ class _Safety:
             self.holds.append({'hold': decision.hold.name, 'decision': decision.decision, 'time': t,
                                'estimate_error': float(np.linalg.norm(x_hat[:3] - p)),
                                'hold_error': float(np.linalg.norm(p - decision.hold.state[:3])),
+                               **range_figures(x, x_hat, covariance),
                                **passive_safety(s.truth, x)})
         self.seen_decisions = len(g.decisions)
         if g.phase == 'abort' and self.cam is None:
@@ -342,7 +407,7 @@ def fly_approach(scenario: ApproachScenario, kind: str, runs: int = 1, seed: int
                                        estimator.batch_P[flying_runs])
         nees_steps[flying_runs] += 1
         for b in flying_runs:
-            safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b])
+            safety[b].step(k * dt, dt, plant.x[b], estimator.batch_x_hat[b], u[b], estimator.batch_P[b])
     if trajectory:
         trajectory.keep(k * dt, plant.x, estimator)
     flights = [{'seed': s, 'kind': kind, 'dynamics_model': scenario.estimator.dynamics_model,
@@ -420,6 +485,8 @@ def summarize(flights: list[dict], holds=HOLDS) -> dict:
         'holds': {name: {'go': sum(d['decision'] == 'go' for d in ds),
                          'estimate_error': _stats(d['estimate_error'] for d in ds),
                          'hold_error': _stats(d['hold_error'] for d in ds),
+                         'range_error': _stats(d['range_error'] for d in ds),
+                         'range_three_sigma': _stats(d['range_three_sigma'] for d in ds),
                          'drift_min_range': _stats(d['min_range'] for d in ds)}
                   for name, ds in decided.items()},
     }

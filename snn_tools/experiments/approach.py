@@ -44,6 +44,11 @@ EXTRA_CELLS = (('snn_ekf/nonlinear_circular/network_drive=nonlinear', 'snn_ekf',
                ('snn_ekf/nonlinear_circular/stuck_thruster', 'snn_ekf', 'nonlinear_circular', STUCK_THRUSTER),
                ('ekf/nonlinear_circular/sensors=by_range', 'ekf', 'nonlinear_circular', BY_RANGE),
                ('snn_ekf/nonlinear_circular/sensors=by_range', 'snn_ekf', 'nonlinear_circular', BY_RANGE))
+#: The angles-only far phase (docs/decisions.md, 73-75): the far camera, the LIDAR and the docking
+#: camera, with the guidance's out-of-plane hop at 5 km and without it, each kind on each model.
+ANGLES_CELLS = tuple((f'{kind}/{model}/sensors=angles_far' + ('' if hop else '/no_hop'), kind, model,
+                      {'sensors': 'angles_far', **({} if hop else {'manoeuvre': None})})
+                     for hop in (True, False) for model in ('cw', 'nonlinear_circular') for kind in ('ekf', 'snn_ekf'))
 
 
 def campaign(runs: int, kinds, models, plant: str, seed: int = 0, extra=EXTRA_CELLS) -> dict:
@@ -59,7 +64,9 @@ def campaign(runs: int, kinds, models, plant: str, seed: int = 0, extra=EXTRA_CE
               flush=True)
     return {'runs_per_cell': runs, 'seed': seed, 'plant': plant,
             'sensor': "position (R = 1e-2 m^2, 1 Hz) unless the cell says sensors=by_range: relative GPS from "
-                      "500 m out, LIDAR 1.8 m - 3 km, docking camera 5 cm - 30 m, 1 Hz each",
+                      "500 m out, LIDAR 1.8 m - 3 km, docking camera 5 cm - 30 m, 1 Hz each"
+                      + ("; sensors=angles_far: a far camera (line of sight, 0.2 mrad) from 1 km out in place of "
+                         "relative GPS" if any('angles_far' in repr(c) for *_, c in extra) else ''),
             'cells': cells}
 
 
@@ -129,22 +136,40 @@ def table(results: dict) -> str:
         lines.append(f"| {name} | {s['corridor_violation_runs']} | {_f(s['max_corridor_excess'], 'max', digits=2)} | "
                      f"{s['outcomes']['abort']} | {_f(s['abort_after_corridor_exit'], digits=0)} | "
                      f"{_f(s['cam_drift_min_range'], 'min', digits=1)} | {s['cam_drift_enters_keep_out']} |")
-    return '\n'.join(lines + _samples_table(results)) + '\n'
+    return '\n'.join(lines + _samples_table(results) + _angles_table(results)) + '\n'
+
+
+def _angles_table(results: dict) -> list[str]:
+    """At the 5 km hold's decision (the go, or the no-go at its timeout) of the angles-only cells:
+    goes, the range error |r_hat - r| and the range 3-sigma along the line of sight, m."""
+    cells = {name: cell['summary']['holds'][HOLDS[0].name] for name, cell in results['cells'].items()
+             if 'sensors=angles_far' in name}
+    if not cells:
+        return []
+    lines = ['', f'Angles-only far phase: at the {HOLDS[0].name} decision, range error and range 3-sigma '
+             '(m), mean (max):', '', '| filter / model | go | range error | range 3-sigma |', '|---|---|---|---|']
+    for name, hold in cells.items():
+        lines.append(f"| {name} | {hold['go']} | {_f(hold['range_error'], digits=2)} "
+                     f"({_f(hold['range_error'], 'max', digits=2)}) | {_f(hold['range_three_sigma'], digits=2)} "
+                     f"({_f(hold['range_three_sigma'], 'max', digits=2)}) |")
+    return lines
 
 
 def _samples_table(results: dict) -> list[str]:
     """Samples each sensor gave per run (mean over the runs) in the cells flown on stacked sensors."""
     cells = {name: [f['sensor_samples'] for f in cell['flights'] if f.get('sensor_samples')]
              for name, cell in results['cells'].items()}
-    cells = {name: samples for name, samples in cells.items() if samples}
-    if not cells:
-        return []
-    sensors = list(next(iter(cells.values()))[0])
-    lines = ['', 'Sensors by range: samples per run (mean; one a second while the sensor is in range):', '',
-             '| filter / model | ' + ' | '.join(sensors) + ' |', '|---|' + '---|' * len(sensors)]
+    suites: dict[tuple, dict] = {}  # one table per suite (its sensors' names)
     for name, samples in cells.items():
-        lines.append(f'| {name} | ' + ' | '.join(f'{sum(s[k] for s in samples) / len(samples):.0f}' for k in sensors)
-                     + ' |')
+        if samples:
+            suites.setdefault(tuple(samples[0]), {})[name] = samples
+    lines = []
+    for sensors, suite in suites.items():
+        lines += ['', 'Sensors by range: samples per run (mean; one a second while the sensor is in range):', '',
+                  '| filter / model | ' + ' | '.join(sensors) + ' |', '|---|' + '---|' * len(sensors)]
+        for name, samples in suite.items():
+            lines.append(f'| {name} | ' + ' | '.join(f'{sum(s[k] for s in samples) / len(samples):.0f}'
+                                                     for k in sensors) + ' |')
     return lines
 
 
@@ -188,11 +213,14 @@ def main(argv=None) -> None:
                         help='truth: cw, nonlinear_circular (two-body, no J2) or basilisk (two-body with J2)')
     parser.add_argument('--out', type=Path, default=Path('results'))
     parser.add_argument('--no-extra', action='store_true', help='leave out EXTRA_CELLS')
+    parser.add_argument('--angles', action='store_true',
+                        help='add ANGLES_CELLS: the angles-only far camera with and without the observability hop')
     parser.add_argument('--add', action='store_true',
                         help="add these cells to the plant's existing results file (same runs and seed) instead of "
                              'replacing it')
     args = parser.parse_args(argv)
-    results = campaign(args.runs, args.kinds, args.models, args.plant, args.seed, () if args.no_extra else EXTRA_CELLS)
+    extra = (() if args.no_extra else EXTRA_CELLS) + (ANGLES_CELLS if args.angles else ())
+    results = campaign(args.runs, args.kinds, args.models, args.plant, args.seed, extra)
     stem = 'approach' if args.plant == 'nonlinear_circular' else f'approach_{args.plant}'
     if args.add and (args.out / f'{stem}.json').exists():
         previous = json.loads((args.out / f'{stem}.json').read_text())
