@@ -143,8 +143,8 @@ class ObservabilityManoeuvre:
     def __post_init__(self):
         if not self.size or not np.isfinite(self.size):
             raise ValueError(f'the observability hop needs a finite, non-zero size (m); got {self.size!r}')
-        if not self.delay >= 0.0:
-            raise ValueError(f'the observability hop delay is s after arrival, >= 0; got {self.delay!r}')
+        if not (np.isfinite(self.delay) and self.delay >= 0.0):
+            raise ValueError(f'the observability hop delay is s after arrival, finite and >= 0; got {self.delay!r}')
 
 
 class OutOfPlaneHop:

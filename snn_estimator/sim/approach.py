@@ -166,10 +166,10 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
         sensor = by_range_sensors() if sensors == 'by_range' else angles_far_sensors()
         r_hat = by_range_noise(sensor)
         sensing = {'measurement_noise': r_hat, 'boundary_layer': sensor_boundary_layer(r_hat), **D.SENSOR_NETWORK}
+    p0 = angles_initial_covariance(holds[0].distance, range_uncertainty)  # checks it on every suite
     if sensors == 'angles_far':
-        sensing['initial_covariance'] = angles_initial_covariance(holds[0].distance, range_uncertainty)
-    if manoeuvre == SUITE_MANOEUVRE:
-        manoeuvre = ANGLES_HOP if sensors == 'angles_far' else None
+        sensing['initial_covariance'] = p0
+    manoeuvre = _manoeuvre(manoeuvre, sensors, holds)
     config = EstimatorConfig().replace(**{**D.FAR_RANGE_ESTIMATOR, 'initial_state': tuple(x0),
                                           'dynamics_model': dynamics_model, **sensing, **estimator_changes})
     return ApproachScenario(
@@ -179,9 +179,23 @@ def approach_scenario(dynamics_model: str = 'cw', plant: str = 'nonlinear_circul
         legs=tuple(legs), disturbance=disturbance, sensor=sensor, basilisk=basilisk, manoeuvre=manoeuvre)
 
 
+def _manoeuvre(manoeuvre, sensors: str, holds) -> ObservabilityManoeuvre | None:
+    """The scenario's observability hop: SUITE_MANOEUVRE gives ANGLES_HOP on the angles suite
+    when its hold is among ``holds`` (an approach started inside it has no 5 km hold to hop at),
+    none otherwise; None, or an ObservabilityManoeuvre as given. Anything else is refused."""
+    if isinstance(manoeuvre, str) and manoeuvre == SUITE_MANOEUVRE:
+        flies_it = sensors == 'angles_far' and ANGLES_HOP.hold in {hold.name for hold in holds}
+        return ANGLES_HOP if flies_it else None
+    if manoeuvre is None or isinstance(manoeuvre, ObservabilityManoeuvre):
+        return manoeuvre
+    raise ValueError(f'manoeuvre must be {SUITE_MANOEUVRE!r} (the suite\'s own), None or a '
+                     f'plant.approach.ObservabilityManoeuvre; got {manoeuvre!r}')
+
+
 def angles_initial_covariance(distance: float, range_uncertainty: float) -> tuple:
     """P0's diagonal of the angles suite: the far-range scenario's (defaults.FAR_RANGE_ESTIMATOR)
-    with the along-track variance (``range_uncertainty`` ``distance``)^2, m^2, on V-bar the range."""
+    with the along-track variance raised to (``range_uncertainty`` ``distance``)^2, m^2, on V-bar
+    the range (the larger of the two is kept)."""
     if not 0.0 < range_uncertainty < 1.0:
         raise ValueError(f'range_uncertainty is the start\'s range sigma as a fraction of the range, in (0, 1); '
                          f'got {range_uncertainty!r}')
@@ -219,7 +233,7 @@ def angles_far_sensors(noise: float = FAR_CAMERA_NOISE) -> Stacked:
     to 30 m, then as :func:`by_range_sensors`."""
     camera = make_model('line_of_sight', (noise ** 2, noise ** 2), min_range=FAR_CAMERA_MIN_RANGE,
                         field_of_view=FAR_CAMERA_FIELD_OF_VIEW)
-    lidar, docking_camera = docking_sensors(field_of_view=True, mounting_rotation=(0.0, 0.0, 0.0, 1.0))
+    lidar, docking_camera = docking_sensors(field_of_view=True, mounting_rotation=APPROACH_SENSOR_MOUNTING)
     return Stacked([camera, lidar, docking_camera])
 
 
@@ -460,7 +474,8 @@ def _stats(values) -> dict | None:
 
 def summarize(flights: list[dict], holds=HOLDS) -> dict:
     """The figures of a batch of runs (:func:`fly_approach`): counts by outcome, safety counts,
-    delta-v, contact conditions, and at each hold's go the estimate's and the hold's errors."""
+    delta-v, contact conditions, and at each hold's decision (its go, or the no-go that ended the
+    run) the estimate's and the hold's errors."""
     contacts = [f['contact'] for f in flights if f['contact'] is not None]
     decided = {h.name: [d for f in flights for d in f['holds'] if d['hold'] == h.name] for h in holds}
     return {

@@ -37,7 +37,7 @@ def _column(key) -> str:
 
 #: The columns summary.md and campaign.html show (every column is in results.parquet): contacts,
 #: the contact conditions, corridor exits, keep-out entries before the go, aborts and no-gos,
-#: delta-v (m/s), mean NEES, the hold-point error (m) at each hold's go, spikes per run.
+#: delta-v (m/s), mean NEES, the hold-point error (m) at each hold's decision (go or no-go), spikes per run.
 TABLE_COLUMNS = ('contact_rate', 'success', 'closing_speed_mean', 'closing_speed_max', 'lateral_at_contact_max',
                  'corridor_violation_runs', 'keep_out_entry_before_go', 'outcomes_abort', 'outcomes_no_go',
                  'delta_v_mean', 'nees_mean', *(f'holds_{_column(h.name)}_hold_error_mean' for h in HOLDS),

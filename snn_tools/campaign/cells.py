@@ -126,7 +126,8 @@ SETTINGS: dict[str, Setting] = {
     'eccentricity': Setting(DERIVED, "Basilisk truth: the target orbit's eccentricity", _ORBITAL,
                             apply=_basilisk(eccentricity=float)),
     'sensors': Setting(FACTORY, 'position (Table 6 at every range) | by_range (relative GPS, LIDAR, '
-                       'docking camera, each in its range)', (APPROACH,)),
+                       'docking camera, each in its range) | angles_far (a far camera on angles alone, '
+                       'LIDAR, docking camera; the 5 km observability hop)', (APPROACH,)),
     'first_hold': Setting(FACTORY, f'the hold the approach starts at: {" | ".join(FIRST_HOLDS)}', (APPROACH,)),
     'max_duration': Setting(FACTORY, 'an approach still flying after this many s ends (outcome hold, '
                             'transfer or final)', (APPROACH,)),

@@ -215,7 +215,8 @@ def _readings_text(spec) -> str:
                          '`success`, closing speed (m/s) and lateral offset (m) at contact, '
                          '`corridor_violation_runs`, `keep_out_entry_before_go`, `outcomes_abort` / '
                          '`outcomes_no_go`, delta-v (m/s per run), the mean NEES, the hold-point error (m) at '
-                         "each hold's go, spikes per run (all of summarize()'s figures in results.parquet).")
+                         "each hold's decision (go or no-go), spikes per run (all of summarize()'s figures in "
+                         'results.parquet).')
     return common + (f'Readings over the final {_window(spec)} s: `rmse_<state>`, the ordinary RMSE over runs '
                      'and time; `mean_error_<state>` (in results.parquet), the time average of |mean over '
                      'runs of the error|.')

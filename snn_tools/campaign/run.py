@@ -6,8 +6,9 @@ A spec (see config/campaigns/example.yaml) names the scenario, the runs per cell
 a ``grid`` of settings (every combination is a grid point) and optional fixed ``settings``;
 the allowed setting names are campaign_cells.SETTINGS. One *cell* is one filter at one grid
 point. ``scenario: approach`` (config/campaigns/approach.yaml) flies each cell's runs from 5 km
-to contact and gives their safety figures (campaign.approach_cells) instead of RMSE. Everything is checked before anything runs: unknown keys, bad values (every cell is built
-and stepped once), empty grids.
+to contact and gives their safety figures (campaign.approach_cells) instead of RMSE. Everything
+is checked before anything runs: unknown keys, bad values (every cell is built and stepped
+once), empty grids.
 
 DIR receives ``spec.yaml`` and ``spec.sha256`` (the normalised spec and its hash), one JSON file
 per finished cell under ``cells/`` (written atomically), then ``results.parquet`` (one row per

@@ -98,8 +98,9 @@ def _f(stats: dict | None, key: str = 'mean', scale: float = 1.0, digits: int = 
 
 
 def _per_hold(results: dict, key: str, title: str) -> list[str]:
-    """A table of one figure at each hold's go, mean (max), a row per cell."""
-    lines = ['', f"{title} at each hold's go, mean (max):", '',
+    """A table of one figure at each hold's decision (its go, or the no-go that ended the run), mean
+    (max), a row per cell."""
+    lines = ['', f"{title} at each hold's decision (go, or the no-go that ended the run), mean (max):", '',
              '| filter / model | ' + ' | '.join(h.name for h in HOLDS) + ' |', '|---|' + '---|' * len(HOLDS)]
     for name, cell in results['cells'].items():
         errors = [cell['summary']['holds'][h.name][key] for h in HOLDS]

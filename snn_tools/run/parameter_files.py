@@ -108,7 +108,9 @@ CONFIG_FILES = {
 def sensor_overlay(name: str) -> str:
     """config/sensor_<name>.yaml: the suite's values, to load after config/rendezvous.yaml and,
     for a suite of another scenario (registry.SCENARIOS), that scenario's file."""
-    scenario = next(s for s, entry in registry.SCENARIOS.items() if name in entry.sensors)
+    scenario = next((s for s, entry in registry.SCENARIOS.items() if name in entry.sensors), None)
+    if scenario is None:
+        raise ValueError(f'sensor suite {name!r} is flown by no scenario of registry.SCENARIOS; add it to one')
     after = () if scenario == 'rendezvous' else (f'scenario_{scenario}.yaml',)
     return _overlay(f'the {name} sensor suite instead of the position sensor (docs/sensors.md)', 'sensor_suites',
                     f'sensor_{name}.yaml', sensor_suites()[name], after)

@@ -21,6 +21,8 @@ from snn_estimator.sim.approach import (
     ANGLES_RANGE_UNCERTAINTY,
     FAR_CAMERA_MIN_RANGE,
     FAR_CAMERA_NOISE,
+    HOLDS,
+    LEGS,
     approach_scenario,
     fly_approach,
     range_figures,
@@ -92,6 +94,8 @@ def test_the_angles_suite_starts_with_its_range_uncertainty_along_track():
 @pytest.mark.parametrize('changes, message', [
     ({'sensors': 'angles'}, 'sensors must be one of position, by_range, angles_far'),
     ({'sensors': 'angles_far', 'range_uncertainty': 1.5}, 'range_uncertainty'),
+    ({'sensors': 'by_range', 'range_uncertainty': 7.0}, 'range_uncertainty'),  # checked on every suite
+    ({'sensors': 'angles_far', 'manoeuvre': 'none'}, "manoeuvre must be 'suite'.*None.*got 'none'"),
 ])
 def test_a_bad_suite_or_range_uncertainty_is_refused_with_the_choices(changes, message):
     with pytest.raises(ValueError, match=message):
@@ -99,10 +103,16 @@ def test_a_bad_suite_or_range_uncertainty_is_refused_with_the_choices(changes, m
 
 
 @pytest.mark.parametrize('size, delay, message', [(0.0, 300.0, 'non-zero size'), (np.nan, 300.0, 'finite'),
-                                                   (200.0, -1.0, 'delay')])
+                                                   (200.0, -1.0, 'delay'), (200.0, np.inf, 'delay')])
 def test_a_hop_without_a_size_or_with_a_negative_delay_is_refused(size, delay, message):
     with pytest.raises(ValueError, match=message):
         ObservabilityManoeuvre('5 km', size, delay)
+
+
+def test_the_angles_suite_started_inside_the_5_km_hold_has_no_hop_to_fly():
+    scenario = approach_scenario(sensors='angles_far', holds=HOLDS[1:], legs=LEGS[1:])
+    assert scenario.manoeuvre is None
+    assert scenario.guidance().active  # built: no 'hold must be one of' for a hop nobody asked for
 
 
 def test_a_manoeuvre_at_a_hold_the_guidance_does_not_fly_is_refused_with_the_holds():

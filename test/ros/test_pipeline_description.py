@@ -76,6 +76,16 @@ def test_the_sensor_choices_are_the_position_sensor_and_the_suites_whose_values_
         assert set(values) <= started, suite  # no value for a node the suite does not start
 
 
+def test_every_sensor_suite_is_flown_by_a_scenario_and_its_overlay_names_a_missing_one():
+    pytest.importorskip('numpy')
+    from scenario_nodes.parameter_tables import sensor_suites
+    from snn_tools.run.parameter_files import sensor_overlay
+    flown = {suite for entry in registry.SCENARIOS.values() for suite in entry.sensors}
+    assert set(sensor_suites()) <= flown
+    with pytest.raises(ValueError, match="'sonar' is flown by no scenario"):
+        sensor_overlay('sonar')
+
+
 # ---------------------------------------------------------------- a node registered only here
 @pytest.fixture
 def monitor(monkeypatch):

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from snn_estimator.models import relative_motion
-from snn_estimator.sim.approach import HOLDS, LEGS, SENSOR_SUITES, approach_scenario, fly_approach, summarize
+from snn_estimator.sim.approach import HOLDS, LEGS, approach_scenario, fly_approach, summarize
 from snn_tools.campaign.cells import build_scenario, run_cell
 from snn_tools.campaign.report import write_report
 from snn_tools.campaign.spec import SpecError, cell_path, parse_spec, read_rows, validate
@@ -33,7 +33,7 @@ def test_a_spec_with_scenario_approach_parses_into_a_cell_per_filter_and_dynamic
 @pytest.mark.parametrize('key, value, message', [
     ('dynamics_model', 'kepler', "dynamics_model must be one of cw, nonlinear_circular; got 'kepler'"),
     ('plant', 'j2_model', "plant must be one of cw, nonlinear_circular, basilisk; got 'j2_model'"),
-    ('sensors', 'radar', f"sensors must be one of {', '.join(SENSOR_SUITES)}; got 'radar'"),
+    ('sensors', 'radar', "sensors must be one of position, by_range, angles_far; got 'radar'"),
     ('first_hold', '1 km', "first_hold must be one of 5 km, 2 km, 250 m, 20 m; got '1 km'"),
 ])
 def test_a_bad_approach_setting_is_refused_naming_the_key_and_its_choices(key, value, message):
