@@ -180,7 +180,7 @@ def test_the_angles_only_approach_over_ros_equals_the_offline_loop_through_the_h
     file sets (observability_manoeuvre). Over the first 600 s, through the hop's first burn 300 s
     after the start on the 5 km hold, every truth, estimate and position variance is
     fly_approach(approach_scenario(sensors='angles_far'))'s, the hop's event comes on `guidance`
-    at the same second, and only the far camera measured (~15 s here)."""
+    at the same second, and only the far camera measured (10-25 s here)."""
     steps = 600
     result = run_pipeline(tmp_path / 'run', scenario='approach', sensor='angles_far', duration=float(steps),
                           timeout=300.0)
