@@ -5,6 +5,8 @@
 #                             draws it -> results/figures/approach_ros.png
 #   make demo SCENARIO=approach SENSOR=by_range   the same on relative GPS, the LIDAR and the docking camera,
 #                             a sensor node each -> results/approach_ros_by_range.json
+#   make demo SCENARIO=approach SENSOR=angles_far   the same with a far camera (angles only) instead of
+#                             relative GPS and the out-of-plane hop at 5 km -> results/approach_ros_angles_far.json
 #   make test                 all tests and the linter (what CI runs)
 #   make test-fast            the quick loop: no ROS process, the first case of every-kind tests (~1 min)
 #   make experiments [RUNS=n] [WORKERS=2]   the paper's experiments and ours -> results/REPORT.md
@@ -83,7 +85,7 @@ test-fast: $(STAMP)
 
 # SCENARIO=approach: 5 km to contact (one BLAS thread: the nonlinear filter's 6x6 exponentials), its
 # results file results/approach_ros.json (make approach-figure draws it); SENSOR: position (default) or a
-# suite (docs/sensors.md; with the approach: by_range -> results/approach_ros_by_range.json)
+# suite (docs/sensors.md; with the approach: by_range or angles_far -> results/approach_ros_<suite>.json)
 demo: $(STAMP)
 	$(if $(SCENARIO),OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1) $(BIN)/snn_demo --mode $(MODE) --plant $(PLANT) \
 		$(if $(ESTIMATOR),--estimator $(ESTIMATOR)) $(if $(SENSOR),--sensor $(SENSOR)) \

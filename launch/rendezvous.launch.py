@@ -8,6 +8,7 @@ live view): the nodes, their start order and subscriber counts of scenario_nodes
     ros2 launch snn_rendezvous rendezvous.launch.py live_view:=true   # Foxglove: ws://localhost:8765
     ros2 launch snn_rendezvous rendezvous.launch.py sensor:=docking   # a sensor node per sensor
     ros2 launch snn_rendezvous rendezvous.launch.py scenario:=approach sensor:=by_range  # 5 km to contact
+    ros2 launch snn_rendezvous rendezvous.launch.py scenario:=approach sensor:=angles_far  # angles only far out
 
 Each node is its own process; swapping the estimator is only the `estimator` argument. When
 the plant has flown the scenario it exits and the launch shuts the others down (the recorder
@@ -61,7 +62,8 @@ def generate_launch_description():
             description="position (Table 6's sensor) | a sensor suite, one node per sensor, each on its own "
                         'topic: config/sensor_<suite>.yaml after the scenario\'s files (docs/sensors.md). '
                         'The rendezvous flies lidar, camera+lidar, docking; the approach by_range (relative '
-                        'GPS, the LIDAR, the docking camera)'),
+                        'GPS, the LIDAR, the docking camera) and angles_far (a far camera measuring angles '
+                        'only, the LIDAR, the docking camera; the guidance flies an out-of-plane hop)'),
         DeclareLaunchArgument(
             'plant', default_value='cw', choices=list(PLANTS),
             description='Truth: cw (the Clohessy-Wiltshire model the filters use) | basilisk '

@@ -2,9 +2,10 @@
 
 With ``guidance`` approach the setpoint is the approach guidance's (snn_estimator.plant.approach:
 holds, go/no-go from the estimate and its covariance, corridor, CAM), u = u_ff - K (x_hat -
-x_ref) by the same core call as the offline loop (approach_control); each guidance event goes
-out on `guidance` (diagnostic_msgs/DiagnosticArray, status approach_guidance) stamped with the
-estimate's time, before the control of that step.
+x_ref) by the same core call as the offline loop (approach_control), with the observability
+manoeuvre ``observability_manoeuvre`` names (the angles suite's out-of-plane hop); each guidance
+event goes out on `guidance` (diagnostic_msgs/DiagnosticArray, status approach_guidance) stamped
+with the estimate's time, before the control of that step.
 
 Safe mode: zero thrust at every simulated step, said once and reported, while the estimator is
 down (no usable estimate for ``estimate_timeout`` simulated seconds), the sensors are down (no
@@ -184,6 +185,9 @@ class ControllerNode(ProcessHooks, Node):
     def _make_guidance(self):
         """The core approach guidance (guidance approach), or None (steer to setpoint)."""
         if self._p['guidance'] == 'none':
+            if self._p['observability_manoeuvre'] != 'none':
+                raise ValueError(f"observability_manoeuvre {self._p['observability_manoeuvre']} is flown by the "
+                                 'approach guidance: set guidance approach, or observability_manoeuvre none')
             return None
         if self._p['controller_type'] != 'lqr':
             raise ValueError(f"guidance approach flies the LQR (controller_type lqr), not "

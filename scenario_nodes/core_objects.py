@@ -64,6 +64,16 @@ def measurement_model(values: dict, noise, **limits):
 
 def approach_guidance(values: dict):
     """The approach guidance (snn_estimator.sim.approach's holds, legs, corridor and speeds) for
-    the target orbit the parameters describe."""
+    the target orbit the parameters describe, with their observability manoeuvre."""
     from snn_estimator.sim.approach import approach_guidance as guidance
-    return guidance(cw_model(values).mean_motion)
+    return guidance(cw_model(values).mean_motion, manoeuvre=observability_manoeuvre(values))
+
+
+def observability_manoeuvre(values: dict):
+    """The core's ObservabilityManoeuvre the observability_* parameters describe (None: none);
+    the core checks its size and delay, the guidance its hold."""
+    if values['observability_manoeuvre'] == 'none':
+        return None
+    from snn_estimator.plant.approach import ObservabilityManoeuvre
+    return ObservabilityManoeuvre(values['observability_hold'], values['observability_hop_size'],
+                                  values['observability_hop_delay'])

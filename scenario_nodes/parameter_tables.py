@@ -30,6 +30,10 @@ from .topics import GUIDANCE, MEASUREMENT, PIPELINE_TOPICS
 
 #: The controller's guidance choices (parameter ``guidance``).
 GUIDANCE_MODES = ('none', 'approach')
+#: The approach guidance's observability manoeuvres (parameter ``observability_manoeuvre``):
+#: none, or the core's out-of-plane hop (snn_estimator.plant.approach.OutOfPlaneHop).
+OUT_OF_PLANE_HOP = 'out_of_plane_hop'
+OBSERVABILITY_MANOEUVRES = ('none', OUT_OF_PLANE_HOP)
 #: Parameter kinds for arrays without a default (rclpy cannot infer them from None).
 DOUBLE_ARRAY, INTEGER_ARRAY, STRING_ARRAY = 'double_array', 'integer_array', 'string_array'
 
@@ -216,6 +220,18 @@ CONTROLLER = MODEL + (
          "from the estimate and its covariance, a 10 deg corridor to the port, a CAM when the estimate's "
          '3-sigma leaves it) gives the setpoint and its feed-forward, u = u_ff - K (x_hat - x_ref); its '
          'events on `guidance` (docs/decisions.md, 67)', choices=GUIDANCE_MODES),
+    Spec('observability_manoeuvre', 'none', 'guidance approach: none, or out_of_plane_hop: at the hold '
+         'observability_hold, observability_hop_delay s after arriving, a burn of n size m/s along y starts '
+         'the free out-of-plane oscillation, a second half an orbit later stops it back on V-bar; the '
+         "hold's go/no-go starts when it is done; its events ('hop <hold>', 'hop done <hold>') on `guidance` "
+         '(snn_estimator.plant.approach.OutOfPlaneHop: what makes the range observable to angles alone, '
+         'docs/decisions.md, 74 and 81)', choices=OBSERVABILITY_MANOEUVRES),
+    Spec('observability_hold', D.ANGLES_HOP_HOLD, 'The hold whose observability manoeuvre is flown (one of '
+         "the approach's holds: 5 km, 2 km, 250 m, 20 m)"),
+    Spec('observability_hop_size', D.ANGLES_HOP_SIZE, 'The out-of-plane hop\'s peak offset along y, m '
+         '(non-zero; its two burns cost 2 n size m/s)'),
+    Spec('observability_hop_delay', D.ANGLES_HOP_DELAY, 'Simulated s after arriving at the hold before '
+         "the hop's first burn", low=0.0),
     Spec('estimate_timeout', 0.5, 'Simulated s without a usable estimate before safe mode (zero '
          'thrust)', read_only=False, low=1e-9),
     Spec('max_input_age', 1.0, 'Estimates older than this behind the simulated clock, or stamped '
@@ -436,7 +452,7 @@ def sensor_suites() -> dict[str, dict[str, dict]]:
         'lqr_controller': {'measurement_topics': ['camera', 'lidar']},
         'recorder': {'topics': topics}}
     suites['docking'] = _docking_suite(network)
-    suites['by_range'] = _by_range_suite()
+    suites.update({suite: _approach_suite(suite) for suite in ('by_range', 'angles_far')})
     return suites
 
 
@@ -469,45 +485,64 @@ def _docking_suite(network: dict) -> dict[str, dict]:
 APPROACH_MODEL = 'nonlinear_circular'
 
 
-def _by_range_suite() -> dict[str, dict]:
-    """The approach's sensors by range (offline: approach_scenario(sensors='by_range'), decision
-    72), for the approach only (config/sensor_by_range.yaml after config/scenario_approach.yaml):
-    relative GPS, the LIDAR and the docking camera, each its own node on its own topic with its
-    range limits and the offline FusedSensor's seed (sensor i: i * FUSED_SEED_OFFSET), sampling
-    every truth, the approach's time step; the estimator fuses them with the offline R_hat
-    blocks (by_range_noise) and boundary layers, and the other estimator values that the
-    by-range scenario changes (the spiking filters' deviation coding). docs/decisions.md, 80."""
-    from snn_estimator.sim.approach import APPROACH_SENSOR_MOUNTING, approach_scenario
-    s = approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='by_range')
+def _approach_suite(suite: str) -> dict[str, dict]:
+    """A sensor suite of the approach (offline: approach_scenario(sensors=``suite``)), for the
+    approach only (config/sensor_<suite>.yaml after config/scenario_approach.yaml). by_range
+    (decision 72): relative GPS, the LIDAR and the docking camera; angles_far (decision 73): the
+    far camera's line of sight instead of relative GPS. Each sensor its own node on its own topic
+    with its range limits, field of view and the offline FusedSensor's seed (sensor i: i *
+    FUSED_SEED_OFFSET), sampling every truth, the approach's time step; the estimator fuses them
+    with the offline R_hat blocks (by_range_noise) and boundary layers, and the other estimator
+    values the suite's scenario changes (the spiking filters' deviation coding; angles_far: P0
+    from the range uncertainty); the controller flies the scenario's observability manoeuvre,
+    if it has one. docs/decisions.md, 80-81."""
+    from snn_estimator.sim.approach import approach_scenario
+    s = approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors=suite)
     plain = approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL).estimator
     approach = scenarios()['approach']
-    names = registry.SENSOR_NODES['by_range']
-    mounting = [float(v) for v in APPROACH_SENSOR_MOUNTING]
+    names = registry.SENSOR_NODES[suite]
     estimator = {f.name: dataclasses.replace(f, default=getattr(s.estimator, f.name)).parameter_default
                  for f in schema.FIELDS if f.name not in ('measurement_noise', 'boundary_layer')
                  and repr(getattr(s.estimator, f.name)) != repr(getattr(plain, f.name))}
     estimator['sensors'] = list(names)
     nodes = {}
     for i, (name, part, block) in enumerate(zip(names, s.sensor.parts, s.sensor.slices)):
-        values = {**approach['position_sensor'], 'model': part.name, 'measurement_noise': _diagonal(part.noise),
-                  'min_range': float(part.min_range), 'max_range': float(part.max_range),
-                  'seed': i * FUSED_SEED_OFFSET}
         r_hat = np.asarray(s.estimator.measurement_noise)[block, block]  # by_range_noise's block
-        own = {'model': part.name, 'measurement_noise': _diagonal(r_hat),
-               'boundary_layer': [float(v) for v in np.asarray(s.estimator.boundary_layer)[block]]}
-        if part.message_form == 'point':  # in the LVLH frame, as the position sensor's
-            own['sensor_frame_id'] = _default(MODEL, 'frame_id')
-        else:
-            values.update(mounting_rotation=mounting, sensor_frame_id=name,
-                          range_noise_growth=float(part.range_noise_growth))
-            values.update({} if part.field_of_view >= 2.0 * np.pi else {'field_of_view': float(part.field_of_view)})
-            own['mounting_rotation'] = mounting
-        nodes[name] = values
+        delta = [float(v) for v in np.asarray(s.estimator.boundary_layer)[block]]
+        nodes[name], own = _approach_sensor(approach['position_sensor'], name, part, i, (r_hat, delta))
         estimator.update({f'{name}.{key}': value for key, value in own.items()})
     watched = {'measurement_topics': list(names)}
     topics = [t for t in approach['recorder']['topics'] if t != MEASUREMENT] + list(names)
-    return {**nodes, 'estimator': estimator, 'cw_plant': watched, 'lqr_controller': watched,
-            'recorder': {'topics': topics}}
+    return {**nodes, 'estimator': estimator, 'cw_plant': watched,
+            'lqr_controller': {**watched, **_manoeuvre_values(s.manoeuvre)}, 'recorder': {'topics': topics}}
+
+
+def _approach_sensor(every: dict, name: str, part, index: int, estimated: tuple) -> tuple[dict, dict]:
+    """One sensor of an approach suite, the ``index``-th: its node's values (``every``: the
+    scenario's sensor values) and its estimator sensor input's (``estimated``: R_hat, delta)."""
+    from snn_estimator.sim.approach import APPROACH_SENSOR_MOUNTING
+    mounting = [float(v) for v in APPROACH_SENSOR_MOUNTING]
+    values = {**every, 'model': part.name, 'measurement_noise': _diagonal(part.noise),
+              'min_range': float(part.min_range), 'max_range': float(part.max_range),
+              'seed': index * FUSED_SEED_OFFSET}
+    r_hat, delta = estimated
+    own = {'model': part.name, 'measurement_noise': _diagonal(r_hat), 'boundary_layer': delta}
+    if part.message_form == 'point':  # in the LVLH frame, as the position sensor's
+        own['sensor_frame_id'] = _default(MODEL, 'frame_id')
+    else:
+        values.update(mounting_rotation=mounting, sensor_frame_id=name,
+                      range_noise_growth=float(part.range_noise_growth))
+        values.update({} if part.field_of_view >= 2.0 * np.pi else {'field_of_view': float(part.field_of_view)})
+        own['mounting_rotation'] = mounting
+    return values, own
+
+
+def _manoeuvre_values(manoeuvre) -> dict:
+    """The controller's observability_* values of a scenario's manoeuvre (None: none set)."""
+    if manoeuvre is None:
+        return {}
+    return {'observability_manoeuvre': OUT_OF_PLANE_HOP, 'observability_hold': manoeuvre.hold,
+            'observability_hop_size': float(manoeuvre.size), 'observability_hop_delay': float(manoeuvre.delay)}
 
 
 def _diagonal(matrix) -> list[float]:

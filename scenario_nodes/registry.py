@@ -92,7 +92,8 @@ TOOLS = {
 #: scenario_nodes.parameter_tables.sensor_suites): the sensor node renamed, and its
 #: `measurement` remapped to its name, when it is not the one sensor on `measurement`.
 SENSOR_NODES = {'position': ('position_sensor',), 'lidar': ('position_sensor',), 'camera+lidar': ('camera', 'lidar'),
-                'docking': ('lidar', 'camera'), 'by_range': ('relative_gps', 'lidar', 'camera')}
+                'docking': ('lidar', 'camera'), 'by_range': ('relative_gps', 'lidar', 'camera'),
+                'angles_far': ('far_camera', 'lidar', 'camera')}
 
 
 class Scenario(NamedTuple):
@@ -106,9 +107,10 @@ class Scenario(NamedTuple):
 
 #: The scenarios (snn_demo --scenario, the launch file's scenario:=): the rendezvous of Table 6 on
 #: either plant and its suites; the approach on the cw plant node (its dynamics_model set), on the
-#: position sensor or the approach's sensors by range (docs/decisions.md, 67 and 80).
+#: position sensor, the approach's sensors by range or its angles-only far suite (docs/decisions.md,
+#: 67, 80 and 81).
 SCENARIOS = {'rendezvous': Scenario(('cw', 'basilisk'), ('position', 'lidar', 'camera+lidar', 'docking')),
-             'approach': Scenario(('cw',), ('position', 'by_range'))}
+             'approach': Scenario(('cw',), ('position', 'by_range', 'angles_far'))}
 
 
 def check_scenario(scenario: str, plant: str, sensor: str) -> None:

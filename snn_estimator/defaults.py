@@ -56,6 +56,12 @@ VAN_DER_POL_X0 = (2.0, 2.0)
 VAN_DER_POL_TIME_STEP = 0.01
 VAN_DER_POL_DURATION = 20.0
 
+# ---------------------------------------------------------------- the approach's observability hop
+#: The angles suite's out-of-plane hop (docs/decisions.md, 74): at the 5 km hold, 200 m out of
+#: plane, 300 s after arrival (snn_estimator.sim.approach.ANGLES_HOP; the controller node's
+#: observability_hold, observability_hop_size, observability_hop_delay).
+ANGLES_HOP_HOLD, ANGLES_HOP_SIZE, ANGLES_HOP_DELAY = '5 km', 200.0, 300.0
+
 # ---------------------------------------------------------------- far range (not in the paper)
 #: V-bar approach from 5 km behind the target to a hold point 100 m behind it, ~1 orbit.
 FAR_RANGE_X0 = (-5000.0, 0.0, 0.0, 0.0, 0.0, 0.0)

@@ -73,7 +73,7 @@ FAR_CAMERA_NOISE, FAR_CAMERA_FIELD_OF_VIEW, FAR_CAMERA_MIN_RANGE = 2e-4, np.radi
 ANGLES_RANGE_UNCERTAINTY = 0.02
 #: The observability hop at the 5 km hold (docs/decisions.md, 74): 200 m out of plane, 300 s
 #: after arrival (the LQR has settled the start's error), for half an orbit.
-ANGLES_HOP = ObservabilityManoeuvre('5 km', 200.0, 300.0)
+ANGLES_HOP = ObservabilityManoeuvre(D.ANGLES_HOP_HOLD, D.ANGLES_HOP_SIZE, D.ANGLES_HOP_DELAY)
 #: ``manoeuvre`` of :func:`approach_scenario` that takes the suite's own (ANGLES_HOP for angles_far).
 SUITE_MANOEUVRE = 'suite'
 #: Relative GPS, m: from 500 m out (HTV switched from relative GPS to its laser radar at 500 m;

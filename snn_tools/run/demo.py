@@ -239,13 +239,13 @@ def run_pipeline(run_dir: Path, estimator: str = DEFAULT_FILTER, mode: str = 'lo
     when a node dies or the run does not finish in time (logs are in <run_dir>/logs).
     ``on_start(pipeline)``, if given, is called once the node processes are started.
     ``sensor``: position (Table 6) or a suite of scenario_nodes.parameter_tables.sensor_suites
-    that ``scenario`` flies (scenario_nodes.registry.SCENARIOS; the approach: by_range).
+    that ``scenario`` flies (scenario_nodes.registry.SCENARIOS; the approach: by_range, angles_far).
     ``scheduling``: batch | normal; None: by mode (SCHEDULING_BY_MODE). ``listeners``: subscribers
     besides the pipeline's, topic -> count (a probe), counted in each node's hold. ``scenario``:
     rendezvous (Table 6, the parameter file's) or one of scenario_nodes.parameter_tables.scenarios
-    (approach: the CW plant node on the nonlinear truth, the position sensor or the sensors by
-    range, until contact or an abort; its duration, the scenario's limit, unless ``duration`` is
-    given)."""
+    (approach: the CW plant node on the nonlinear truth, the position sensor, the sensors by
+    range or the angles-only far suite, until contact or an abort; its duration, the scenario's
+    limit, unless ``duration`` is given)."""
     scheduling = scheduling or SCHEDULING_BY_MODE.get(mode, 'normal')
     run_dir.mkdir(parents=True, exist_ok=True)
     params_file = params_file or config_file('rendezvous.yaml')
@@ -378,7 +378,8 @@ def main(argv=None) -> int:
                         help='truth: cw (the model the filters use) or basilisk (J2, thrust limits)')
     parser.add_argument('--sensor', default='position', choices=('position', *sensor_suites()),
                         help="position (Table 6's partial position) or a sensor suite (docs/sensors.md); "
-                             'by_range (relative GPS, LIDAR, docking camera) with --scenario approach')
+                             'by_range (relative GPS, LIDAR, docking camera) or angles_far (far camera, LIDAR, '
+                             'docking camera) with --scenario approach')
     parser.add_argument('--scenario', default='rendezvous', choices=('rendezvous', *scenarios()),
                         help='rendezvous (Table 6, 360 s) or approach (5 km behind on V-bar to contact through the '
                              'holds, nonlinear truth and filter model, 1 s steps, until contact or abort)')

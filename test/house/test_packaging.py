@@ -254,11 +254,14 @@ def test_the_launch_files_scenario_and_sensor_load_their_files_after_params_file
     counts = registry.subscriber_counts(registry.pipeline('cw', (), 'by_range'))
     assert all(nodes[name]['parameters'][3].items() >= values.items() for name, values in counts.items())
     assert nodes['lidar']['parameters'][3] == {'min_measurement_subscribers': 2}  # estimator and controller
+    nodes = launched_nodes(monkeypatch, scenario='approach', sensor='angles_far')  # the far camera instead
+    assert list(nodes) == ['lqr_controller', 'estimator', 'far_camera', 'lidar', 'camera', 'cw_plant']
+    assert nodes['lqr_controller']['parameters'][2] == ('join', (share, 'config', 'sensor_angles_far.yaml'))
     nodes = launched_nodes(monkeypatch, scenario='approach')
     assert 'position_sensor' in nodes and nodes['estimator']['parameters'][:2] == [
         params, ('join', (share, 'config', 'scenario_approach.yaml'))]
     for bad in ({'scenario': 'approach', 'sensor': 'docking'}, {'scenario': 'approach', 'plant': 'basilisk'},
-                {'sensor': 'by_range'}):
+                {'sensor': 'by_range'}, {'sensor': 'angles_far'}):
         with pytest.raises(ValueError, match='scenario flies plant'):
             launched_nodes(monkeypatch, **bad)
 

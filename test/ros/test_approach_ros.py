@@ -21,8 +21,9 @@ from scenario_nodes.conversions import (  # noqa: E402
     odometry_to_state,
     stamp_to_ns,
 )
+from scenario_nodes.core_objects import observability_manoeuvre  # noqa: E402
 from scenario_nodes.estimator_node import EstimatorNode  # noqa: E402
-from scenario_nodes.parameter_tables import APPROACH_MODEL, scenarios  # noqa: E402
+from scenario_nodes.parameter_tables import APPROACH_MODEL, CONTROLLER, scenarios, sensor_suites  # noqa: E402
 from scenario_nodes.plant_node import PlantNode  # noqa: E402
 from scenario_nodes.sensor_node import SensorNode  # noqa: E402
 from snn_estimator.catalog import DEFAULT_FILTER  # noqa: E402
@@ -170,3 +171,69 @@ def test_the_approach_on_a_sensor_node_per_sensor_equals_the_offline_by_range_lo
         assert len(stamps) == steps + 1, name
         assert said[stamps < steps * NS].sum() == offline['sensor_samples'][offline_name], name
     assert offline['sensor_samples']['range_azimuth_elevation'] > 0 == offline['sensor_samples']['docking_camera']
+
+
+def test_the_angles_only_approach_over_ros_equals_the_offline_loop_through_the_hops_first_burn(tmp_path):
+    """``make demo SCENARIO=approach SENSOR=angles_far``: the far camera (line of sight only, from
+    1 km out), the LIDAR and the docking camera each their own node, the estimator started with
+    the range uncertainty's P0, the controller's guidance flying the out-of-plane hop the suite
+    file sets (observability_manoeuvre). Over the first 600 s, through the hop's first burn 300 s
+    after the start on the 5 km hold, every truth, estimate and position variance is
+    fly_approach(approach_scenario(sensors='angles_far'))'s, the hop's event comes on `guidance`
+    at the same second, and only the far camera measured (10-25 s here)."""
+    steps = 600
+    result = run_pipeline(tmp_path / 'run', scenario='approach', sensor='angles_far', duration=float(steps),
+                          timeout=300.0)
+    data = read_bag(result['bag'])
+    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='angles_far'),
+                           DEFAULT_FILTER, max_duration=float(steps), record=True)[0]
+    trajectory = offline['trajectory']
+    variance = np.diagonal(np.asarray(trajectory['covariance']), axis1=1, axis2=2)
+    for times, values, expected, tolerance in (
+            (data.truth_t, data.truth, trajectory['truth'], 1e-9),
+            (data.estimate_t, data.estimate, trajectory['estimate'], 1e-9),
+            (data.estimate_t, data.estimate_variance, variance, 1e-9 * variance[0, 0])):
+        k = np.round(times).astype(int)
+        inside = k <= steps
+        assert sorted(k[inside]) == list(range(steps + 1))
+        np.testing.assert_allclose(values[inside], np.asarray(expected)[k[inside]], rtol=0, atol=tolerance)
+    assert variance[0, 0] == pytest.approx((0.02 * 5000.0) ** 2)  # the range uncertainty's P0
+    # the hop's first burn, said on `guidance` as offline; the truth leaves V-bar out of plane
+    assert [(t, event) for t, event, _ in data.guidance] == [tuple(e) for e in offline['events']] == [
+        (300.0, 'hop 5 km')]
+    assert abs(trajectory['truth'][300][1]) < 1.0 < 50.0 < abs(trajectory['truth'][steps][1])
+    for name, offline_name in (('far_camera', 'line_of_sight'), ('lidar', 'range_azimuth_elevation'),
+                               ('camera', 'docking_camera')):
+        stamps, said = data.reports[name]
+        assert len(stamps) == steps + 1, name
+        assert said[stamps < steps * NS].sum() == offline['sensor_samples'][offline_name], name
+    assert offline['sensor_samples']['line_of_sight'] == steps  # angles only at 5 km
+
+
+def test_the_controller_refuses_an_observability_manoeuvre_it_does_not_fly():
+    """A bad manoeuvre name names the choices; a hop without the approach guidance says what to
+    set; a hop at a hold the approach has not names its holds (the core's check)."""
+    with ros_context() as (context, executor, nodes):
+        with pytest.raises(ValueError, match=r"observability_manoeuvre must be one of none \| out_of_plane_hop; "
+                                             r"got 'hop'"):
+            make(ControllerNode, context, executor, nodes, 'lqr_controller', guidance='approach',
+                 observability_manoeuvre='hop')
+        with pytest.raises(ValueError, match='is flown by the approach guidance: set guidance approach'):
+            make(ControllerNode, context, executor, nodes, 'lqr_controller', observability_manoeuvre='out_of_plane_hop')
+        with pytest.raises(ValueError, match="hold must be one of 5 km, 2 km, 250 m, 20 m; got '3 km'"):
+            make(ControllerNode, context, executor, nodes, 'lqr_controller', guidance='approach',
+                 observability_manoeuvre='out_of_plane_hop', observability_hold='3 km')
+        with pytest.raises(ValueError, match='non-zero size'):
+            make(ControllerNode, context, executor, nodes, 'lqr_controller', guidance='approach',
+                 observability_manoeuvre='out_of_plane_hop', observability_hop_size=0.0)
+
+
+def test_the_angles_suite_file_sets_the_offline_scenarios_hop_and_the_others_fly_none():
+    """The controller's manoeuvre from the angles_far suite's values is approach_scenario's
+    (ANGLES_HOP); the by_range suite and the approach scenario leave it at none."""
+    suites = sensor_suites()
+    values = {spec.name: spec.default for spec in CONTROLLER}
+    hop = observability_manoeuvre({**values, **suites['angles_far']['lqr_controller']})
+    assert hop == approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='angles_far').manoeuvre
+    for changes in (suites['by_range']['lqr_controller'], scenarios()['approach']['lqr_controller']):
+        assert observability_manoeuvre({**values, **changes}) is None

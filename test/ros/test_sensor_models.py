@@ -224,3 +224,31 @@ def test_each_sensor_node_of_the_approach_by_range_answers_every_truth_and_measu
         unmeasured = BY_RANGE_MEASURES[name].count(0)
         assert int(values['measurement_rejected.too_close']) + int(values.get('measurement_rejected.too_far', 0)) \
             == int(values['measurement_rejected']) == unmeasured
+
+
+def test_the_far_camera_node_of_the_angles_suite_measures_the_line_of_sight_from_1_km_out_within_its_cone():
+    """config/sensor_angles_far.yaml's far_camera alone: on V-bar it measures the line of sight
+    (azimuth and elevation within 5 sigma of zero) at 5 km, 3.1 km, 2.9 km and 1.2 km, and says
+    "nothing measured" at 900 m and 40 m (too_close: closer, the target is resolved); 1 km off
+    V-bar at 5 km (11.3 deg off the boresight, outside the 18 deg cone) is out of view; every
+    truth answered."""
+    from scenario_nodes.parameter_tables import sensor_suites
+    values = {**sensor_suites()['angles_far']['far_camera'], 'diagnostics_period': 0.0}
+    model = make_model(values['model'], values['measurement_noise'], min_range=values['min_range'])
+    positions = [(-r, 0.0) for r in (5000.0, 3100.0, 2900.0, 1200.0, 900.0, 40.0)] + [(-5000.0, 1000.0)]
+    with ros_context() as (context, executor, nodes):
+        probe = Probe(context, executor, nodes, Vector3Stamped)
+        make(SensorNode, context, executor, nodes, 'position_sensor', cli_args=REMAP, **values)
+        assert spin_until(executor, probe.ready)
+        for k, (x, y) in enumerate(positions):
+            probe.truth.publish(state_to_odometry(np.array([x, y, 0.0, 0.0, 0.0, 0.0]), None,
+                                                  (k + 1) * 1_000_000_000, 'lvlh', 'chaser'))
+        assert spin_until(executor, lambda: len(probe.received) == len(positions))
+        spin_until(executor, lambda: probe.diagnostics().get('measurements_published') == str(len(positions)))
+        samples = [message_to_measurement(model, m) for m in probe.received]
+        assert [int(z is not None) for z in samples] == [1, 1, 1, 1, 0, 0, 0]
+        for z in samples[:4]:
+            assert z.shape == (2,) and np.all(np.abs(z) < 5.0 * 2e-4), z
+        values = probe.diagnostics()
+        assert int(values['measurement_rejected.too_close']) == 2
+        assert int(values['measurement_rejected.out_of_view']) == 1 == int(values['measurement_rejected']) - 2
