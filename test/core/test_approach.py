@@ -145,9 +145,13 @@ def test_a_filter_without_a_covariance_cannot_fly_the_approach():
 # ------------------------------------------------------------------ the sensors by range (decision 72)
 #: (sensor, range inside its limit, range outside it), margins of several of the sensor's sigmas
 #: at that range so that the noise never moves a sample across (LIDAR: 1 m at 3 km).
-RANGE_LIMITS = (('relative_gps', 520.0, 480.0), ('range_azimuth_elevation', 2990.0, 3010.0),
-                ('range_azimuth_elevation', 2.0, 1.6), ('docking_camera', 29.0, 31.0),
-                ('docking_camera', 0.08, 0.03))
+#: (suite, sensor, a range inside its limits, one just outside), m: the far sensor of each suite
+#: (relative GPS from 500 m out, the far camera from 1 km out), the LIDAR and the docking camera.
+CLOSE_LIMITS = (('range_azimuth_elevation', 2990.0, 3010.0), ('range_azimuth_elevation', 2.0, 1.6),
+                ('docking_camera', 29.0, 31.0), ('docking_camera', 0.08, 0.03))
+RANGE_LIMITS = tuple((suite, *limits) for suite, far in (('by_range', ('relative_gps', 520.0, 480.0)),
+                                                         ('angles_far', ('line_of_sight', 1100.0, 900.0)))
+                     for limits in (far, *CLOSE_LIMITS))
 
 
 def on_v_bar(ranges):
@@ -166,9 +170,10 @@ def test_the_by_range_sensors_are_relative_gps_the_lidar_and_the_docking_camera_
     assert approach_scenario().sensor is None  # the default: Table 6's position sensor
 
 
-@pytest.mark.parametrize('name, inside, outside', RANGE_LIMITS)
-def test_a_by_range_sensor_gives_finite_components_inside_its_range_and_nan_outside(name, inside, outside):
-    sensor = approach_scenario(sensors='by_range').sensor
+@pytest.mark.parametrize('suite, name, inside, outside', RANGE_LIMITS)
+def test_each_sensor_of_a_suite_gives_finite_components_inside_its_range_and_nan_outside(suite, name, inside,
+                                                                                       outside):
+    sensor = approach_scenario(sensors=suite).sensor
     index = [p.name for p in sensor.parts].index(name)
     fused = FusedSensor(sensor, seeds=range(8))
     for distance, present in ((inside, True), (outside, False)):

@@ -141,6 +141,16 @@ def test_a_no_go_at_the_first_hold_ends_the_run_after_its_step():
     assert plant['ended_by'] == 'requested' and plant['steps'] == 3001 and max(truths) == 3001 * NS
 
 
+def _over_ros_and_offline(tmp_path, sensor: str, steps: int):
+    """The first ``steps`` s of the approach on the sensor suite ``sensor``: the bag of the ROS
+    run (a node per sensor, lockstep) and the offline loop's recorded run of the same scenario."""
+    result = run_pipeline(tmp_path / 'run', scenario='approach', sensor=sensor, duration=float(steps),
+                          timeout=300.0)
+    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors=sensor),
+                           DEFAULT_FILTER, max_duration=float(steps), record=True)[0]
+    return read_bag(result['bag']), offline
+
+
 @pytest.mark.slow
 def test_the_approach_on_a_sensor_node_per_sensor_equals_the_offline_by_range_loop_through_the_lidars_arrival(
         tmp_path):
@@ -150,11 +160,7 @@ def test_the_approach_on_a_sensor_node_per_sensor_equals_the_offline_by_range_lo
     every estimate and truth is fly_approach(approach_scenario(sensors='by_range'))'s, and every
     sensor answered every truth, "nothing measured" outside its range (~25 s here)."""
     steps = 2600
-    result = run_pipeline(tmp_path / 'run', scenario='approach', sensor='by_range', duration=float(steps),
-                          timeout=300.0)
-    data = read_bag(result['bag'])
-    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='by_range'),
-                           DEFAULT_FILTER, max_duration=float(steps), record=True)[0]
+    data, offline = _over_ros_and_offline(tmp_path, 'by_range', steps)
     trajectory = offline['trajectory']
     ranges = np.linalg.norm(np.asarray(trajectory['truth'])[:, :3], axis=1)
     assert ranges[0] > 3000.0 > ranges[-1]  # the window crosses the LIDAR's 3 km
@@ -182,11 +188,7 @@ def test_the_angles_only_approach_over_ros_equals_the_offline_loop_through_the_h
     fly_approach(approach_scenario(sensors='angles_far'))'s, the hop's event comes on `guidance`
     at the same second, and only the far camera measured (10-25 s here)."""
     steps = 600
-    result = run_pipeline(tmp_path / 'run', scenario='approach', sensor='angles_far', duration=float(steps),
-                          timeout=300.0)
-    data = read_bag(result['bag'])
-    offline = fly_approach(approach_scenario(APPROACH_MODEL, plant=APPROACH_MODEL, sensors='angles_far'),
-                           DEFAULT_FILTER, max_duration=float(steps), record=True)[0]
+    data, offline = _over_ros_and_offline(tmp_path, 'angles_far', steps)
     trajectory = offline['trajectory']
     variance = np.diagonal(np.asarray(trajectory['covariance']), axis1=1, axis2=2)
     for times, values, expected, tolerance in (
