@@ -62,12 +62,20 @@ def campaign(runs: int, kinds, models, plant: str, seed: int = 0, extra=EXTRA_CE
                        'wall_time': time.perf_counter() - started, 'flights': flights}
         print(f"{name}: {cells[name]['summary']['success']}/{runs} successful, {cells[name]['wall_time']:.0f} s",
               flush=True)
+    suites = [c['sensors'] for *_, c in extra if c.get('sensors', 'position') != 'position']
     return {'runs_per_cell': runs, 'seed': seed, 'plant': plant,
-            'sensor': "position (R = 1e-2 m^2, 1 Hz) unless the cell says sensors=by_range: relative GPS from "
-                      "500 m out, LIDAR 1.8 m - 3 km, docking camera 5 cm - 30 m, 1 Hz each"
-                      + ("; sensors=angles_far: a far camera (line of sight, 0.2 mrad) from 1 km out in place of "
-                         "relative GPS" if any('angles_far' in repr(c) for *_, c in extra) else ''),
+            'sensor': 'position (R = 1e-2 m^2, 1 Hz)' + ''.join(f'; sensors={suite}: {suite_text(suite)}'
+                                                                 for suite in dict.fromkeys(suites)),
             'cells': cells}
+
+
+def suite_text(suite: str) -> str:
+    """The sensors of an approach suite with the ranges each measures in, from the scenario's own
+    stacked measurement (so the results file says what was flown), 1 Hz each."""
+    def limits(part) -> str:
+        return f'from {part.min_range:g} m' + (f' to {part.max_range:g} m' if part.max_range else '')
+    parts = approach_scenario(sensors=suite).sensor.parts
+    return ', '.join(f'{part.name} {limits(part)}' for part in parts) + ', 1 Hz each'
 
 
 def model_error_over_dwell(distances=(5000.0, 2000.0, 250.0), dwell: float = 300.0) -> list[dict]:
