@@ -22,7 +22,7 @@ from pathlib import Path
 
 from snn_tools.campaign.approach_cells import TABLE_COLUMNS as APPROACH_COLUMNS
 from snn_tools.campaign.cells import APPROACH
-from snn_tools.campaign.spec import identity_columns, load_spec, read_rows, state_names, swept
+from snn_tools.campaign.spec import identity_columns, load_spec, read_rows, reading_columns, state_names, swept
 from snn_tools.figures import UNITS, label_of
 
 #: The page's <title> and heading start with this (the browser test looks for it).
@@ -31,6 +31,10 @@ TITLE = 'snn_rendezvous campaigns'
 
 def _text(value) -> str:
     return json.dumps(value, sort_keys=True) if isinstance(value, (list, dict)) else str(value)
+
+
+#: The optional readings the page's table shows where a row has them (the summary adds no NEES).
+NUMBERS_SHOWN = ('spike_fraction', 'final_range_median', 'nees_average')
 
 
 def _finite(value):
@@ -155,20 +159,10 @@ def _approach_bars(spec, rows, key: str):
     return fig
 
 
-def _readings(spec, rows, states) -> list[str]:
-    """The reading columns of the table: the approach's safety figures, or RMSE per state and
-    the spike fraction, final range and NEES where the rows have them."""
-    if spec.scenario == APPROACH:
-        return list(APPROACH_COLUMNS)
-    extra = [c for c in ('spike_fraction', 'final_range_median', 'nees_average') if any(_finite(r.get(c)) is not None
-                                                                                       for r in rows)]
-    return [*(f'rmse_{s}' for s in states), *extra]
-
-
 def _table(spec, rows, states, key: str) -> str:
     """The cells as an HTML table with one select per filterable column."""
     names = identity_columns(spec)
-    columns = ['filter', *names, *_readings(spec, rows, states)]
+    columns = ['filter', *names, *reading_columns(spec, rows, states, NUMBERS_SHOWN)]
     selects = []
     for name in ['filter', *spec.grid]:
         values = sorted({_text(r[name]) for r in rows})

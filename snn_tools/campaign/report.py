@@ -19,10 +19,9 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
 from snn_estimator.filters.estimators import FILTER_KINDS
-from snn_tools.campaign.approach_cells import TABLE_COLUMNS as APPROACH_COLUMNS
 from snn_tools.campaign.cells import APPROACH, SCENARIOS
 from snn_tools.campaign.page import write_campaign_page  # the interactive page of the same rows
-from snn_tools.campaign.spec import identity_columns, state_names, swept
+from snn_tools.campaign.spec import identity_columns, reading_columns, state_names, swept
 from snn_tools.figures import UNITS, colour_of, label_of
 
 #: Rows per filter listed in summary.md (all of them are in results.parquet).
@@ -188,12 +187,7 @@ def _filter_table(spec, rows: list[dict], kind: str, states: list[str]) -> list[
     """Markdown table of one filter's rows: scenario, dynamics model and grid settings, then RMSE
     per state, spikes, range, or for the approach its safety figures (approach_cells.TABLE_COLUMNS)."""
     mine = [r for r in rows if r['filter'] == kind]
-    if spec.scenario == APPROACH:
-        readings = list(APPROACH_COLUMNS)
-    else:
-        extra = [c for c in ('spike_fraction', 'final_range_median') if any(r.get(c) is not None for r in mine)]
-        readings = [*(f'rmse_{s}' for s in states), *extra]
-    names = identity_columns(spec)
+    names, readings = identity_columns(spec), reading_columns(spec, mine, states)
     head = [*names, *readings]
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     for row in mine[:SUMMARY_ROWS]:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -14,7 +15,9 @@ from pathlib import Path
 import yaml
 
 from snn_estimator.filters.estimators import FILTER_KINDS
+from snn_tools.campaign.approach_cells import TABLE_COLUMNS as APPROACH_COLUMNS
 from snn_tools.campaign.cells import (
+    APPROACH,
     RUNS_PER_TASK,
     SCENARIOS,
     check_cell,
@@ -296,3 +299,13 @@ def identity_columns(spec) -> list[str]:
     summary's and the page's tables that say which cell a row is (dynamics_model once, where
     the grid sweeps it)."""
     return ['scenario', *(['dynamics_model'] if 'dynamics_model' not in spec.grid else []), *spec.grid]
+
+
+def reading_columns(spec, rows, states, optional=('spike_fraction', 'final_range_median')) -> list[str]:
+    """The reading columns of the summary's and the page's tables: the approach's safety figures
+    (approach_cells.TABLE_COLUMNS), or the RMSE per state, then those of ``optional`` that some of
+    ``rows`` holds as a finite number."""
+    if spec.scenario == APPROACH:
+        return list(APPROACH_COLUMNS)
+    shown = [c for c in optional if any(isinstance(r.get(c), (int, float)) and math.isfinite(r[c]) for r in rows)]
+    return [*(f'rmse_{s}' for s in states), *shown]
