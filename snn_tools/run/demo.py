@@ -380,7 +380,7 @@ def main(argv=None) -> int:
                         help="position (Table 6's partial position) or a sensor suite (docs/sensors.md); "
                              'by_range (relative GPS, LIDAR, docking camera) or angles_far (far camera, LIDAR, '
                              'docking camera) with --scenario approach')
-    parser.add_argument('--scenario', default='rendezvous', choices=('rendezvous', *scenarios()),
+    parser.add_argument('--scenario', default='rendezvous', choices=list(registry.SCENARIOS),
                         help='rendezvous (Table 6, 360 s) or approach (5 km behind on V-bar to contact through the '
                              'holds, nonlinear truth and filter model, 1 s steps, until contact or abort)')
     parser.add_argument('--results', type=Path, help='approach: also write its results file here '

@@ -86,6 +86,12 @@ def test_every_sensor_suite_is_flown_by_a_scenario_and_its_overlay_names_a_missi
         sensor_overlay('sonar')
 
 
+def test_the_scenarios_the_launch_file_and_the_demo_offer_are_the_rendezvous_and_those_with_a_file():
+    pytest.importorskip('numpy')
+    from scenario_nodes.parameter_tables import scenarios
+    assert list(registry.SCENARIOS) == ['rendezvous', *scenarios()]
+
+
 # ---------------------------------------------------------------- a node registered only here
 @pytest.fixture
 def monitor(monkeypatch):
