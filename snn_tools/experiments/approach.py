@@ -207,7 +207,8 @@ def report_section(results: dict) -> str:
 def drift_reading(drift: list[dict]) -> str:
     """Why the models gain little on J2 truth, from :func:`model_error_over_dwell`'s rows."""
     with_ss = all('ss_j2_vs_two_body_j2' in row for row in drift)
-    text = ('Why the nonlinear model gains little here: over one hold\'s dwell from rest on V-bar '
+    text = (('Why neither the nonlinear nor the J2 model gains here' if with_ss else
+             'Why the nonlinear model gains little here') + ': over one hold\'s dwell from rest on V-bar '
             '(uncontrolled, noise-free), the models part from the truth by ' + '; '.join(
                 f"{row['distance']:g} m: CW from the nonlinear model {row['cw_vs_nonlinear']:.3g} m, the "
                 f"nonlinear model from two-body {row['nonlinear_vs_two_body']:.1g} m and from two-body with "
