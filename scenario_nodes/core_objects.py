@@ -44,7 +44,8 @@ def cw_model(values: dict, form: str = 'standard', measured_axes=(0, 1, 2)):
 
 
 def filter_model(values: dict, measured_axes=(0, 1, 2)):
-    """The estimator's model: ``dynamics_model`` cw (the ``cw_model`` form) or nonlinear_circular."""
+    """The estimator's model: ``dynamics_model`` cw (the ``cw_model`` form), nonlinear_circular or
+    ss_j2 (at its default inclination, models.SchweighartSedwick)."""
     if values['dynamics_model'] == 'cw':
         return cw_model(values, form=values['cw_model'], measured_axes=measured_axes)
     from snn_estimator.models import relative_motion

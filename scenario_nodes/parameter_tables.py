@@ -115,9 +115,10 @@ _PLANT = MODEL + (
 )
 
 PLANT = _PLANT + (
-    Spec('dynamics_model', 'cw', 'The truth: cw (Clohessy-Wiltshire, exact transition) or '
-         'nonlinear_circular (the nonlinear relative motion about a circular orbit, RK4; '
-         'snn_estimator.models)', choices=DYNAMICS_MODELS),
+    Spec('dynamics_model', 'cw', 'The truth: cw (Clohessy-Wiltshire, exact transition), '
+         'nonlinear_circular (the nonlinear relative motion about a circular orbit, RK4) or ss_j2 '
+         '(Schweighart-Sedwick linear J2 model at 51.6 deg, exact transition; snn_estimator.models)',
+         choices=DYNAMICS_MODELS),
 )
 
 BASILISK_PLANT = _PLANT + (
@@ -209,7 +210,8 @@ CONTROLLER = MODEL + (
          read_only=False, kind=DOUBLE_ARRAY),
     Spec('cw_model', 'standard', 'CW matrix used for the LQR design', choices=('standard', 'as_published')),
     Spec('dynamics_model', 'cw', 'Model whose linearisation at the port, A(0), the LQR is designed on: cw '
-         '(the cw_model form) or nonlinear_circular (A(0) equal to CW\'s within 4e-15; the offline approach '
+         '(the cw_model form), ss_j2 (Schweighart-Sedwick J2: A within 2e-3 of CW\'s) or nonlinear_circular '
+         '(A(0) equal to CW\'s within 4e-15; the offline approach '
          "designs on the filter's model, and a lockstep run equals it only with the same gain to the bit)",
          choices=DYNAMICS_MODELS),
     Spec('setpoint', [0.0] * 6, 'State the LQR steers to, u = -K (x_hat - setpoint), m and m/s (zeros: '

@@ -9,6 +9,12 @@ in config/ and docs/parameters.md) all take their defaults from here.
 EARTH_MU = 3.986e14
 #: Target orbit radius, m: a 400 km circular LEO (not stated in the paper; Decision 5).
 ORBIT_RADIUS = 6_778_137.0
+#: Target orbit inclination, rad: the ISS's 51.6 deg (Basilisk's OrbitSettings and the J2 model's default).
+ORBIT_INCLINATION = 0.9005898940290741  # math.radians(51.6)
+#: Earth's unnormalised J2 and the equatorial radius it refers to, m (Basilisk's truth and the
+#: Schweighart-Sedwick model use the same numbers).
+EARTH_J2 = 1.08262668e-3
+EARTH_EQUATORIAL_RADIUS = 6_378_137.0
 
 # ---------------------------------------------------------------- rendezvous (Sec. 3.2, Table 6)
 #: x0 = [r0, v0]: m and m/s in the target's LVLH frame.

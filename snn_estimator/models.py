@@ -1,5 +1,5 @@
 """Dynamical models: Clohessy-Wiltshire relative motion (paper Sec. 3.2), the nonlinear relative
-motion it linearises, and Van der Pol (Sec. 3.1).
+motion it linearises, the Schweighart-Sedwick linear J2 relative motion, and Van der Pol (Sec. 3.1).
 
 Every model implements :class:`StateSpaceModel`: ``x_dot = f(x, u)`` with Jacobians ``A(x)``
 and ``B``, and a *linear* measurement ``z = C x`` (both of the paper's problems measure a subset
@@ -15,7 +15,12 @@ from typing import Sequence
 import numpy as np
 import scipy.linalg
 
-from .defaults import EARTH_MU  # noqa: F401 (re-exported)
+from .defaults import (
+    EARTH_EQUATORIAL_RADIUS,
+    EARTH_J2,
+    EARTH_MU,  # noqa: F401 (re-exported)
+    ORBIT_INCLINATION,
+)
 from .defaults import ORBIT_RADIUS as DEFAULT_ORBIT_RADIUS
 from .validation import check_choice, check_positive
 
@@ -24,7 +29,7 @@ DT_CACHE_SIZE = 64
 
 DISCRETIZATIONS = ('exact', 'euler')
 #: The relative-motion models a filter can predict with (:func:`relative_motion`).
-DYNAMICS_MODELS = ('cw', 'nonlinear_circular')
+DYNAMICS_MODELS = ('cw', 'nonlinear_circular', 'ss_j2')
 
 
 class StateSpaceModel(ABC):
@@ -216,7 +221,23 @@ class RelativeMotion(StateSpaceModel):
         self._c[np.arange(len(axes)), axes] = 1.0
 
 
-class ClohessyWiltshire(RelativeMotion):
+class LinearRelativeMotion(RelativeMotion):
+    """Relative motion with constant ``A`` (``self._a``, set by the subclass): ``f = A x + B u``.
+    The filters, the network and the compiled loop take any such model through ``is_linear``
+    and its exact zero-order hold (:meth:`StateSpaceModel.discrete_matrices`)."""
+
+    is_linear = True
+    _a: np.ndarray
+
+    def f(self, x, u):
+        return np.asarray(x) @ self._a.T + np.asarray(u) @ self._b.T
+
+    def jacobian(self, x, u):
+        x = np.asarray(x)
+        return np.broadcast_to(self._a, x.shape[:-1] + (6, 6)).copy() if x.ndim > 1 else self._a.copy()
+
+
+class ClohessyWiltshire(LinearRelativeMotion):
     """Linearised relative motion about a circular orbit (Eq. 36-41, corrected); axes, state
     and input as :class:`RelativeMotion`.
 
@@ -232,7 +253,6 @@ class ClohessyWiltshire(RelativeMotion):
     gradient). It is kept so the difference can be measured.
     """
 
-    is_linear = True
     dynamics_model = 'cw'
 
     def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
@@ -255,13 +275,6 @@ class ClohessyWiltshire(RelativeMotion):
             a[4, 4] = -n * n
             a[5, 5] = 2.0 * n * n
         return a
-
-    def f(self, x, u):
-        return np.asarray(x) @ self._a.T + np.asarray(u) @ self._b.T
-
-    def jacobian(self, x, u):
-        x = np.asarray(x)
-        return np.broadcast_to(self._a, x.shape[:-1] + (6, 6)).copy() if x.ndim > 1 else self._a.copy()
 
 
 class NonlinearCircular(RelativeMotion):
@@ -325,11 +338,82 @@ class NonlinearCircular(RelativeMotion):
         return a
 
 
+class SchweighartSedwick(LinearRelativeMotion):
+    """Linearised relative motion under Earth's J2 about a circular reference orbit of radius
+    ``orbit_radius`` and inclination ``inclination`` (rad): Schweighart & Sedwick, "High-Fidelity
+    Linearized J2 Model for Satellite Formation Flight", JGCD 25(6), 2002. Axes, state and input
+    as :class:`RelativeMotion`.
+
+    SS write it in the Hill frame (X radial out, Y along-track, Z along the orbit normal) as::
+
+        X'' = 2 (n c) Y' + (5 c^2 - 2) n^2 X
+        Y'' = -2 (n c) X'
+        Z'' = -q^2 Z + 2 l q cos(q t + phi)
+
+    with ``s = 3 J2 Re^2 / (8 r^2) (1 + 3 cos 2i)``, ``c = sqrt(1 + s)``: the J2 gravity gradient
+    averaged over one orbit, and the frame turning at ``n c``. Here X = -z, Y = x, Z = -y, so::
+
+        x'' =  2 n c z'                      + f_x
+        y'' = -q^2 y                         + f_y
+        z'' = -2 n c x' + (5 c^2 - 2) n^2 z  + f_z
+
+    The cross-track frequency is SS's ``q = n c - (cos g sin g cot dO - sin^2 g cos i2)
+    (dO1' - dO2') - dO1' cos i1`` (g the angle between the two orbit planes, dO their node
+    difference, ``dOj' = -3 n J2 Re^2 / (2 r^2) cos ij`` the nodal rates). The filters' chaser flies
+    in the target's plane (the approach's V-bar; a hop out of it is 200 m, 3e-5 rad of plane
+    angle), where both nodal rates are equal: the forcing ``l`` is zero and ``q`` is
+    ``n c + 3 n J2 Re^2 / (2 r^2) cos^2 i``, SS's ``k`` (the rate of the argument of latitude).
+    SS's X and Y equations also carry a forcing that does not depend on the state (the J2 pull at
+    the reference point); it is the same for chaser and target and cancels in their difference,
+    the state here. With J2 = 0 the model is :class:`ClohessyWiltshire`; at the inclination where
+    ``1 + 3 cos 2i = 0`` (54.7 deg) s = 0 and the in-plane block is CW's (q is still k there).
+    SS average the J2 gradient over the orbit: its part that varies with the argument of
+    latitude (docs/decisions.md, 82) is not in the model.
+    """
+
+    dynamics_model = 'ss_j2'
+
+    def __init__(self, orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
+                 measured_axes: Sequence[int] = (0, 1, 2), inclination: float = ORBIT_INCLINATION,
+                 j2: float = EARTH_J2, equatorial_radius: float = EARTH_EQUATORIAL_RADIUS):
+        super().__init__(orbit_radius, mu, measured_axes)
+        self.inclination = float(inclination)
+        if not 0.0 <= self.inclination <= np.pi:
+            raise ValueError(f'inclination must be in [0, pi] rad, got {inclination!r} '
+                             '(radians: use math.radians(degrees))')
+        self.j2 = check_positive(j2, 'j2 (Earth J2 coefficient; 0 gives CW)', strict=False)
+        self.equatorial_radius = check_positive(equatorial_radius, 'equatorial_radius (m)')
+        n, i = self.mean_motion, self.inclination
+        ratio = self.j2 * (self.equatorial_radius / self.orbit_radius) ** 2
+        #: SS's s and c (dimensionless) and the cross-track frequency q (rad/s), in-plane chaser.
+        self.s = 3.0 * ratio / 8.0 * (1.0 + 3.0 * np.cos(2.0 * i))
+        self.c = float(np.sqrt(1.0 + self.s))
+        self.cross_track_frequency = n * self.c + 1.5 * n * ratio * np.cos(i) ** 2
+        self._a = self.system_matrix(n, self.c, self.cross_track_frequency)
+
+    @staticmethod
+    def system_matrix(n: float, c: float, q: float) -> np.ndarray:
+        """The SS ``A`` for mean motion ``n`` (rad/s), SS's ``c`` and cross-track frequency ``q``
+        (rad/s), in this package's axes."""
+        a = np.zeros((6, 6))
+        a[0:3, 3:6] = np.eye(3)
+        a[3, 5] = 2.0 * n * c
+        a[5, 3] = -2.0 * n * c
+        a[4, 1] = -q * q
+        a[5, 2] = (5.0 * c * c - 2.0) * n * n
+        return a
+
+
 def relative_motion(dynamics_model: str = 'cw', orbit_radius: float = DEFAULT_ORBIT_RADIUS, mu: float = EARTH_MU,
-                    measured_axes: Sequence[int] = (0, 1, 2)) -> RelativeMotion:
+                    measured_axes: Sequence[int] = (0, 1, 2),
+                    inclination: float = ORBIT_INCLINATION) -> RelativeMotion:
     """The relative-motion model named ``dynamics_model`` (:data:`DYNAMICS_MODELS`): cw, the
-    standard :class:`ClohessyWiltshire`; nonlinear_circular, :class:`NonlinearCircular`."""
+    standard :class:`ClohessyWiltshire`; nonlinear_circular, :class:`NonlinearCircular`; ss_j2,
+    :class:`SchweighartSedwick` (the only one that reads ``inclination``, rad)."""
     kind = check_choice(dynamics_model, DYNAMICS_MODELS, 'dynamics_model')
+    if kind == 'ss_j2':
+        return SchweighartSedwick(orbit_radius=orbit_radius, mu=mu, measured_axes=measured_axes,
+                                  inclination=inclination)
     model = NonlinearCircular if kind == 'nonlinear_circular' else ClohessyWiltshire
     return model(orbit_radius=orbit_radius, mu=mu, measured_axes=measured_axes)
 

@@ -45,7 +45,7 @@ NETWORK_CODINGS = ('state', 'deviation')
 #: the parameter tables need not load the models; a test keeps them equal).
 DISCRETIZATIONS = ('exact', 'euler')
 #: The model the filter predicts with (models.DYNAMICS_MODELS, repeated for the same reason).
-DYNAMICS_MODELS = ('cw', 'nonlinear_circular')
+DYNAMICS_MODELS = ('cw', 'nonlinear_circular', 'ss_j2')
 
 #: Value types. ``vector`` has ``size`` entries (n states or m measurements; a scalar is
 #: broadcast), ``matrix`` is size x size (a matrix, a flat row-major list, a diagonal or a scalar),
@@ -251,8 +251,10 @@ FIELDS: tuple[Field, ...] = (
     Field('discretization', 'choice', 'exact', 'Stepping of the continuous equations: exact (ZOH of '
           'the linearised drift) or euler', choices=DISCRETIZATIONS),
     Field('dynamics_model', 'choice', 'cw', "The filter's model of relative motion: cw (Clohessy-Wiltshire, "
-          'Eq. 36-41) or nonlinear_circular (two-body relative motion about a circular orbit, f and '
-          'A(x_hat) each step; docs/decisions.md, 50-54)', equation='Eq. 3, 14, 17', choices=DYNAMICS_MODELS),
+          'Eq. 36-41), nonlinear_circular (two-body relative motion about a circular orbit, f and '
+          'A(x_hat) each step; docs/decisions.md, 50-54) or ss_j2 (Schweighart-Sedwick linear J2 model, '
+          'orbit-averaged, at the 51.6 deg default inclination; docs/decisions.md, 82)', equation='Eq. 3, 14, 17',
+          choices=DYNAMICS_MODELS),
     Field('membrane_noise', 'real', 0.0, 'standard deviation of the membrane noise (0 = off)',
           unit='per sqrt(s)', symbol='eta', equation='Eq. 10', low=0.0, runtime=True),
     Field('max_spikes_per_step', 'integer', 0, 'Cap on spikes per step and run for the greedy rule '

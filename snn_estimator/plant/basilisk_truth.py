@@ -63,14 +63,12 @@ from typing import Sequence
 import numba
 import numpy as np
 
+from snn_estimator.defaults import EARTH_EQUATORIAL_RADIUS, EARTH_J2, ORBIT_INCLINATION
 from snn_estimator.models import DEFAULT_ORBIT_RADIUS, EARTH_MU, ClohessyWiltshire
 from snn_estimator.validation import as_matrix, check_covariance, check_positive
 
 from .truth import PLANT_STREAM, GaussianStream, matrix_sqrt
 
-#: Earth's unnormalised J2 and the equatorial radius it refers to, m.
-EARTH_J2 = 1.08262668e-3
-EARTH_EQUATORIAL_RADIUS = 6_378_137.0
 #: The Basilisk release this module is written against (its Python API moves between releases).
 BASILISK_REQUIREMENT = 'bsk==2.12.1'
 
@@ -92,7 +90,7 @@ class OrbitSettings:
 
     semi_major_axis: float = DEFAULT_ORBIT_RADIUS
     eccentricity: float = 0.0
-    inclination: float = math.radians(51.6)
+    inclination: float = ORBIT_INCLINATION
     raan: float = 0.0
     argument_of_perigee: float = 0.0
     #: The target's true anomaly at t = 0 (0: at perigee).

@@ -25,8 +25,15 @@ def lqr_gain(model: StateSpaceModel, state_weight, input_weight) -> np.ndarray:
     import control  # imported here: python-control loads matplotlib, which no other core path needs
     try:
         gain, _, _ = control.lqr(a, model.input_matrix, q, r)
-    except Exception as error:  # python-control raises several types for an unsolvable ARE
-        raise ValueError(f'LQR design failed for these weights: {error}') from error
+    except Exception:  # python-control raises several types for an unsolvable ARE
+        # Far apart Qc and Rc (the far range's 1 and 1e10) can leave the Hamiltonian pencil too
+        # ill-conditioned for the Schur reordering (it fails for the J2 model's A, not for CW's).
+        # (Qc / k, Rc / k) has the same gain (P scales by 1 / k): retry with them of one size.
+        scale = np.sqrt(np.abs(r).max() / max(np.abs(q).max(), 1e-300))
+        try:
+            gain, _, _ = control.lqr(a, model.input_matrix, q / scale, r / scale)
+        except Exception as error:
+            raise ValueError(f'LQR design failed for these weights: {error}') from error
     return np.asarray(gain, dtype=float)
 
 

@@ -112,14 +112,15 @@ _RELATIVE_MOTION = ('far_range', APPROACH)
 SETTINGS: dict[str, Setting] = {
     **{field.name: Setting(ESTIMATOR, 'see EstimatorConfig (snn_estimator/config.py)')
        for field in dataclasses.fields(EstimatorConfig) if field.name != 'seed'},
-    'dynamics_model': Setting(ESTIMATOR, "the filters' model of relative motion: cw | nonlinear_circular",
+    'dynamics_model': Setting(ESTIMATOR, "the filters' model of relative motion: cw | nonlinear_circular | ss_j2 "
+                              '(Schweighart-Sedwick J2, 51.6 deg)',
                               _RELATIVE_MOTION),
     'preset': Setting(FACTORY, 'default | as_published (the paper\'s literal network)',
                       ('rendezvous', 'van_der_pol', 'docking')),
     'cw_model': Setting(FACTORY, 'standard | as_published (filters and LQR use the printed Eq. 41)',
                         _RENDEZVOUS),
     'orbit_radius': Setting(FACTORY, 'target orbit radius, m', _ORBITAL),
-    'plant': Setting(FACTORY, 'the truth: cw | nonlinear_circular (two-body without J2; far_range, approach) '
+    'plant': Setting(FACTORY, 'the truth: cw | nonlinear_circular (two-body without J2) | ss_j2 (far_range, approach) '
                      '| basilisk (two-body gravity, J2; thrust limit but on the approach)', _ORBITAL),
     'j2': Setting(DERIVED, "Basilisk truth: Earth's J2 on (true) or off", _ORBITAL,
                   apply=_basilisk(j2=bool)),

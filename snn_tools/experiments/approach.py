@@ -1,10 +1,11 @@
 """make approach: the approach from 5 km to contact (issue 39, parts 2-3), offline, as
 results/approach.json and results/approach.md: each filter kind on each filter model (cw,
-nonlinear_circular) on the same nonlinear truth, a few dispersed runs each; outcomes, safety
-figures, delta-v, contact conditions and the errors at each hold (docs/decisions.md, 55-57).
+nonlinear_circular; ss_j2, the Schweighart-Sedwick J2 model, with --models) on the same truth, a
+few dispersed runs each; outcomes, safety figures, delta-v, contact conditions and the errors at
+each hold (docs/decisions.md, 55-57, 70, 82).
 
 Usage: python -m snn_tools.experiments.approach [--runs 5] [--kinds ekf snn_ekf]
-       [--models cw nonlinear_circular] [--plant nonlinear_circular|cw|basilisk] [--out results]
+       [--models cw nonlinear_circular ss_j2] [--plant nonlinear_circular|cw|basilisk] [--out results]
 --plant basilisk (Basilisk's two-body integration with J2) writes approach_basilisk.{json,md} and
 the approach section of results/REPORT.md (between its markers).
 Single-threaded BLAS (OPENBLAS_NUM_THREADS=1) makes the nonlinear filters' per-step 6x6
@@ -81,23 +82,27 @@ def suite_text(suite: str) -> str:
 def model_error_over_dwell(distances=(5000.0, 2000.0, 250.0), dwell: float = 300.0) -> list[dict]:
     """How far the filters' models part from the truth over one hold's dwell, uncontrolled and
     noise-free from rest at each hold on V-bar (m, position): CW against the nonlinear circular
-    model, and that model against Basilisk's two-body integration with and without J2 (the
-    approach's dispersed runs cannot tell these apart; this says which error dominates)."""
-    nonlinear, cw = relative_motion('nonlinear_circular'), relative_motion('cw')
+    model, that model against Basilisk's two-body integration with and without J2, and the
+    Schweighart-Sedwick J2 model (ss_j2) and CW against two-body with J2 (the approach's dispersed
+    runs cannot tell these apart; this says which error dominates)."""
+    models = {name: relative_motion(name) for name in ('nonlinear_circular', 'cw', 'ss_j2')}
     rows, steps, zero = [], int(round(dwell)), np.zeros(3)
     for distance in distances:
         x0 = np.array([-distance, 0.0, 0.0, 0.0, 0.0, 0.0])
-        x_nonlinear, x_cw = x0.copy(), x0.copy()
+        states = {name: x0.copy() for name in models}
         truths = {j2: BasiliskPlant(x0, 0.0, [0], dt=1.0, orbit=OrbitSettings(j2=j2), thrust_limit=None)
                   for j2 in (False, True)}
         for _ in range(steps):
-            x_nonlinear, x_cw = nonlinear.transition(x_nonlinear, zero, 1.0), cw.transition(x_cw, zero, 1.0)
+            states = {name: model.transition(states[name], zero, 1.0) for name, model in models.items()}
             for truth in truths.values():
                 truth.step(zero, 1.0)
+        apart = {(name, j2): float(np.linalg.norm(truths[j2].x[0, :3] - states[name][:3]))
+                 for name in models for j2 in (False, True)}
         rows.append({'distance': distance, 'dwell': dwell,
-                     'cw_vs_nonlinear': float(np.linalg.norm(x_cw[:3] - x_nonlinear[:3])),
-                     'nonlinear_vs_two_body': float(np.linalg.norm(truths[False].x[0, :3] - x_nonlinear[:3])),
-                     'nonlinear_vs_two_body_j2': float(np.linalg.norm(truths[True].x[0, :3] - x_nonlinear[:3]))})
+                     'cw_vs_nonlinear': float(np.linalg.norm(states['cw'][:3] - states['nonlinear_circular'][:3])),
+                     'nonlinear_vs_two_body': apart['nonlinear_circular', False],
+                     'nonlinear_vs_two_body_j2': apart['nonlinear_circular', True],
+                     'cw_vs_two_body_j2': apart['cw', True], 'ss_j2_vs_two_body_j2': apart['ss_j2', True]})
     return rows
 
 
@@ -184,32 +189,50 @@ def _samples_table(results: dict) -> list[str]:
 
 def report_section(results: dict) -> str:
     """The approach section of results/REPORT.md: the tables, then the reading of the holds
-    (the model's gain at 5 km and 250 m: CW-model over nonlinear-model estimate error)."""
+    (the models' gain at 5 km and 250 m: CW-model over other-model estimate error) and of the
+    models' drift over one dwell."""
     cells = results['cells']
     ratios = []
     for kind in ('ekf', 'snn_ekf', 'emsif_weighted', 'snn_emsif_weighted'):
-        cw, nonlinear = cells.get(f'{kind}/cw'), cells.get(f'{kind}/nonlinear_circular')
-        if cw is None or nonlinear is None:
-            continue
-        for hold in ('5 km', '250 m'):
-            a, b = (c['summary']['holds'][hold]['estimate_error'] for c in (cw, nonlinear))
-            if a and b:
-                ratios.append(f"{kind} at {hold}: {a['mean']:.3f} m (cw) / {b['mean']:.3f} m (nonlinear_circular) "
-                              f"= {a['mean'] / b['mean']:.2f}x")
-    reading = ('CW-model over nonlinear-model estimate error at the holds the issue names: '
+        for model in ('nonlinear_circular', 'ss_j2'):
+            cw, other = cells.get(f'{kind}/cw'), cells.get(f'{kind}/{model}')
+            if cw is None or other is None:
+                continue
+            for hold in ('5 km', '250 m'):
+                a, b = (c['summary']['holds'][hold]['estimate_error'] for c in (cw, other))
+                if a and b:
+                    ratios.append(f"{kind} at {hold}: {a['mean']:.3f} m (cw) / {b['mean']:.3f} m ({model}) "
+                                  f"= {a['mean'] / b['mean']:.2f}x")
+    reading = ('CW-model over other-model estimate error at the holds the issue names: '
                + '; '.join(ratios) + '.') if ratios else ''
     drift = results.get('model_error_over_dwell')
     if drift:
-        reading += ('\n\nWhy the nonlinear model gains little here: over one hold\'s dwell from rest on V-bar '
-                    '(uncontrolled, noise-free), the models part from the truth by ' + '; '.join(
-                        f"{row['distance']:g} m: CW from the nonlinear model {row['cw_vs_nonlinear']:.3g} m, the "
-                        f"nonlinear model from two-body {row['nonlinear_vs_two_body']:.1g} m and from two-body with "
-                        f"J2 {row['nonlinear_vs_two_body_j2']:.3g} m" for row in drift)
-                    + f" in {drift[0]['dwell']:g} s. J2, which neither model holds, is the larger model error at "
-                    'every hold, so removing the curvature error of CW cannot make the hold errors 5x smaller; '
-                    'the filters\' NEES (Q_hat sized for a model that is right) says they do not know it.')
+        reading += '\n\n' + drift_reading(drift)
     return (f'## {REPORT_TITLE}\n\n`make approach-basilisk` (results/approach_basilisk.json).\n\n'
             f'{table(results)}\n{reading}\n')
+
+
+def drift_reading(drift: list[dict]) -> str:
+    """Why the models gain little on J2 truth, from :func:`model_error_over_dwell`'s rows."""
+    with_ss = all('ss_j2_vs_two_body_j2' in row for row in drift)
+    text = (('Why neither the nonlinear nor the J2 model gains here' if with_ss else
+             'Why the nonlinear model gains little here') + ': over one hold\'s dwell from rest on V-bar '
+            '(uncontrolled, noise-free), the models part from the truth by ' + '; '.join(
+                f"{row['distance']:g} m: CW from the nonlinear model {row['cw_vs_nonlinear']:.3g} m, the "
+                f"nonlinear model from two-body {row['nonlinear_vs_two_body']:.1g} m and from two-body with "
+                f"J2 {row['nonlinear_vs_two_body_j2']:.3g} m"
+                + (f", the Schweighart-Sedwick J2 model (ss_j2) from two-body with J2 "
+                   f"{row['ss_j2_vs_two_body_j2']:.3g} m" if with_ss else '') for row in drift)
+            + f" in {drift[0]['dwell']:g} s. ")
+    if not with_ss:
+        return text + ('J2, which neither model holds, is the larger model error at every hold, so removing the '
+                       'curvature error of CW cannot make the hold errors 5x smaller; the filters\' NEES (Q_hat '
+                       'sized for a model that is right) says they do not know it.')
+    return text + ('J2 is the larger model error at every hold. The nonlinear model does not hold it; ss_j2 holds '
+                   'only its orbit average (at rest on V-bar its A x is zero, as CW\'s: it drifts as CW does), '
+                   'while the along-track J2 gradient at the target\'s argument of latitude swings about that '
+                   'average by ~30x its size (docs/decisions.md, 82). Neither removes the hold errors; the '
+                   'filters\' NEES says they do not know it.')
 
 
 def main(argv=None) -> None:

@@ -52,11 +52,14 @@ def test_the_compiled_loop_on_basilisk_truth_equals_the_python_loop(kind):
 
 @pytest.mark.parametrize('kind', ['ekf', 'snn_ekf', 'snn_emsif'])
 @pytest.mark.parametrize('plant, dynamics_model', [('nonlinear_circular', 'nonlinear_circular'),
-                                                   ('cw', 'nonlinear_circular'), ('nonlinear_circular', 'cw')])
+                                                   ('cw', 'nonlinear_circular'), ('nonlinear_circular', 'cw'),
+                                                   ('nonlinear_circular', 'ss_j2'), ('ss_j2', 'cw')])
 def test_the_compiled_loop_on_the_nonlinear_relative_motion_equals_the_python_loop(kind, plant, dynamics_model):
     """The filters' model, the truth or both the nonlinear relative motion, 5 km out: the loop
     recomputes the filter's A(x_hat), zero-order hold and drift before each step and steps the
-    truth by its RK4 substeps, both compiled (snn_estimator.filters.model_kernels)."""
+    truth by its RK4 substeps, both compiled (snn_estimator.filters.model_kernels). A linear
+    model other than CW (ss_j2, the J2 model) as the filters' model or the truth runs through
+    the same constant-A path as CW."""
     scenario = short(far_range_scenario(plant=plant, dynamics_model=dynamics_model, initial_state_dispersion=True))
     assert_same_run(simulate(scenario, kind, runs=2, engine='compiled'),
                     simulate(scenario, kind, runs=2, engine='reference'))

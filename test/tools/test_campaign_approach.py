@@ -31,8 +31,8 @@ def test_a_spec_with_scenario_approach_parses_into_a_cell_per_filter_and_dynamic
 
 
 @pytest.mark.parametrize('key, value, message', [
-    ('dynamics_model', 'kepler', "dynamics_model must be one of cw, nonlinear_circular; got 'kepler'"),
-    ('plant', 'j2_model', "plant must be one of cw, nonlinear_circular, basilisk; got 'j2_model'"),
+    ('dynamics_model', 'kepler', "dynamics_model must be one of cw, nonlinear_circular, ss_j2; got 'kepler'"),
+    ('plant', 'j2_model', "plant must be one of cw, nonlinear_circular, ss_j2, basilisk; got 'j2_model'"),
     ('sensors', 'radar', "sensors must be one of position, by_range, angles_far; got 'radar'"),
     ('first_hold', '1 km', "first_hold must be one of 5 km, 2 km, 250 m, 20 m; got '1 km'"),
 ])
