@@ -69,6 +69,16 @@ def cpu_plan(available=None, plant: str = 'cw') -> dict[str, set[int]]:
     return plan
 
 
+def _replace_file(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` by renaming a finished file over it: a node started a moment
+    earlier may still be reading ``path`` (rcl reads its --params-file at init), and a write in
+    place truncates it first, so on a loaded machine that node read an empty file and ran on the
+    base parameters alone (seen: a controller with neither its guidance nor its weights)."""
+    partial = path.with_name(path.name + '.partial')
+    partial.write_text(text)
+    os.replace(partial, path)
+
+
 class Pipeline:
     """The node processes of one run, with their logs in ``<run>/logs``."""
 
@@ -152,7 +162,7 @@ class Pipeline:
         if overrides:
             self.overrides.setdefault(key, {}).update(overrides)
         document = {f'/**/{n}': {'ros__parameters': values} for n, values in self.overrides.items()}
-        self.overrides_file.write_text(yaml.dump(document, Dumper=_NoAliases, sort_keys=True))
+        _replace_file(self.overrides_file, yaml.dump(document, Dumper=_NoAliases, sort_keys=True))
         log = open(self.run_dir / 'logs' / f'{log_name or key}.log', 'w')
         self.processes[key] = subprocess.Popen(
             self.command(name, module, node_name, remaps), env=self.env, stdout=log, stderr=subprocess.STDOUT,

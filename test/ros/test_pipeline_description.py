@@ -179,3 +179,37 @@ def test_single_process_mode_runs_the_registered_node_and_the_estimator_waits_fo
     assert done.returncode == 0, log[-3000:]
     assert matched(log, 'estimate') == [2]  # the controller and the monitor
     assert heard(log) >= 45
+
+
+def test_a_node_starting_while_the_next_is_added_reads_a_whole_overrides_file(tmp_path, monkeypatch):
+    """Every node reads overrides.yaml at init while the demo goes on starting the next ones,
+    each start writing the file again: a reader must never see it empty or cut (a controller once
+    read it mid-write on a loaded machine and flew without its guidance)."""
+    import threading
+    from types import SimpleNamespace
+
+    import yaml
+
+    from snn_tools.paths import config_file
+    from snn_tools.run import demo
+    monkeypatch.setattr(demo.subprocess, 'Popen', lambda *args, **kwargs: SimpleNamespace(pid=0))  # none started
+    monkeypatch.setattr(demo, 'running_policy', lambda pid: None)
+    pipeline = demo.Pipeline(tmp_path, config_file(), {'lqr_controller': {'guidance': 'approach'}}, demo.pipeline_env())
+    pipeline.start_node('lqr_controller', 'scenario_nodes.controller_node')
+    bad, done = [], threading.Event()
+
+    def read_all_the_time():
+        while not done.is_set():
+            document = yaml.safe_load(pipeline.overrides_file.read_text()) or {}
+            if document.get('/**/lqr_controller', {}).get('ros__parameters', {}).get('guidance') != 'approach':
+                bad.append(document)
+
+    reader = threading.Thread(target=read_all_the_time)
+    reader.start()
+    try:
+        for k in range(40):  # a file of ~100 kB by the end: a write in place is caught half done
+            pipeline.start_node(f'sensor_{k}', 'scenario_nodes.sensor_node', overrides={'values': list(range(300))})
+    finally:
+        done.set()
+        reader.join()
+    assert not bad, f'{len(bad)} reads of a cut or empty file'
