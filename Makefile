@@ -152,13 +152,16 @@ approach: $(STAMP)
 		$(if $(ANGLES),--angles)
 
 # the same on Basilisk's two-body truth with J2, 100 runs of each filter on each model, then the EKF
-# and SNN-EKF on ss_j2, the Schweighart-Sedwick J2 model (~40 + 8 min) ->
+# and SNN-EKF on ss_j2, the Schweighart-Sedwick J2 model, then the EKF with a Q_hat sized for J2's
+# pull (J2_Q_CELLS; ~40 + 8 + 14 min) ->
 # results/approach_basilisk.{json,md} and its section of results/REPORT.md
 approach-basilisk: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
 		--runs $(if $(RUNS),$(RUNS),100) --kinds ekf snn_ekf emsif_weighted --no-extra --out results
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
 		--runs $(if $(RUNS),$(RUNS),100) --kinds ekf snn_ekf --models ss_j2 --no-extra --add --out results
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m snn_tools.experiments.approach --plant basilisk \
+		--runs $(if $(RUNS),$(RUNS),100) --kinds --no-extra --j2-q --add --out results
 
 # the README's approach figure from the results file make demo SCENARIO=approach writes
 approach-figure: $(STAMP)

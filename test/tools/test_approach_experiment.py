@@ -3,6 +3,7 @@ their summary, the results say which sensors each suite flew, and its tables sho
 
 import numpy as np
 
+from snn_estimator.config import resolve
 from snn_estimator.sim.approach import HOLDS, LEGS, approach_scenario, fly_approach, summarize
 from snn_tools.experiments import approach as experiment
 
@@ -39,3 +40,19 @@ def test_the_tables_have_a_row_per_cell_and_the_hold_figures_at_each_decision():
     error = summary['holds']['250 m']['estimate_error']
     assert f"| ekf/cw/short | - (-) | - (-) | {error['mean']:.3f} ({error['max']:.3f}) |" in text
     assert np.isfinite(error['mean'])
+
+
+def test_the_j2_q_cells_raise_only_the_filters_velocity_noise():
+    """J2_Q_CELLS (decision 83): the EKF on each model with the filter's Q on the velocity states
+    at 1e-9 and 1e-8 (Q_hat 0.9 of it), the position states and the truth's own process noise as
+    the default's."""
+    default = approach_scenario('cw')
+    for name, kind, model, changes in experiment.J2_Q_CELLS:
+        scenario = approach_scenario(model, **changes)
+        q = float(name.split('=')[-1])
+        scale = scenario.estimator.process_noise_scale  # Q_hat = scale Q, 0.9 (Sec. 3.2)
+        q_hat = np.diag(resolve(scenario.estimator, scenario.model).q_hat)
+        assert kind == 'ekf'
+        np.testing.assert_allclose(q_hat, scale * np.array([1e-12] * 3 + [q] * 3), rtol=1e-12)
+        np.testing.assert_array_equal(scenario.process_noise, default.process_noise)
+    assert {float(n.split('=')[-1]) for n, *_ in experiment.J2_Q_CELLS} == {1e-9, 1e-8}
