@@ -68,7 +68,8 @@ def campaign(runs: int, kinds, models, plant: str, seed: int = 0, extra=EXTRA_CE
         started = time.perf_counter()
         flights = fly_approach(approach_scenario(model, plant=plant, **changes), kind, runs=runs, seed=seed)
         cells[name] = {'kind': kind, 'dynamics_model': model, 'changes': repr(changes), 'summary': summarize(flights),
-                       'wall_time': time.perf_counter() - started, 'flights': flights}
+                       'sensor_samples': _mean_samples(flights), 'wall_time': time.perf_counter() - started,
+                       'flights': flights}
         print(f"{name}: {cells[name]['summary']['success']}/{runs} successful, {cells[name]['wall_time']:.0f} s",
               flush=True)
     suites = [c['sensors'] for *_, c in extra if c.get('sensors', 'position') != 'position']
@@ -76,6 +77,21 @@ def campaign(runs: int, kinds, models, plant: str, seed: int = 0, extra=EXTRA_CE
             'sensor': 'position (R = 1e-2 m^2, 1 Hz)' + ''.join(f'; sensors={suite}: {suite_text(suite)}'
                                                                  for suite in dict.fromkeys(suites)),
             'cells': cells}
+
+
+def _mean_samples(flights) -> dict | None:
+    """Samples each stacked sensor gave per run, the mean over ``flights`` (None on the position
+    sensor, which counts none)."""
+    samples = [f['sensor_samples'] for f in flights if f.get('sensor_samples')]
+    return {k: sum(s[k] for s in samples) / len(samples) for k in samples[0]} if samples else None
+
+
+def split_runs(results: dict) -> tuple[dict, dict]:
+    """The results without each run's figures, and those figures by cell: the tables need only
+    the first (the summaries), the second goes beside it, untracked (results/*_runs.json)."""
+    cells = {name: {k: v for k, v in cell.items() if k != 'flights'} for name, cell in results['cells'].items()}
+    return {**results, 'cells': cells}, {name: cell['flights'] for name, cell in results['cells'].items()
+                                         if 'flights' in cell}
 
 
 def suite_text(suite: str) -> str:
@@ -179,19 +195,16 @@ def _angles_table(results: dict) -> list[str]:
 
 def _samples_table(results: dict) -> list[str]:
     """Samples each sensor gave per run (mean over the runs) in the cells flown on stacked sensors."""
-    cells = {name: [f['sensor_samples'] for f in cell['flights'] if f.get('sensor_samples')]
-             for name, cell in results['cells'].items()}
     suites: dict[tuple, dict] = {}  # one table per suite (its sensors' names)
-    for name, samples in cells.items():
-        if samples:
-            suites.setdefault(tuple(samples[0]), {})[name] = samples
+    for name, cell in results['cells'].items():
+        if cell.get('sensor_samples'):
+            suites.setdefault(tuple(cell['sensor_samples']), {})[name] = cell['sensor_samples']
     lines = []
     for sensors, suite in suites.items():
         lines += ['', 'Sensors by range: samples per run (mean; one a second while the sensor is in range):', '',
                   '| filter / model | ' + ' | '.join(sensors) + ' |', '|---|' + '---|' * len(sensors)]
-        for name, samples in suite.items():
-            lines.append(f'| {name} | ' + ' | '.join(f'{sum(s[k] for s in samples) / len(samples):.0f}'
-                                                     for k in sensors) + ' |')
+        for name, mean in suite.items():
+            lines.append(f'| {name} | ' + ' | '.join(f'{mean[k]:.0f}' for k in sensors) + ' |')
     return lines
 
 
@@ -266,15 +279,19 @@ def main(argv=None) -> None:
              + (J2_Q_CELLS if args.j2_q else ()))
     results = campaign(args.runs, args.kinds, args.models, args.plant, args.seed, extra)
     stem = 'approach' if args.plant == 'nonlinear_circular' else f'approach_{args.plant}'
+    results, runs = split_runs(results)
     if args.add and (args.out / f'{stem}.json').exists():
         previous = json.loads((args.out / f'{stem}.json').read_text())
         if (previous['runs_per_cell'], previous['seed']) != (args.runs, args.seed):
             parser.error(f"--add: {stem}.json holds {previous['runs_per_cell']} runs from seed {previous['seed']}")
         results = {**previous, 'cells': {**previous['cells'], **results['cells']}}
+        if (args.out / f'{stem}_runs.json').exists():
+            runs = {**json.loads((args.out / f'{stem}_runs.json').read_text()), **runs}
     if args.plant == BASILISK_PLANT:
         results['model_error_over_dwell'] = model_error_over_dwell()
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / f'{stem}.json').write_text(json.dumps(results, indent=1) + '\n')
+    (args.out / f'{stem}_runs.json').write_text(json.dumps(runs) + '\n')  # each run's figures (untracked)
     (args.out / f'{stem}.md').write_text(table(results))
     if args.plant == BASILISK_PLANT and replace_between_markers(args.out / 'REPORT.md', BEGIN, END,
                                                                  report_section(results)):

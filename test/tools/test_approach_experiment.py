@@ -56,3 +56,14 @@ def test_the_j2_q_cells_raise_only_the_filters_velocity_noise():
         np.testing.assert_allclose(q_hat, scale * np.array([1e-12] * 3 + [q] * 3), rtol=1e-12)
         np.testing.assert_array_equal(scenario.process_noise, default.process_noise)
     assert {float(n.split('=')[-1]) for n, *_ in experiment.J2_Q_CELLS} == {1e-9, 1e-8}
+
+
+def test_the_tracked_results_hold_the_summaries_and_give_the_same_tables_without_each_runs_figures():
+    """make approach writes each run's figures apart (results/*_runs.json, untracked): the
+    tracked file keeps the summaries, and the tables (the sensors' samples included) are the same."""
+    results = experiment.campaign(2, kinds=(), models=(), plant='nonlinear_circular', extra=CELLS[1:])
+    tracked, runs = experiment.split_runs(results)
+    assert all('flights' not in cell for cell in tracked['cells'].values())
+    assert runs == {name: cell['flights'] for name, cell in results['cells'].items()} and len(runs[CELLS[1][0]]) == 2
+    assert experiment.table(tracked) == experiment.table(results)
+    assert 'Sensors by range: samples per run' in experiment.table(tracked)
